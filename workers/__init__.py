@@ -1,0 +1,1 @@
+"""vloc workers: the localisation core library and the engines that run it."""

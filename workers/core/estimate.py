@@ -1,0 +1,60 @@
+"""What a localiser returns for each frame."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from enum import StrEnum
+
+
+class Status(StrEnum):
+    INITIALISING = "initialising"
+    TRACKING = "tracking"
+    LOST = "lost"
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    """One pose estimate.
+
+    Attributes
+    ----------
+    x, y : float
+        East and north in metres, in the map's local frame.
+    lat, lon : float
+        The same position in WGS84 degrees.
+    sigma_x, sigma_y : float
+        Weighted standard deviations of the particle cloud (Weiss eq. 2), metres.
+    cov : tuple of 4 floats
+        Row-major 2x2 covariance of the position (metres squared).
+    feature : str
+        Feature type used for this step: ``"sift"`` or ``"global"`` (filters), or the
+        name of the retrieval feature.
+    next_feature : str
+        Feature type the filter will use for the next frame.
+    n_particles : int
+    status : Status
+    processing_ms : float
+        Time spent in the core for this frame (decoding excluded).
+    best_image : int
+        Index of the best-matching map image this step (-1 if none).
+    """
+
+    x: float
+    y: float
+    lat: float
+    lon: float
+    sigma_x: float
+    sigma_y: float
+    cov: tuple[float, float, float, float]
+    feature: str
+    next_feature: str
+    n_particles: int
+    status: Status
+    processing_ms: float
+    best_image: int = -1
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["status"] = str(self.status)
+        d["cov"] = list(self.cov)
+        return d

@@ -1,0 +1,136 @@
+"""A map packed into contiguous arrays, ready for the localisers.
+
+A map is read once, packed here and shared read-only between worker processes: saved as a
+folder of ``.npy`` files, it loads with ``mmap_mode="r"`` so every process maps the same pages.
+
+Arrays
+------
+positions : (N, 2) float64
+    East/north metres of each map image in the map's local frame (:class:`GeoOrigin`).
+altitudes : (N,) float64
+global_features[name] : (N, D) float32
+    One row per map image for each global feature.
+sift_offsets : (N + 1,) int64
+    Image ``i`` owns keypoint rows ``sift_offsets[i]:sift_offsets[i + 1]``.
+sift_keypoints : (K, 4) float32
+sift_descriptors : (K, 128) uint8
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .geo import GeoOrigin
+from .sift import SiftFeatures
+
+
+@dataclass
+class MapData:
+    origin: GeoOrigin
+    names: tuple[str, ...]
+    positions: np.ndarray
+    altitudes: np.ndarray
+    global_features: dict[str, np.ndarray]
+    sift_offsets: np.ndarray
+    sift_keypoints: np.ndarray
+    sift_descriptors: np.ndarray
+    map_id: str = ""
+    revision: int = 0
+    _tree: cKDTree | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        n = len(self.names)
+        if self.positions.shape != (n, 2):
+            raise ValueError(f"positions must be ({n}, 2), got {self.positions.shape}")
+        if self.sift_offsets.shape != (n + 1,):
+            raise ValueError("sift_offsets must have one more entry than there are images")
+        for name, mat in self.global_features.items():
+            if mat.ndim != 2 or mat.shape[0] != n:
+                raise ValueError(f"global feature {name!r} must have {n} rows, got {mat.shape}")
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def tree(self) -> cKDTree:
+        """KD-tree over the map positions (nearest map image of each particle)."""
+        if self._tree is None:
+            self._tree = cKDTree(np.asarray(self.positions))
+        return self._tree
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(min_east, min_north, max_east, max_north) in metres."""
+        lo = self.positions.min(axis=0)
+        hi = self.positions.max(axis=0)
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+    def sift(self, i: int) -> SiftFeatures:
+        a, b = int(self.sift_offsets[i]), int(self.sift_offsets[i + 1])
+        return SiftFeatures(self.sift_keypoints[a:b], self.sift_descriptors[a:b])
+
+    def sift_counts(self) -> np.ndarray:
+        return np.diff(self.sift_offsets)
+
+    @classmethod
+    def from_parts(cls, *, origin: GeoOrigin, names, positions, altitudes,
+                   global_features: dict[str, np.ndarray], sift: list[SiftFeatures],
+                   map_id: str = "", revision: int = 0) -> MapData:
+        counts = np.array([len(s) for s in sift], dtype=np.int64)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        kps = (np.concatenate([s.keypoints for s in sift]) if sift
+               else np.zeros((0, 4), np.float32))
+        desc = (np.concatenate([s.descriptors for s in sift]) if sift
+                else np.zeros((0, 128), np.uint8))
+        return cls(origin=origin, names=tuple(names),
+                   positions=np.asarray(positions, np.float64).reshape(-1, 2),
+                   altitudes=np.asarray(altitudes, np.float64),
+                   global_features={k: np.ascontiguousarray(v, np.float32)
+                                    for k, v in global_features.items()},
+                   sift_offsets=offsets, sift_keypoints=kps.astype(np.float32),
+                   sift_descriptors=desc.astype(np.uint8), map_id=map_id, revision=revision)
+
+    # -- persistence as a folder of .npy files (memory-mappable) ---------------------------
+
+    def save(self, folder: str | Path) -> Path:
+        """Write the map to ``folder``; the write is atomic (temporary folder, rename)."""
+        folder = Path(folder)
+        tmp = folder.with_name(folder.name + ".tmp")
+        tmp.mkdir(parents=True, exist_ok=True)
+        np.save(tmp / "positions.npy", self.positions)
+        np.save(tmp / "altitudes.npy", self.altitudes)
+        np.save(tmp / "sift_offsets.npy", self.sift_offsets)
+        np.save(tmp / "sift_keypoints.npy", self.sift_keypoints)
+        np.save(tmp / "sift_descriptors.npy", self.sift_descriptors)
+        for name, mat in self.global_features.items():
+            np.save(tmp / f"global_{name}.npy", mat)
+        meta = {"origin": [self.origin.lat, self.origin.lon, self.origin.alt],
+                "names": list(self.names), "features": sorted(self.global_features),
+                "map_id": self.map_id, "revision": self.revision}
+        (tmp / "meta.json").write_text(json.dumps(meta))
+        if folder.exists():
+            import shutil
+            shutil.rmtree(folder)
+        tmp.rename(folder)
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path, *, mmap: bool = True) -> MapData:
+        folder = Path(folder)
+        meta = json.loads((folder / "meta.json").read_text())
+        mode = "r" if mmap else None
+
+        def ld(name: str) -> np.ndarray:
+            return np.load(folder / name, mmap_mode=mode)
+
+        return cls(origin=GeoOrigin(*meta["origin"]), names=tuple(meta["names"]),
+                   positions=ld("positions.npy"), altitudes=ld("altitudes.npy"),
+                   global_features={n: ld(f"global_{n}.npy") for n in meta["features"]},
+                   sift_offsets=ld("sift_offsets.npy"), sift_keypoints=ld("sift_keypoints.npy"),
+                   sift_descriptors=ld("sift_descriptors.npy"), map_id=meta["map_id"],
+                   revision=int(meta["revision"]))

@@ -1,0 +1,176 @@
+"""SIFT local features, ratio-test matching and the feature reductions.
+
+Weiss et al. 2008, section III: image similarity is the share of a frame's keypoints that
+find a match in a map image under Lowe's ratio test. Matching is one matrix product per
+image pair: for unit-free SIFT descriptors ``|a - b|^2 = |a|^2 + |b|^2 - 2 a.b``.
+
+Feature reduction: a map image keeps only the keypoints that match one of its two
+GPS-nearest map images (:func:`reduce_map`); a query frame keeps only those that match the
+previous frame (:func:`reduce_with_previous`). This removes the "noisy" keypoints that are
+unlikely to appear in more than one image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+RATIO: float = 0.8
+"""Lowe's ratio-test threshold on distances (Lowe 2004 uses 0.8)."""
+
+
+@dataclass(frozen=True, slots=True)
+class SiftFeatures:
+    """Keypoints and descriptors of one image.
+
+    Attributes
+    ----------
+    keypoints : (K, 4) float32 ndarray
+        x, y (pixels), size, angle (degrees) per keypoint.
+    descriptors : (K, 128) uint8 ndarray
+        OpenCV's SIFT descriptors; their values are integers in 0..255, so uint8 is exact.
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.descriptors.shape[0])
+
+    def subset(self, keep: np.ndarray) -> SiftFeatures:
+        return SiftFeatures(self.keypoints[keep], self.descriptors[keep])
+
+    @classmethod
+    def empty(cls) -> SiftFeatures:
+        return cls(np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8))
+
+
+_SIFT = None
+
+
+def _detector(n_features: int):
+    global _SIFT
+    if n_features:
+        return cv2.SIFT_create(nfeatures=n_features)
+    if _SIFT is None:
+        _SIFT = cv2.SIFT_create()
+    return _SIFT
+
+
+def extract_sift(grey: np.ndarray, *, n_features: int = 0) -> SiftFeatures:
+    """Detect SIFT keypoints and compute their descriptors.
+
+    Parameters
+    ----------
+    grey : (H, W) uint8 ndarray
+    n_features : int
+        Keep the best ``n_features`` keypoints by response; 0 keeps all.
+
+    Returns
+    -------
+    SiftFeatures
+    """
+    kps, desc = _detector(n_features).detectAndCompute(grey, None)
+    if desc is None or not kps:
+        return SiftFeatures.empty()
+    pts = np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], dtype=np.float32)
+    return SiftFeatures(pts, np.clip(np.rint(desc), 0, 255).astype(np.uint8))
+
+
+def _as_float(desc: np.ndarray) -> np.ndarray:
+    return desc.astype(np.float32, copy=False)
+
+
+def ratio_matches(a: np.ndarray, b: np.ndarray, *, ratio: float = RATIO) -> np.ndarray:
+    """Lowe ratio-test matches from descriptors ``a`` into descriptors ``b``.
+
+    Parameters
+    ----------
+    a : (Ka, 128) ndarray
+    b : (Kb, 128) ndarray
+    ratio : float
+        A match is kept when ``d1 < ratio * d2`` for the nearest and second-nearest
+        Euclidean distances.
+
+    Returns
+    -------
+    matches : (M, 2) int64 ndarray
+        Rows of (index into a, index into b).
+    """
+    if len(a) == 0 or len(b) < 2:
+        return np.zeros((0, 2), np.int64)
+    af, bf = _as_float(a), _as_float(b)
+    # Squared distances from one matrix product; clip the tiny negatives of round-off.
+    d2 = (np.einsum("ij,ij->i", af, af)[:, None] + np.einsum("ij,ij->i", bf, bf)[None, :]
+          - 2.0 * (af @ bf.T))
+    np.maximum(d2, 0.0, out=d2)
+    two = np.argpartition(d2, 1, axis=1)[:, :2]
+    rows = np.arange(len(a))
+    d_two = d2[rows[:, None], two]
+    order = np.argsort(d_two, axis=1)
+    first = two[rows, order[:, 0]]
+    best, second = d_two[rows, order[:, 0]], d_two[rows, order[:, 1]]
+    keep = best < (ratio * ratio) * second
+    return np.stack([rows[keep], first[keep]], axis=1).astype(np.int64)
+
+
+def match_share(query: SiftFeatures, reference: SiftFeatures, *, ratio: float = RATIO) -> float:
+    """Share of the query's keypoints matched into the reference (0..1)."""
+    if len(query) == 0:
+        return 0.0
+    return len(ratio_matches(query.descriptors, reference.descriptors, ratio=ratio)) / len(query)
+
+
+def _matched_any(a: SiftFeatures, others: list[SiftFeatures], ratio: float) -> np.ndarray:
+    keep = np.zeros(len(a), dtype=bool)
+    for other in others:
+        m = ratio_matches(a.descriptors, other.descriptors, ratio=ratio)
+        keep[m[:, 0]] = True
+    return keep
+
+
+def reduce_map(features: list[SiftFeatures], positions: np.ndarray, *,
+               neighbours: int = 2, ratio: float = RATIO) -> list[SiftFeatures]:
+    """Keep each map image's keypoints that match one of its GPS-nearest map images.
+
+    Weiss et al. 2008, section III, with ``neighbours = 2``.
+
+    Parameters
+    ----------
+    features : list of SiftFeatures, one per map image
+    positions : (N, 2) float ndarray
+        East/north positions of the map images.
+
+    Returns
+    -------
+    list of SiftFeatures, reduced
+    """
+    n = len(features)
+    if n < 2:
+        return list(features)
+    k = min(neighbours, n - 1)
+    _, idx = cKDTree(positions).query(positions, k=k + 1)
+    reduced = []
+    for i, feats in enumerate(features):
+        nbrs = [features[j] for j in np.atleast_1d(idx[i])[1:]]
+        reduced.append(feats.subset(_matched_any(feats, nbrs, ratio)))
+    return reduced
+
+
+def reduce_with_previous(current: SiftFeatures, previous: SiftFeatures | None, *,
+                         ratio: float = RATIO, min_keep: int = 0) -> SiftFeatures:
+    """Keep the current frame's keypoints that match the previous frame.
+
+    When there is no previous frame, or fewer than ``min_keep`` keypoints survive (the
+    camera moved too far for the frames to overlap), the frame is kept whole: a reduction
+    that empties the frame would make every similarity zero.
+    """
+    if previous is None or len(previous) == 0:
+        return current
+    keep = _matched_any(current, [previous], ratio)
+    if keep.sum() < max(min_keep, 1):
+        return current
+    return current.subset(keep)
