@@ -14,6 +14,9 @@ sift_offsets : (N + 1,) int64
     Image ``i`` owns keypoint rows ``sift_offsets[i]:sift_offsets[i + 1]``.
 sift_keypoints : (K, 4) float32
 sift_descriptors : (K, 128) uint8
+captured_at : (N,) float64
+    Capture times of the map images in seconds since the epoch, NaN where unknown; the
+    motion model derives the platform's typical speed from them.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ class MapData:
     sift_descriptors: np.ndarray
     map_id: str = ""
     revision: int = 0
+    captured_at: np.ndarray | None = None
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -52,6 +56,11 @@ class MapData:
         for name, mat in self.global_features.items():
             if mat.ndim != 2 or mat.shape[0] != n:
                 raise ValueError(f"global feature {name!r} must have {n} rows, got {mat.shape}")
+        if self.captured_at is None:
+            self.captured_at = np.full(n, np.nan)
+        self.captured_at = np.asarray(self.captured_at, np.float64)
+        if self.captured_at.shape != (n,):
+            raise ValueError(f"captured_at must be ({n},), got {self.captured_at.shape}")
 
     def __len__(self) -> int:
         return len(self.names)
@@ -77,10 +86,38 @@ class MapData:
     def sift_counts(self) -> np.ndarray:
         return np.diff(self.sift_offsets)
 
+    def typical_speed(self) -> float | None:
+        """Median speed (m/s) between map images taken one after the other, if timed.
+
+        Consecutive captures further apart than five times the median gap are ignored:
+        they are breaks between legs or flights, not motion.
+        """
+        t = self.captured_at
+        ok = np.isfinite(t)
+        if ok.sum() < 3:
+            return None
+        order = np.argsort(np.where(ok, t, np.inf))[: int(ok.sum())]
+        dt = np.diff(t[order])
+        dist = np.linalg.norm(np.diff(np.asarray(self.positions)[order], axis=0), axis=1)
+        good = dt > 0
+        if good.sum() < 2:
+            return None
+        dt, dist = dt[good], dist[good]
+        keep = dt <= 5.0 * np.median(dt)
+        return float(np.median(dist[keep] / dt[keep]))
+
+    def median_spacing(self) -> float:
+        """Median distance from each map image to its nearest neighbour (metres)."""
+        if len(self) < 2:
+            return 1.0
+        d, _ = self.tree.query(np.asarray(self.positions), k=2)
+        return float(np.median(d[:, 1]))
+
     @classmethod
     def from_parts(cls, *, origin: GeoOrigin, names, positions, altitudes,
                    global_features: dict[str, np.ndarray], sift: list[SiftFeatures],
-                   map_id: str = "", revision: int = 0) -> MapData:
+                   map_id: str = "", revision: int = 0,
+                   captured_at=None) -> MapData:
         counts = np.array([len(s) for s in sift], dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         kps = (np.concatenate([s.keypoints for s in sift]) if sift
@@ -93,7 +130,9 @@ class MapData:
                    global_features={k: np.ascontiguousarray(v, np.float32)
                                     for k, v in global_features.items()},
                    sift_offsets=offsets, sift_keypoints=kps.astype(np.float32),
-                   sift_descriptors=desc.astype(np.uint8), map_id=map_id, revision=revision)
+                   sift_descriptors=desc.astype(np.uint8), map_id=map_id, revision=revision,
+                   captured_at=None if captured_at is None
+                   else np.asarray(captured_at, np.float64))
 
     # -- persistence as a folder of .npy files (memory-mappable) ---------------------------
 
@@ -107,6 +146,7 @@ class MapData:
         np.save(tmp / "sift_offsets.npy", self.sift_offsets)
         np.save(tmp / "sift_keypoints.npy", self.sift_keypoints)
         np.save(tmp / "sift_descriptors.npy", self.sift_descriptors)
+        np.save(tmp / "captured_at.npy", self.captured_at)
         for name, mat in self.global_features.items():
             np.save(tmp / f"global_{name}.npy", mat)
         meta = {"origin": [self.origin.lat, self.origin.lon, self.origin.alt],
@@ -133,4 +173,4 @@ class MapData:
                    global_features={n: ld(f"global_{n}.npy") for n in meta["features"]},
                    sift_offsets=ld("sift_offsets.npy"), sift_keypoints=ld("sift_keypoints.npy"),
                    sift_descriptors=ld("sift_descriptors.npy"), map_id=meta["map_id"],
-                   revision=int(meta["revision"]))
+                   revision=int(meta["revision"]), captured_at=ld("captured_at.npy"))
