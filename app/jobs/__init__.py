@@ -1,0 +1,1 @@
+"""Build jobs: extracting map image features in the workers and packing a new revision."""

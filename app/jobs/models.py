@@ -1,0 +1,39 @@
+"""The build-job table."""
+
+from __future__ import annotations
+
+import uuid
+from datetime import datetime
+
+from sqlalchemy import Float, ForeignKey, Integer, String, Text
+from sqlalchemy.orm import Mapped, mapped_column
+
+from app.db import Base, UTCDateTime, new_id, utcnow
+
+
+class JobStatus:
+    QUEUED = "queued"
+    RUNNING = "running"
+    DONE = "done"
+    FAILED = "failed"
+
+    ACTIVE = (QUEUED, RUNNING)
+
+
+class BuildJob(Base):
+    __tablename__ = "build_jobs"
+
+    id: Mapped[uuid.UUID] = mapped_column(primary_key=True, default=new_id)
+    map_id: Mapped[uuid.UUID] = mapped_column(
+        ForeignKey("maps.id", ondelete="CASCADE"), index=True)
+    status: Mapped[str] = mapped_column(String(16), default=JobStatus.QUEUED)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    """0..1: feature extraction is the first 90 %, packing the map the rest."""
+    error: Mapped[str | None] = mapped_column(Text)
+    n_images: Mapped[int] = mapped_column(Integer, default=0)
+    n_extracted: Mapped[int] = mapped_column(Integer, default=0)
+    revision: Mapped[int | None] = mapped_column(Integer)
+    """The map revision this job produced (set when done)."""
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)

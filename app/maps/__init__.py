@@ -1,0 +1,1 @@
+"""Maps: named sets of GPS-tagged images, their features and packed builds."""

@@ -1,0 +1,107 @@
+"""Tables of maps, their images and the images' features.
+
+Feature arrays are stored as binary columns in little-endian byte order; each column's
+docstring gives the dtype and shape so any client can read them back with
+``numpy.frombuffer(data, dtype).reshape(shape)``.
+"""
+
+from __future__ import annotations
+
+import uuid
+from datetime import datetime
+
+from sqlalchemy import (BigInteger, Float, ForeignKey, Integer, LargeBinary, String,
+                        UniqueConstraint)
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from app.db import Base, UTCDateTime, new_id, utcnow
+
+
+class MapStatus:
+    EMPTY = "empty"          # no images yet
+    UNBUILT = "unbuilt"      # images waiting for a build
+    BUILDING = "building"
+    READY = "ready"          # the current revision contains every image
+    FAILED = "failed"        # the last build failed; an earlier revision may still serve
+
+
+class Map(Base):
+    __tablename__ = "maps"
+
+    id: Mapped[uuid.UUID] = mapped_column(primary_key=True, default=new_id)
+    name: Mapped[str] = mapped_column(String(200))
+    status: Mapped[str] = mapped_column(String(16), default=MapStatus.EMPTY)
+    revision: Mapped[int] = mapped_column(Integer, default=0)
+    """Bumped by every successful build; 0 until the first."""
+    origin_lat: Mapped[float | None] = mapped_column(Float)
+    origin_lon: Mapped[float | None] = mapped_column(Float)
+    origin_alt: Mapped[float | None] = mapped_column(Float)
+    """Reference point of the local east-north frame of the current revision."""
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    built_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+    images: Mapped[list[MapImage]] = relationship(
+        back_populates="map", cascade="all, delete-orphan", passive_deletes=True)
+
+
+class MapImage(Base):
+    __tablename__ = "map_images"
+    __table_args__ = (UniqueConstraint("map_id", "file_hash"),)
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"),
+                                    primary_key=True, autoincrement=True)
+    map_id: Mapped[uuid.UUID] = mapped_column(
+        ForeignKey("maps.id", ondelete="CASCADE"), index=True)
+    filename: Mapped[str] = mapped_column(String(255))
+    file_hash: Mapped[str] = mapped_column(String(64))
+    """SHA-256 of the file, hex; also the file's name on disk."""
+    content_type: Mapped[str] = mapped_column(String(32))
+    byte_size: Mapped[int] = mapped_column(BigInteger)
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    lat: Mapped[float] = mapped_column(Float)
+    lon: Mapped[float] = mapped_column(Float)
+    alt: Mapped[float | None] = mapped_column(Float)
+    position_source: Mapped[str] = mapped_column(String(8))
+    """``exif`` or ``form`` (lat/lon given with the upload)."""
+    east: Mapped[float | None] = mapped_column(Float)
+    north: Mapped[float | None] = mapped_column(Float)
+    """Metres in the map's local frame of the last build that included the image."""
+    captured_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    built_revision: Mapped[int | None] = mapped_column(Integer)
+    """The first map revision that contained this image; NULL until then."""
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+    map: Mapped[Map] = relationship(back_populates="images")
+
+
+class ImageGlobalFeature(Base):
+    """One global feature vector of one map image.
+
+    ``data``: (dim,) float32, little-endian.
+    """
+
+    __tablename__ = "image_global_features"
+
+    image_id: Mapped[int] = mapped_column(
+        ForeignKey("map_images.id", ondelete="CASCADE"), primary_key=True)
+    name: Mapped[str] = mapped_column(String(32), primary_key=True)
+    dim: Mapped[int] = mapped_column(Integer)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class ImageSift(Base):
+    """The raw (unreduced) SIFT features of one map image.
+
+    ``keypoints``: (n_keypoints, 4) float32, little-endian, columns x, y (pixels at the
+    working resolution), size, angle (degrees).
+    ``descriptors``: (n_keypoints, 128) uint8.
+    """
+
+    __tablename__ = "image_sift"
+
+    image_id: Mapped[int] = mapped_column(
+        ForeignKey("map_images.id", ondelete="CASCADE"), primary_key=True)
+    n_keypoints: Mapped[int] = mapped_column(Integer)
+    keypoints: Mapped[bytes] = mapped_column(LargeBinary)
+    descriptors: Mapped[bytes] = mapped_column(LargeBinary)

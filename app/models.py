@@ -1,0 +1,9 @@
+"""Every table, imported in one place for Alembic and ``Base.metadata``."""
+
+from app.db import Base
+from app.jobs.models import BuildJob
+from app.maps.models import ImageGlobalFeature, ImageSift, Map, MapImage
+from app.sessions.models import LocalisationSession, Pose
+
+__all__ = ["Base", "BuildJob", "ImageGlobalFeature", "ImageSift", "LocalisationSession",
+           "Map", "MapImage", "Pose"]

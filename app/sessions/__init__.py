@@ -1,0 +1,1 @@
+"""Localisation sessions: a filter on a map, fed frames over HTTP or WebSocket."""
