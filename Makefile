@@ -1,0 +1,37 @@
+# The two commands a newcomer needs: `make demo` and `make test`.
+# Each sets up its own virtual environment on first use.
+
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: demo test bench eval-seneca lint clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+## demo: synthetic world -> server on embedded defaults -> map over HTTP -> replay -> table
+demo: $(STAMP)
+	$(BIN)/vloc demo
+
+## test: the whole test suite (PostgreSQL/Redis tests skip when those are absent)
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+## bench: stage timings and the paper experiments (long; writes bench/results/)
+bench: $(STAMP)
+	$(BIN)/python bench/run_all.py
+
+## eval-seneca: the real-data evaluation (needs ../shared/datasets/seneca-uav)
+eval-seneca: $(STAMP)
+	$(BIN)/python bench/eval_seneca.py
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache
