@@ -8,6 +8,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from PIL import ExifTags, Image
+from PIL.TiffImagePlugin import IFDRational as R
 
 from workers.core.datasets import (
     DatasetError,
@@ -115,6 +117,18 @@ def test_bad_cells_and_unreadable_files_are_skipped_with_reasons(tmp_path):
     assert "within +-90" in reasons["q.jpg"]
     assert "first" in reasons["r.jpg"]
     assert "unreadable image" in reasons["s.jpg"]
+
+
+def test_malformed_exif_gps_falls_back_to_csv(tmp_path):
+    exif = Image.Exif()
+    exif[ExifTags.IFD.GPSInfo] = {1: "N", 2: (R(95, 1), R(0, 1), R(0, 1)),
+                                  3: "E", 4: (R(1, 1), R(0, 1), R(0, 1))}
+    for name in ("u.jpg", "v.jpg"):
+        Image.new("RGB", (16, 8)).save(tmp_path / name, "JPEG", exif=exif.tobytes())
+    _csv(tmp_path / "positions.csv", "filename,lat,lon", "u.jpg,12.0,13.0")
+    ds = load_dataset(tmp_path)
+    assert [(im.name, im.source, im.lat) for im in ds.images] == [("u.jpg", "csv", 12.0)]
+    assert ds.skipped[0][0] == "v.jpg" and "malformed EXIF GPS" in ds.skipped[0][1]
 
 
 def test_folder_errors(tmp_path):

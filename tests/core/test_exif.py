@@ -106,6 +106,16 @@ def test_write_keeps_pixels_and_compressed_data():
                                      captured_at=datetime(2021, 5, 6, 7, 8, 9))
 
 
+def test_write_into_jpeg_without_app0():
+    original = _jpeg(_image(3))
+    assert original[2:4] == b"\xff\xe0"
+    bare = original[:2] + original[4 + int.from_bytes(original[4:6], "big"):]
+    tagged = write_gps(bare, lat=-5.5, lon=120.125)
+    assert tagged[2:4] == b"\xff\xe1" and tagged[6:12] == b"Exif\x00\x00"
+    np.testing.assert_array_equal(decode_image(tagged), decode_image(original))
+    assert (read_gps(tagged).lat, read_gps(tagged).lon) == (-5.5, 120.125)
+
+
 def test_write_keeps_other_exif_tags():
     exif = Image.Exif()
     exif[ExifTags.Base.Make] = "Acme"
