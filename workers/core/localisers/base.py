@@ -1,0 +1,114 @@
+"""What every localiser shares: the interface, estimates in both frames, state packing."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from ..estimate import Estimate, Status
+from ..image import Frame
+from ..mapdata import MapData
+from ..query import QueryFrame
+
+
+def as_query(frame: Frame | QueryFrame, captured_at: float | None) -> QueryFrame:
+    if isinstance(frame, QueryFrame):
+        if captured_at is not None:
+            frame.captured_at = captured_at
+        return frame
+    return QueryFrame(frame, captured_at)
+
+
+def pack_state(arrays: dict[str, np.ndarray], meta: dict) -> bytes:
+    """Arrays and JSON metadata as one ``.npz`` byte string (exact, no pickle)."""
+    buf = io.BytesIO()
+    payload = dict(arrays)
+    payload["__meta__"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(buf, **payload)
+    return buf.getvalue()
+
+
+def unpack_state(data: bytes) -> tuple[dict[str, np.ndarray], dict]:
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        meta = json.loads(arrays.pop("__meta__").tobytes().decode())
+    except Exception as exc:  # noqa: BLE001 - any failure means the blob is unusable
+        raise ValueError(f"not a localiser state: {exc}") from exc
+    return arrays, meta
+
+
+class Localiser(ABC):
+    """A localiser turns frames into estimates on one map.
+
+    Subclasses implement :meth:`_step`, :meth:`_state`, :meth:`_load`, :meth:`reset` and
+    :meth:`set_initial_pose`.
+    """
+
+    mode: str = ""
+
+    def __init__(self, map_data: MapData, params: dict, seed: int) -> None:
+        self.map = map_data
+        self.params = params
+        self.seed = int(seed)
+        self.rng = np.random.default_rng(self.seed)
+        self.stats = {"steps": 0, "sift_steps": 0, "global_steps": 0}
+
+    def step(self, frame: Frame | QueryFrame, *, captured_at: float | None = None) -> Estimate:
+        """Localise one frame (``captured_at`` in seconds since the epoch, if known)."""
+        query = as_query(frame, captured_at)
+        t0 = time.perf_counter()
+        est = self._step(query, t0)
+        self.stats["steps"] += 1
+        key = "sift_steps" if est.feature == "sift" else "global_steps"
+        self.stats[key] += 1
+        return est
+
+    def _estimate(self, mean: np.ndarray, cov: np.ndarray, *, feature: str, next_feature: str,
+                  n_particles: int, status: Status, processing_ms: float,
+                  best_image: int) -> Estimate:
+        lat, lon = self.map.origin.to_wgs84(mean[0], mean[1])
+        return Estimate(
+            x=float(mean[0]), y=float(mean[1]), lat=float(lat), lon=float(lon),
+            sigma_x=float(np.sqrt(max(cov[0, 0], 0.0))),
+            sigma_y=float(np.sqrt(max(cov[1, 1], 0.0))),
+            cov=(float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 0]), float(cov[1, 1])),
+            feature=feature, next_feature=next_feature, n_particles=n_particles,
+            status=status, processing_ms=float(processing_ms), best_image=int(best_image))
+
+    def get_state(self) -> bytes:
+        """Everything needed to resume bit-for-bit, as bytes."""
+        arrays, meta = self._state()
+        meta.update(mode=self.mode, seed=self.seed, stats=self.stats,
+                    rng=self.rng.bit_generator.state, n_map=len(self.map))
+        return pack_state(arrays, meta)
+
+    def set_state(self, data: bytes) -> None:
+        arrays, meta = unpack_state(data)
+        if meta.get("mode") != self.mode or meta.get("n_map") != len(self.map):
+            raise ValueError("state belongs to another mode or map")
+        self.rng.bit_generator.state = meta["rng"]
+        self.stats = dict(meta["stats"])
+        self._load(arrays, meta)
+
+    # -- subclass hooks -------------------------------------------------------------------
+
+    @abstractmethod
+    def _step(self, query: QueryFrame, t0: float) -> Estimate:
+        """Localise one frame; ``t0`` is when the step started (perf_counter)."""
+
+    def _state(self) -> tuple[dict[str, np.ndarray], dict]:
+        return {}, {}
+
+    def _load(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
+        """Restore subclass state; the base restores rng and stats."""
+
+    def reset(self) -> None:
+        """Forget everything learnt from earlier frames (global re-initialisation)."""
+
+    def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:
+        """Start from a known pose (east/north metres in the map frame)."""

@@ -1,0 +1,130 @@
+"""The particle-filter localisers: ``hybrid`` (Weiss IV-B), ``global`` and ``sift``."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..estimate import Estimate, Status
+from ..mapdata import MapData
+from ..pf.config import config_from_params
+from ..pf.filter import GLOBAL, SIFT, ParticleFilter
+from ..pf.motion import MotionModel
+from ..query import QueryFrame
+from ..sift import SiftFeatures
+from .base import Localiser
+from .similarity_models import global_similarity, sift_similarity
+
+MIN_REDUCED_KEYPOINTS = 20
+"""Below this many keypoints surviving the match with the previous frame, the frame is kept
+whole: the platform moved too far for the frames to overlap usefully."""
+
+
+class FilterLocaliser(Localiser):
+    """Particle filter with hybrid switching, or pinned to one feature type.
+
+    Parameters
+    ----------
+    map_data : MapData
+    params : dict
+        :class:`~workers.core.pf.config.FilterConfig` fields and ``config`` (a named base).
+    seed : int
+    mode : {"hybrid", "global", "sift"}
+    """
+
+    def __init__(self, map_data: MapData, params: dict, seed: int, mode: str) -> None:
+        super().__init__(map_data, params, seed)
+        self.mode = mode
+        self.config = cfg = config_from_params(params)
+        speed = map_data.typical_speed() if cfg.speed == "auto" else cfg.speed
+        self.motion = MotionModel(sigma_floor=cfg.motion_sigma, speed=speed, pull=cfg.pull,
+                                  velocity=cfg.velocity)
+        scale = cfg.distance_scale or max(2.0 * map_data.median_spacing(), 1.0)
+        self.pf = ParticleFilter(np.asarray(map_data.positions), map_data.tree, cfg,
+                                 self.motion, scale, self.rng)
+        self._fixed = {"global": GLOBAL, "sift": SIFT}.get(mode)
+        self._pin()
+        self.prev_sift: SiftFeatures | None = None
+        self.prev_key = None
+        self.last_time: float | None = None
+
+    def _pin(self) -> None:
+        if self._fixed is not None:
+            self.pf.mode = self._fixed
+
+    def _step(self, query: QueryFrame, t0: float) -> Estimate:
+        cfg = self.config
+        dt = None
+        if query.captured_at is not None and self.last_time is not None:
+            dt = query.captured_at - self.last_time
+        kind = self.pf.mode
+        if kind == GLOBAL:
+            q, feat_ms = query.global_features(cfg.global_features)
+
+            def similarity(idx: np.ndarray) -> np.ndarray:
+                return global_similarity(q, self.map, idx, features=cfg.global_features,
+                                         measure=cfg.global_measure)
+        else:
+            q_sift, feat_ms = query.reduced_sift(self.prev_sift, self.prev_key,
+                                                 ratio=cfg.sift_ratio,
+                                                 min_keep=MIN_REDUCED_KEYPOINTS)
+
+            def similarity(idx: np.ndarray) -> np.ndarray:
+                return sift_similarity(q_sift, self.map, idx, ratio=cfg.sift_ratio,
+                                       verify=cfg.sift_verify)
+        t_filter = time.perf_counter()
+        every = kind == GLOBAL and cfg.replacement == "retrieval"
+        stats, used, scored, sims = self.pf.step(similarity, dt, all_similarities=every)
+        self._pin()
+        filter_ms = (time.perf_counter() - t_filter) * 1e3
+        if used == SIFT:
+            self.prev_sift, self.prev_key = query.sift()[0], query.key
+        else:
+            self.prev_sift, self.prev_key = None, None
+        if query.captured_at is not None:
+            self.last_time = query.captured_at
+        _, d_sift = self.pf.thresholds(dt)
+        spread = max(stats.sigma_x, stats.sigma_y)
+        if spread < d_sift:
+            status = Status.TRACKING
+        else:
+            status = Status.LOST if self.stats.get("ever_tracked") else Status.INITIALISING
+        if status is Status.TRACKING:
+            self.stats["ever_tracked"] = 1
+        best = int(scored[np.argmax(sims)]) if len(scored) else -1
+        return self._estimate(stats.mean, stats.cov, feature=used, next_feature=self.pf.mode,
+                              n_particles=len(self.pf.w), status=status,
+                              processing_ms=feat_ms + filter_ms, best_image=best)
+
+    # -- state ---------------------------------------------------------------------------
+
+    def _state(self) -> tuple[dict[str, np.ndarray], dict]:
+        arrays, meta = self.pf.state()
+        arrays = {f"pf_{k}": v for k, v in arrays.items()}
+        if self.prev_sift is not None:
+            arrays["prev_kp"] = self.prev_sift.keypoints
+            arrays["prev_desc"] = self.prev_sift.descriptors
+        return arrays, {"pf": meta, "last_time": self.last_time}
+
+    def _load(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
+        self.pf.load({k[3:]: v for k, v in arrays.items() if k.startswith("pf_")}, meta["pf"])
+        # The filter and the localiser share one generator; the filter's copy of its state
+        # is the same object, restored last wins, and both are equal.
+        self.last_time = meta["last_time"]
+        if "prev_desc" in arrays:
+            self.prev_sift = SiftFeatures(arrays["prev_kp"], arrays["prev_desc"])
+        else:
+            self.prev_sift = None
+        self.prev_key = None
+
+    def reset(self) -> None:
+        self.pf.initialise()
+        self._pin()
+        self.prev_sift, self.prev_key, self.last_time = None, None, None
+        self.stats.pop("ever_tracked", None)
+
+    def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:
+        self.pf.set_pose(x, y, sigma)
+        self._pin()
+        self.prev_sift, self.prev_key = None, None

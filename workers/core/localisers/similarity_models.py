@@ -1,0 +1,65 @@
+"""Similarity of a query frame with map images, by global features or by SIFT."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..mapdata import MapData
+from ..sift import SiftFeatures, ratio_matches
+from ..similarity import similarities
+
+_MIN_VERIFY = {"homography": 4, "fundamental": 8}
+RANSAC_PX = 4.0
+"""RANSAC inlier threshold in pixels at the working resolution."""
+
+
+def global_similarity(query: dict[str, np.ndarray], map_data: MapData, idx: np.ndarray, *,
+                      features: tuple[str, ...], measure: str) -> np.ndarray:
+    """Product over ``features`` of the per-feature similarities (Weiss II-C).
+
+    With ``features = ("wgoh", "wgii")`` and ``measure = "weiss"`` this is
+    s_WGOH x s_WGII with the normalised intersection of Weiss eq. 1.
+
+    Returns
+    -------
+    (k,) float64 ndarray in [0, 1]
+    """
+    s = np.ones(len(idx))
+    for name in features:
+        s *= similarities(measure, query[name], map_data.global_features[name][idx])
+    return s
+
+
+def verified_count(query: SiftFeatures, ref: SiftFeatures, matches: np.ndarray,
+                   method: str) -> int:
+    """Number of matches consistent with one geometric model (RANSAC inliers)."""
+    if method == "none" or len(matches) < _MIN_VERIFY[method]:
+        return len(matches) if method == "none" else 0
+    src = np.ascontiguousarray(query.keypoints[matches[:, 0], :2], dtype=np.float32)
+    dst = np.ascontiguousarray(ref.keypoints[matches[:, 1], :2], dtype=np.float32)
+    if method == "homography":
+        _, mask = cv2.findHomography(src, dst, cv2.RANSAC, RANSAC_PX, maxIters=500,
+                                     confidence=0.99)
+    else:
+        _, mask = cv2.findFundamentalMat(src, dst, cv2.FM_RANSAC, RANSAC_PX, 0.99, 500)
+    return 0 if mask is None else int(mask.sum())
+
+
+def sift_similarity(query: SiftFeatures, map_data: MapData, idx: np.ndarray, *, ratio: float,
+                    verify: str) -> np.ndarray:
+    """Share of the query's keypoints matched (and verified) in each map image (Weiss III).
+
+    Returns
+    -------
+    (k,) float64 ndarray in [0, 1]
+    """
+    out = np.zeros(len(idx))
+    n = len(query)
+    if n == 0:
+        return out
+    for j, i in enumerate(idx):
+        ref = map_data.sift(int(i))
+        m = ratio_matches(query.descriptors, ref.descriptors, ratio=ratio)
+        out[j] = verified_count(query, ref, m, verify) / n
+    return out

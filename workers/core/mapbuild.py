@@ -1,0 +1,88 @@
+"""Building a map: every feature of every map image, then the packed :class:`MapData`.
+
+Extraction is per image and independent (run it in parallel); assembly needs all images at
+once, because the SIFT reduction matches each image with its two GPS-nearest neighbours
+(Weiss III).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .features import FEATURE_NAMES, extract_many
+from .geo import GeoOrigin
+from .image import Frame
+from .mapdata import MapData
+from .sift import RATIO, SiftFeatures, extract_sift, reduce_map
+
+
+@dataclass(frozen=True, slots=True)
+class ImageFeatures:
+    """Everything extracted from one map image.
+
+    Attributes
+    ----------
+    global_features : dict of str -> (D,) float32 ndarray
+    sift : SiftFeatures
+        All keypoints, before the neighbour reduction.
+    """
+
+    global_features: dict[str, np.ndarray]
+    sift: SiftFeatures
+
+
+def extract_image_features(frame: Frame, *,
+                           features: tuple[str, ...] = FEATURE_NAMES) -> ImageFeatures:
+    """Extract the named global features and SIFT from one map image."""
+    return ImageFeatures(extract_many(features, frame), extract_sift(frame.grey))
+
+
+def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
+                 captured_at=None, map_id: str = "", revision: int = 0,
+                 origin: GeoOrigin | None = None, reduce_sift: bool = True,
+                 ratio: float = RATIO) -> MapData:
+    """Pack per-image features into a :class:`MapData`.
+
+    Parameters
+    ----------
+    names : sequence of str, one per image
+    lats, lons : sequence of float (WGS84 degrees)
+    alts : sequence of float or None (metres); None entries count as 0
+    features : list of ImageFeatures, one per image
+    captured_at : sequence of float or None (seconds since the epoch; NaN/None unknown)
+    origin : GeoOrigin or None
+        The local frame; by default at the centroid of the images.
+    reduce_sift : bool
+        Keep only keypoints matching one of the two GPS-nearest map images.
+
+    Returns
+    -------
+    MapData
+    """
+    n = len(names)
+    if not (len(lats) == len(lons) == len(alts) == len(features) == n):
+        raise ValueError("names, lats, lons, alts and features must have the same length")
+    if n == 0:
+        raise ValueError("a map needs at least one image")
+    lat = np.asarray(lats, np.float64)
+    lon = np.asarray(lons, np.float64)
+    alt = np.array([np.nan if a is None else a for a in alts], np.float64)
+    alt0 = np.where(np.isfinite(alt), alt, 0.0)
+    if origin is None:
+        origin = GeoOrigin.centroid_of(lat, lon, alt0)
+    east, north = origin.to_local(lat, lon)
+    xy = np.stack([np.atleast_1d(east), np.atleast_1d(north)], axis=1)
+    names_in_all = set.intersection(*(set(f.global_features) for f in features))
+    glob = {name: np.stack([f.global_features[name] for f in features]).astype(np.float32)
+            for name in sorted(names_in_all)}
+    sift = [f.sift for f in features]
+    if reduce_sift:
+        sift = reduce_map(sift, xy, ratio=ratio)
+    times = None
+    if captured_at is not None:
+        times = np.array([np.nan if t is None else t for t in captured_at], np.float64)
+    return MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
+                              global_features=glob, sift=sift, map_id=map_id,
+                              revision=revision, captured_at=times)
