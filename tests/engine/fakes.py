@@ -1,0 +1,73 @@
+"""Test-only tasks and a trivial localiser for the engine tests (imported by the workers)."""
+
+from __future__ import annotations
+
+import os
+import struct
+import time
+from pathlib import Path
+
+from workers.core.estimate import Estimate, Status
+
+
+def square(x: int) -> int:
+    return x * x
+
+
+def fail(message: str) -> None:
+    raise ValueError(message)
+
+
+def pid() -> int:
+    return os.getpid()
+
+
+def wait_for_file(path: str, timeout: float = 30.0) -> bool:
+    """Hold the worker until ``path`` exists (lets a test queue work behind it)."""
+    deadline = time.monotonic() + timeout
+    while not Path(path).exists():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+class CountingLocaliser:
+    """Counts its steps; x is the count, y the mean grey level of the last frame.
+
+    Its whole state is the count, so a restored checkpoint shows in the next estimate.
+    """
+
+    def __init__(self, offset: float = 0.0) -> None:
+        self.count = 0
+        self.offset = offset
+        self.stats = {"steps": 0}
+
+    def step(self, frame, *, captured_at=None) -> Estimate:
+        if float(frame.grey.mean()) > 250:
+            raise RuntimeError("frame too bright for the fake")
+        self.count += 1
+        self.stats["steps"] = self.count
+        x = float(self.count) + self.offset
+        y = float(frame.grey.mean())
+        return Estimate(x=x, y=y, lat=0.0, lon=0.0, sigma_x=1.0, sigma_y=1.0,
+                        cov=(1.0, 0.0, 0.0, 1.0), feature="fake", next_feature="fake",
+                        n_particles=1, status=Status.TRACKING, processing_ms=0.0)
+
+    def get_state(self) -> bytes:
+        return struct.pack("<q", self.count)
+
+    def set_state(self, data: bytes) -> None:
+        (self.count,) = struct.unpack("<q", data)
+
+    def reset(self) -> None:
+        self.count = 0
+
+    def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:
+        self.count = int(x)
+
+
+def make_counting(mode: str, map_data, params: dict, *, seed: int) -> CountingLocaliser:
+    if mode != "count":
+        raise ValueError(f"unknown mode {mode!r}")
+    return CountingLocaliser(offset=float(params.get("offset", 0.0)))

@@ -1,0 +1,161 @@
+"""The local process-pool engine, with test-only tasks and a counting localiser."""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+
+import cv2
+import numpy as np
+import pytest
+
+from workers.engine import FrameDone, FrameFailed, LocalEngine, SessionSpec, WorkerDied
+
+FACTORY = "tests.engine.fakes:make_counting"
+TIMEOUT = 60
+
+
+def _png(level: int) -> bytes:
+    ok, buf = cv2.imencode(".png", np.full((24, 32), level, np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+def _spec(session_id: str, **params) -> SessionSpec:
+    return SessionSpec(session_id=session_id, map_id="", revision=0, map_folder="",
+                       mode="count", params=params, seed=0, factory=FACTORY)
+
+
+@pytest.fixture
+def outcomes() -> queue.Queue:
+    return queue.Queue()
+
+
+@pytest.fixture
+def engine(outcomes):
+    eng = LocalEngine(2, on_frame=outcomes.put)
+    eng.start()
+    yield eng
+    eng.close()
+
+
+def _take(outcomes: queue.Queue, n: int) -> list:
+    return [outcomes.get(timeout=TIMEOUT) for _ in range(n)]
+
+
+def test_call_runs_in_a_worker_process_and_returns_its_value(engine):
+    assert engine.call("tests.engine.fakes:square", 7).result(TIMEOUT) == 49
+    pid = engine.call("tests.engine.fakes:pid").result(TIMEOUT)
+    assert pid in engine.worker_pids() and pid != os.getpid()
+
+
+def test_call_error_comes_back_as_the_builtin_type(engine):
+    with pytest.raises(ValueError, match="no good"):
+        engine.call("tests.engine.fakes:fail", "no good").result(TIMEOUT)
+    # The worker survives its task's exception.
+    assert engine.call("tests.engine.fakes:square", 3).result(TIMEOUT) == 9
+
+
+def test_frames_of_a_session_come_back_in_order(engine, outcomes):
+    engine.open_session(_spec("a")).result(TIMEOUT)
+    engine.open_session(_spec("b", offset=100)).result(TIMEOUT)
+    # Least-busy pinning puts the second session on the other worker.
+    assert {engine.worker_index("a"), engine.worker_index("b")} == {0, 1}
+    for seq in range(5):
+        engine.submit_frame("a", seq, _png(10 * seq))
+        engine.submit_frame("b", seq, _png(20))
+    got = _take(outcomes, 10)
+    a = [o for o in got if o.session_id == "a"]
+    b = [o for o in got if o.session_id == "b"]
+    assert [o.seq for o in a] == list(range(5)) and [o.seq for o in b] == list(range(5))
+    assert [o.estimate["x"] for o in a] == [1.0, 2.0, 3.0, 4.0, 5.0]
+    assert [o.estimate["y"] for o in a] == [0.0, 10.0, 20.0, 30.0, 40.0]
+    assert [o.estimate["x"] for o in b] == [101.0, 102.0, 103.0, 104.0, 105.0]
+    assert engine.pending_frames("a") == 0
+
+
+def test_bad_image_and_localiser_error_fail_one_frame_only(engine, outcomes):
+    engine.open_session(_spec("s")).result(TIMEOUT)
+    engine.submit_frame("s", 1, b"\x89PNG\r\n\x1a\n garbage")
+    engine.submit_frame("s", 2, _png(255))
+    engine.submit_frame("s", 3, _png(5))
+    bad, error, good = _take(outcomes, 3)
+    assert isinstance(bad, FrameFailed) and bad.kind == "bad_image" and bad.seq == 1
+    assert isinstance(error, FrameFailed) and error.kind == "error"
+    assert "too bright" in error.reason
+    assert isinstance(good, FrameDone) and good.seq == 3 and good.estimate["x"] == 1.0
+
+
+def test_controls_run_in_order_with_frames_and_checkpoint(engine, outcomes):
+    engine.open_session(_spec("s")).result(TIMEOUT)
+    engine.submit_frame("s", 1, _png(1))
+    engine.control("s", "set_initial_pose", x=40, y=0).result(TIMEOUT)
+    engine.submit_frame("s", 2, _png(1))
+    first, second = _take(outcomes, 2)
+    assert (first.estimate["x"], second.estimate["x"]) == (1.0, 41.0)
+    assert second.state == (41).to_bytes(8, "little")
+    engine.control("s", "reset").result(TIMEOUT)
+    assert engine.last_state("s") == (0).to_bytes(8, "little")
+    assert engine.control("s", "stats").result(TIMEOUT) == {"steps": 41}
+
+
+def test_unknown_mode_fails_the_open_and_leaves_no_session(engine):
+    spec = SessionSpec("x", "", 0, "", "nope", factory=FACTORY)
+    with pytest.raises(ValueError, match="unknown mode"):
+        engine.open_session(spec).result(TIMEOUT)
+    assert not engine.is_open("x")
+    with pytest.raises(KeyError):
+        engine.submit_frame("x", 1, _png(1))
+
+
+def test_checkpoint_every_n_frames(outcomes):
+    eng = LocalEngine(1, on_frame=outcomes.put, checkpoint_every=3)
+    eng.start()
+    try:
+        eng.open_session(_spec("s")).result(TIMEOUT)
+        for seq in range(6):
+            eng.submit_frame("s", seq, _png(1))
+        states = [o.state for o in _take(outcomes, 6)]
+        assert [s is not None for s in states] == [False, False, True, False, False, True]
+    finally:
+        eng.close()
+
+
+def test_killed_worker_is_replaced_and_its_sessions_resume(outcomes, tmp_path):
+    engine = LocalEngine(1, on_frame=outcomes.put)
+    engine.start()
+    try:
+        engine.open_session(_spec("s")).result(TIMEOUT)
+        for seq in range(3):
+            engine.submit_frame("s", seq, _png(1))
+        assert [o.estimate["x"] for o in _take(outcomes, 3)] == [1.0, 2.0, 3.0]
+        (victim,) = engine.worker_pids()
+        # Hold the worker so that the next frames are certainly queued on it when it dies.
+        held = engine.call("tests.engine.fakes:wait_for_file", str(tmp_path / "never"))
+        engine.submit_frame("s", 3, _png(1))
+        engine.submit_frame("s", 4, _png(1))
+        os.kill(victim, signal.SIGKILL)
+        lost = _take(outcomes, 2)
+        assert [(o.seq, o.kind) for o in lost] == [(3, "worker_died"), (4, "worker_died")]
+        assert str(victim) in lost[0].reason
+        with pytest.raises(WorkerDied):
+            held.result(TIMEOUT)
+        assert engine.restarts == 1 and engine.worker_pids() != [victim]
+        # The session lives on from its checkpoint after frame 2: three steps, then one more.
+        engine.submit_frame("s", 5, _png(1))
+        (after,) = _take(outcomes, 1)
+        assert isinstance(after, FrameDone) and after.estimate["x"] == 4.0
+        assert engine.alive()
+    finally:
+        engine.close()
+
+
+def test_closed_engine_refuses_work(outcomes):
+    eng = LocalEngine(1, on_frame=outcomes.put)
+    eng.start()
+    eng.close()
+    from workers.engine import EngineClosed
+
+    with pytest.raises(EngineClosed):
+        eng.call("tests.engine.fakes:square", 2)

@@ -1,0 +1,146 @@
+"""What the API process and the workers say to each other (pickled over pipes).
+
+Tasks go to a worker through its own queue, in order; outcomes come back through the
+worker's own result pipe. Frames are identified by (session id, seq) end to end.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+DEFAULT_FACTORY = "workers.core.localisers:make_localiser"
+
+
+@dataclass(frozen=True, slots=True)
+class SessionSpec:
+    """Everything a worker needs to (re)create a session's localiser.
+
+    Attributes
+    ----------
+    session_id : str
+    map_id, revision : str, int
+        The packed map's identity; workers cache maps under this key.
+    map_folder : str
+        The :class:`~workers.core.mapdata.MapData` folder ("" for a localiser without map).
+    mode : str
+        Localiser mode, as for :func:`workers.core.localisers.make_localiser`.
+    params : dict
+        Normalised parameters.
+    seed : int
+        The session's seed: the same frames in the same order give the same estimates.
+    factory : str
+        ``"module:function"`` with the signature of ``make_localiser``.
+    """
+
+    session_id: str
+    map_id: str
+    revision: int
+    map_folder: str
+    mode: str
+    params: dict = field(default_factory=dict)
+    seed: int = 0
+    factory: str = DEFAULT_FACTORY
+
+
+# -- API process -> worker ------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class OpenSession:
+    spec: SessionSpec
+    state: bytes | None = None
+    call_id: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class FrameTask:
+    session_id: str
+    seq: int
+    data: bytes
+    captured_at: float | None = None
+    checkpoint: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class ControlTask:
+    """``reset``, ``set_initial_pose`` (kwargs x, y, sigma) or ``stats`` on one session."""
+
+    call_id: int
+    session_id: str
+    op: str
+    kwargs: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class CallTask:
+    """Run ``fn`` (``"module:function"``) with the arguments; build jobs use this."""
+
+    call_id: int
+    fn: str
+    args: tuple = ()
+    kwargs: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class CloseSession:
+    session_id: str
+
+
+@dataclass(frozen=True, slots=True)
+class Stop:
+    pass
+
+
+# -- worker -> API process ------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class Ready:
+    pid: int
+
+
+@dataclass(frozen=True, slots=True)
+class FrameDone:
+    """A frame's estimate.
+
+    Attributes
+    ----------
+    estimate : dict
+        :meth:`workers.core.estimate.Estimate.to_dict`.
+    state : bytes or None
+        The localiser's state after this frame (a checkpoint), when one was asked for.
+    decode_ms : float
+        Decoding and resizing time in the worker; the step's own time is in the estimate.
+    """
+
+    session_id: str
+    seq: int
+    estimate: dict
+    state: bytes | None
+    decode_ms: float
+
+
+@dataclass(frozen=True, slots=True)
+class FrameFailed:
+    """A frame that gave no estimate.
+
+    ``kind`` is ``bad_image`` (the bytes did not decode), ``error`` (the localiser raised),
+    ``not_open`` (the session is not open on the worker) or ``worker_died``.
+    """
+
+    session_id: str
+    seq: int
+    kind: str
+    reason: str
+
+
+FrameOutcome = FrameDone | FrameFailed
+
+
+@dataclass(frozen=True, slots=True)
+class CallDone:
+    call_id: int
+    ok: bool
+    value: object = None
+    error_type: str = ""
+    error: str = ""
+    session_id: str | None = None
+    state: bytes | None = None

@@ -1,0 +1,399 @@
+"""The local engine: a pool of worker processes with per-worker queues and result pipes.
+
+Why one result pipe per worker rather than one shared queue: a process killed while writing
+to a shared queue can leave half a message in it and corrupt it for everyone; a private pipe
+dies with its worker, and whatever whole messages it still holds are read before the
+worker's in-flight frames are reported as failed.
+
+Threads: callers submit from any thread (the event loop, request threads); one reader
+thread waits on every result pipe and every process sentinel, dispatches outcomes, and
+replaces dead workers.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import multiprocessing as mp
+import os
+import sys
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection, wait
+
+from .messages import (
+    CallDone,
+    CallTask,
+    CloseSession,
+    ControlTask,
+    FrameDone,
+    FrameFailed,
+    FrameOutcome,
+    FrameTask,
+    OpenSession,
+    Ready,
+    SessionSpec,
+    Stop,
+)
+from .worker import THREAD_ENV, worker_main
+
+log = logging.getLogger(__name__)
+
+PRELOAD = ["workers.engine.worker", "workers.core.localisers", "workers.core.mapbuild"]
+
+
+class WorkerDied(RuntimeError):
+    """The worker process running a call or holding a frame exited."""
+
+
+class EngineClosed(RuntimeError):
+    """The engine is not running."""
+
+
+@dataclass(eq=False)
+class _Slot:
+    index: int
+    process: mp.process.BaseProcess
+    tasks: object
+    conn: Connection
+    ready: threading.Event = field(default_factory=threading.Event)
+    sessions: set[str] = field(default_factory=set)
+    frames: dict[tuple[str, int], None] = field(default_factory=dict)
+    calls: dict[int, Future] = field(default_factory=dict)
+
+    @property
+    def load(self) -> int:
+        return len(self.frames) + len(self.calls)
+
+
+class LocalEngine:
+    """A pool of worker processes running sessions and calls.
+
+    Parameters
+    ----------
+    n_workers : int
+    on_frame : callable(FrameDone | FrameFailed) or None
+        Called in the engine's reader thread for every frame outcome, in each session's
+        order; keep it short (hand the outcome to another thread).
+    checkpoint_every : int
+        Ask for the localiser's state after every ``checkpoint_every``-th frame of a session.
+    max_pixels : int
+        Decompression-bomb guard for frame decoding in the workers.
+    start_method : str or None
+        ``"forkserver"`` (default where available) or ``"spawn"``; never ``"fork"``, which
+        copies the parent's threads' locks in whatever state they are in.
+    """
+
+    def __init__(self, n_workers: int, *, on_frame: Callable[[FrameOutcome], None] | None = None,
+                 checkpoint_every: int = 1, max_pixels: int = 50_000_000,
+                 start_method: str | None = None) -> None:
+        if n_workers < 1:
+            raise ValueError("n_workers must be at least 1")
+        if start_method is None:
+            start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        if start_method == "fork":
+            raise ValueError("the fork start method is unsafe with threads; use forkserver")
+        self.n_workers = n_workers
+        self.on_frame = on_frame
+        self.checkpoint_every = checkpoint_every
+        self.max_pixels = max_pixels
+        self.restarts = 0
+        self._ctx = mp.get_context(start_method)
+        if start_method == "forkserver":
+            self._ctx.set_forkserver_preload(PRELOAD)
+        self._lock = threading.RLock()
+        self._slots: list[_Slot] = []
+        self._specs: dict[str, SessionSpec] = {}
+        self._pinned: dict[str, int] = {}
+        self._states: dict[str, bytes] = {}
+        self._counts: dict[str, int] = {}
+        self._call_ids = itertools.count(1)
+        self._running = False
+        self._reader: threading.Thread | None = None
+        self._wakeup_r, self._wakeup_w = self._ctx.Pipe(duplex=False)
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self, timeout: float = 120.0) -> None:
+        """Start the workers and wait until each has loaded the core library."""
+        for var in THREAD_ENV:
+            # Inherited by the workers; the API process itself runs no numerics.
+            os.environ.setdefault(var, "1")
+        with self._lock:
+            self._slots = [self._spawn(i) for i in range(self.n_workers)]
+            self._running = True
+        self._reader = threading.Thread(target=self._read_loop, name="engine-reader",
+                                        daemon=True)
+        self._reader.start()
+        for slot in list(self._slots):
+            if not slot.ready.wait(timeout):
+                self.close()
+                raise RuntimeError(f"worker {slot.index} did not start in {timeout:g} s")
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the workers after the tasks already queued; fail what is left."""
+        with self._lock:
+            if not self._running:
+                return
+            self._running = False
+            slots = list(self._slots)
+        for slot in slots:
+            slot.tasks.put(Stop())
+        for slot in slots:
+            slot.process.join(timeout)
+            if slot.process.is_alive():
+                slot.process.kill()
+                slot.process.join(1.0)
+        self._wakeup_w.send(None)
+        if self._reader is not None:
+            self._reader.join(timeout)
+        for slot in slots:
+            self._drain(slot)
+            self._fail_slot(slot, "the engine stopped")
+            slot.tasks.cancel_join_thread()
+            slot.tasks.close()
+            slot.conn.close()
+
+    @property
+    def running(self) -> bool:
+        return self._running
+
+    def worker_pids(self) -> list[int]:
+        with self._lock:
+            return [slot.process.pid for slot in self._slots]
+
+    def alive(self) -> bool:
+        with self._lock:
+            return self._running and all(s.process.is_alive() for s in self._slots)
+
+    # -- sessions ---------------------------------------------------------------------------
+
+    def open_session(self, spec: SessionSpec, *, state: bytes | None = None) -> Future:
+        """Pin a session to the least busy worker and create its localiser there.
+
+        ``state`` restores a checkpoint. The future resolves once the localiser exists, or
+        fails with the worker's error (the session is then not open).
+        """
+        fut: Future = Future()
+        with self._lock:
+            self._check_running()
+            slot = self._slots[self._pinned[spec.session_id]] \
+                if spec.session_id in self._pinned else min(
+                    self._slots, key=lambda s: (len(s.sessions), s.load, s.index))
+            call_id = next(self._call_ids)
+            self._specs[spec.session_id] = spec
+            self._pinned[spec.session_id] = slot.index
+            self._counts.setdefault(spec.session_id, 0)
+            if state is not None:
+                self._states[spec.session_id] = state
+            slot.sessions.add(spec.session_id)
+            slot.calls[call_id] = fut
+            slot.tasks.put(OpenSession(spec, state, call_id))
+        fut.add_done_callback(lambda f: f.exception() and self._forget(spec.session_id))
+        return fut
+
+    def is_open(self, session_id: str) -> bool:
+        with self._lock:
+            return session_id in self._pinned
+
+    def worker_index(self, session_id: str) -> int:
+        with self._lock:
+            return self._pinned[session_id]
+
+    def submit_frame(self, session_id: str, seq: int, data: bytes, *,
+                     captured_at: float | None = None) -> None:
+        """Queue a frame; its outcome comes back through ``on_frame``.
+
+        Raises KeyError when the session is not open, ``EngineClosed`` when stopped.
+        """
+        with self._lock:
+            self._check_running()
+            slot = self._slots[self._pinned[session_id]]
+            n = self._counts[session_id] = self._counts[session_id] + 1
+            slot.frames[(session_id, seq)] = None
+            slot.tasks.put(FrameTask(session_id, seq, data, captured_at,
+                                     checkpoint=n % self.checkpoint_every == 0))
+
+    def pending_frames(self, session_id: str) -> int:
+        with self._lock:
+            index = self._pinned.get(session_id)
+            if index is None:
+                return 0
+            return sum(1 for sid, _ in self._slots[index].frames if sid == session_id)
+
+    def control(self, session_id: str, op: str, **kwargs) -> Future:
+        """``reset`` / ``set_initial_pose`` / ``stats``, in order with the session's frames."""
+        fut: Future = Future()
+        with self._lock:
+            self._check_running()
+            slot = self._slots[self._pinned[session_id]]
+            call_id = next(self._call_ids)
+            slot.calls[call_id] = fut
+            slot.tasks.put(ControlTask(call_id, session_id, op, kwargs))
+        return fut
+
+    def close_session(self, session_id: str) -> None:
+        with self._lock:
+            index = self._pinned.get(session_id)
+            self._forget(session_id)
+            if index is not None and self._running:
+                self._slots[index].tasks.put(CloseSession(session_id))
+
+    def last_state(self, session_id: str) -> bytes | None:
+        with self._lock:
+            return self._states.get(session_id)
+
+    # -- calls ------------------------------------------------------------------------------
+
+    def call(self, fn: str, *args, **kwargs) -> Future:
+        """Run ``fn`` (``"module:function"``) on the least busy worker."""
+        fut: Future = Future()
+        with self._lock:
+            self._check_running()
+            slot = min(self._slots, key=lambda s: (s.load, s.index))
+            call_id = next(self._call_ids)
+            slot.calls[call_id] = fut
+            slot.tasks.put(CallTask(call_id, fn, args, kwargs))
+        return fut
+
+    # -- internals --------------------------------------------------------------------------
+
+    def _check_running(self) -> None:
+        if not self._running:
+            raise EngineClosed("the engine is not running")
+
+    def _forget(self, session_id: str) -> None:
+        with self._lock:
+            index = self._pinned.pop(session_id, None)
+            if index is not None and index < len(self._slots):
+                self._slots[index].sessions.discard(session_id)
+            self._specs.pop(session_id, None)
+            self._states.pop(session_id, None)
+            self._counts.pop(session_id, None)
+
+    def _spawn(self, index: int) -> _Slot:
+        tasks = self._ctx.Queue()
+        reader, writer = self._ctx.Pipe(duplex=False)
+        process = self._ctx.Process(target=worker_main, name=f"vloc-worker-{index}",
+                                    args=(index, tasks, writer, self.max_pixels), daemon=True)
+        process.start()
+        # Our copy of the write end must go, or the pipe never reports EOF when the worker dies.
+        writer.close()
+        return _Slot(index, process, tasks, reader)
+
+    def _read_loop(self) -> None:
+        while True:
+            with self._lock:
+                if not self._running:
+                    return
+                by_conn = {s.conn: s for s in self._slots}
+                by_sentinel = {s.process.sentinel: s for s in self._slots}
+            ready = wait([*by_conn, *by_sentinel, self._wakeup_r])
+            dead: list[_Slot] = []
+            for obj in ready:
+                if obj is self._wakeup_r:
+                    continue
+                slot = by_conn.get(obj) or by_sentinel.get(obj)
+                if slot in dead:
+                    continue
+                if obj in by_conn:
+                    try:
+                        msg = obj.recv()
+                    except (EOFError, OSError):
+                        dead.append(slot)
+                        continue
+                    self._dispatch(slot, msg)
+                elif not slot.process.is_alive():
+                    dead.append(slot)
+            for slot in dead:
+                with self._lock:
+                    if not self._running:
+                        return
+                self._replace(slot)
+
+    def _dispatch(self, slot: _Slot, msg) -> None:
+        if isinstance(msg, Ready):
+            slot.ready.set()
+            return
+        if isinstance(msg, FrameDone | FrameFailed):
+            with self._lock:
+                slot.frames.pop((msg.session_id, msg.seq), None)
+                if isinstance(msg, FrameDone) and msg.state is not None \
+                        and msg.session_id in self._pinned:
+                    self._states[msg.session_id] = msg.state
+            self._emit(msg)
+            return
+        if isinstance(msg, CallDone):
+            with self._lock:
+                fut = slot.calls.pop(msg.call_id, None)
+                if msg.state is not None and msg.session_id in self._pinned:
+                    self._states[msg.session_id] = msg.state
+            if fut is None:
+                return
+            if msg.ok:
+                fut.set_result(msg.value)
+            else:
+                fut.set_exception(_remote_error(msg.error_type, msg.error))
+            return
+        log.warning("engine: unexpected message %r", type(msg).__name__)
+
+    def _emit(self, outcome: FrameOutcome) -> None:
+        if self.on_frame is None:
+            return
+        try:
+            self.on_frame(outcome)
+        except Exception:  # noqa: BLE001 - a broken consumer must not kill the reader
+            log.exception("engine: frame consumer failed")
+
+    def _drain(self, slot: _Slot) -> None:
+        """Dispatch the whole messages a (dead or stopped) worker left in its pipe."""
+        try:
+            while slot.conn.poll():
+                self._dispatch(slot, slot.conn.recv())
+        except (EOFError, OSError, ValueError):
+            pass  # the rest is a message the worker did not finish writing
+
+    def _fail_slot(self, slot: _Slot, reason: str) -> None:
+        with self._lock:
+            frames, slot.frames = list(slot.frames), {}
+            calls, slot.calls = list(slot.calls.values()), {}
+        for fut in calls:
+            if not fut.done():
+                fut.set_exception(WorkerDied(reason))
+        for session_id, seq in frames:
+            self._emit(FrameFailed(session_id, seq, "worker_died", reason))
+
+    def _replace(self, slot: _Slot) -> None:
+        self._drain(slot)
+        slot.process.join(1.0)
+        code = slot.process.exitcode
+        reason = f"worker process {slot.process.pid} exited (code {code}) before finishing it"
+        log.error("engine: worker %d (pid %s) died with code %s; replacing it",
+                  slot.index, slot.process.pid, code)
+        with self._lock:
+            # Everything submitted from here on goes to the new worker, after the reopening
+            # of the sessions, so no frame can reach it before its session does.
+            fresh = self._spawn(slot.index)
+            fresh.sessions = set(slot.sessions)
+            for session_id in sorted(fresh.sessions):
+                fresh.tasks.put(OpenSession(self._specs[session_id],
+                                            self._states.get(session_id)))
+            self._slots[slot.index] = fresh
+            self.restarts += 1
+        self._fail_slot(slot, reason)
+        slot.tasks.cancel_join_thread()
+        slot.tasks.close()
+        slot.conn.close()
+
+
+def _remote_error(error_type: str, message: str) -> Exception:
+    """Rebuild a worker's exception as the same builtin type where there is one."""
+    cls = getattr(sys.modules["builtins"], error_type, None)
+    if isinstance(cls, type) and issubclass(cls, Exception):
+        try:
+            return cls(message)
+        except TypeError:
+            pass
+    return RuntimeError(f"{error_type}: {message}")

@@ -1,0 +1,183 @@
+"""The worker process: a loop over its task queue, one localiser per session it holds.
+
+A worker handles its tasks strictly in order, so the frames of a session (all pinned to the
+same worker) are stepped in the order the API accepted them. Maps are loaded memory-mapped
+once per (map id, revision) and shared by every session on the worker, and by every worker
+through the page cache.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import signal
+import time
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+
+from .messages import (
+    CallDone,
+    CallTask,
+    CloseSession,
+    ControlTask,
+    FrameDone,
+    FrameFailed,
+    FrameTask,
+    OpenSession,
+    Ready,
+    SessionSpec,
+    Stop,
+)
+
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def resolve(ref: str) -> Callable:
+    """``"package.module:function"`` -> the function."""
+    module, _, attr = ref.partition(":")
+    if not module or not attr:
+        raise ValueError(f"expected 'module:function', got {ref!r}")
+    return getattr(importlib.import_module(module), attr)
+
+
+class WorkerState:
+    """The sessions and maps one worker holds; :meth:`handle` runs one task."""
+
+    def __init__(self, *, max_pixels: int) -> None:
+        self.max_pixels = max_pixels
+        self.sessions: dict[str, tuple[SessionSpec, object]] = {}
+        self.maps: dict[tuple[str, int], object] = {}
+
+    def handle(self, task) -> object | None:
+        if isinstance(task, FrameTask):
+            return self._frame(task)
+        if isinstance(task, OpenSession):
+            return self._guarded(task.call_id, task.spec.session_id, self._open, task)
+        if isinstance(task, ControlTask):
+            return self._guarded(task.call_id, task.session_id, self._control, task)
+        if isinstance(task, CallTask):
+            return self._guarded(task.call_id, None,
+                                 lambda t: (resolve(t.fn)(*t.args, **t.kwargs), None), task)
+        if isinstance(task, CloseSession):
+            self._close(task.session_id)
+            return None
+        raise TypeError(f"unknown task {type(task).__name__}")
+
+    # -- tasks ------------------------------------------------------------------------------
+
+    def _frame(self, task: FrameTask) -> FrameDone | FrameFailed:
+        held = self.sessions.get(task.session_id)
+        if held is None:
+            return FrameFailed(task.session_id, task.seq, "not_open",
+                               "the session is not open on its worker")
+        from workers.core.image import ImageError, load_frame
+
+        localiser = held[1]
+        t0 = time.perf_counter()
+        try:
+            frame = load_frame(task.data, max_pixels=self.max_pixels)
+        except ImageError as exc:
+            return FrameFailed(task.session_id, task.seq, "bad_image", str(exc))
+        decode_ms = (time.perf_counter() - t0) * 1e3
+        try:
+            estimate = localiser.step(frame, captured_at=task.captured_at)
+            state = localiser.get_state() if task.checkpoint else None
+        except Exception as exc:  # noqa: BLE001 - reported on the stream, the worker lives on
+            return FrameFailed(task.session_id, task.seq, "error",
+                               f"{type(exc).__name__}: {exc}")
+        return FrameDone(task.session_id, task.seq, estimate.to_dict(), state, decode_ms)
+
+    def _open(self, task: OpenSession) -> tuple[object, bytes | None]:
+        spec = task.spec
+        map_data = self._map(spec) if spec.map_folder else None
+        factory = resolve(spec.factory)
+        localiser = factory(spec.mode, map_data, dict(spec.params), seed=spec.seed)
+        if task.state is not None:
+            localiser.set_state(task.state)
+        self._close(spec.session_id)
+        self.sessions[spec.session_id] = (spec, localiser)
+        return None, None
+
+    def _control(self, task: ControlTask) -> tuple[object, bytes | None]:
+        held = self.sessions.get(task.session_id)
+        if held is None:
+            raise KeyError(f"session {task.session_id} is not open on this worker")
+        spec, localiser = held
+        if task.op == "reset":
+            localiser.reset()
+        elif task.op == "set_initial_pose":
+            localiser.set_initial_pose(float(task.kwargs["x"]), float(task.kwargs["y"]),
+                                       float(task.kwargs.get("sigma", 5.0)))
+        elif task.op == "stats":
+            return dict(getattr(localiser, "stats", {})), None
+        else:
+            raise ValueError(f"unknown control {task.op!r}")
+        return None, localiser.get_state()
+
+    def _close(self, session_id: str) -> None:
+        held = self.sessions.pop(session_id, None)
+        if held is None:
+            return
+        key = (held[0].map_id, held[0].revision)
+        # Drop the map when no session uses it any more: it is memory-mapped, so loading
+        # it again later costs page-cache hits, not a copy.
+        if all((s.map_id, s.revision) != key for s, _ in self.sessions.values()):
+            self.maps.pop(key, None)
+
+    def _map(self, spec: SessionSpec):
+        key = (spec.map_id, spec.revision)
+        if key not in self.maps:
+            from workers.core.mapdata import MapData
+
+            self.maps[key] = MapData.load(spec.map_folder, mmap=True)
+        return self.maps[key]
+
+    @staticmethod
+    def _guarded(call_id, session_id, fn, task) -> CallDone | None:
+        try:
+            value, state = fn(task)
+        except Exception as exc:  # noqa: BLE001 - the caller gets the error, the worker lives on
+            if call_id is None:
+                return None
+            return CallDone(call_id, False, None, _builtin_base(exc), _describe(exc), session_id)
+        if call_id is None:
+            return None
+        return CallDone(call_id, True, value, session_id=session_id, state=state)
+
+
+def _builtin_base(exc: BaseException) -> str:
+    """The nearest builtin class of an exception, which the API process can rebuild."""
+    return next(c.__name__ for c in type(exc).__mro__ if c.__module__ == "builtins")
+
+
+def _describe(exc: BaseException) -> str:
+    name = type(exc).__name__
+    return str(exc) if name == _builtin_base(exc) else f"{name}: {exc}"
+
+
+def worker_main(index: int, tasks, results: Connection, max_pixels: int) -> None:
+    """Entry point of a worker process."""
+    # The parent handles Ctrl-C and stops the workers in order; a worker that died of the
+    # terminal's SIGINT first would report its frames as lost.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _single_threaded()
+    state = WorkerState(max_pixels=max_pixels)
+    results.send(Ready(os.getpid()))
+    while True:
+        task = tasks.get()
+        if isinstance(task, Stop):
+            break
+        out = state.handle(task)
+        if out is not None:
+            results.send(out)
+    results.close()
+
+
+def _single_threaded() -> None:
+    """One thread per worker: the pool already has one worker per core."""
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:
+        pass
