@@ -24,6 +24,12 @@ Choices the papers leave open, and what is used here:
 
 * Offsets ``p = (x, y)`` are in pixels, x right and y down; ``g_r p`` is rounded to the
   nearest pixel (no interpolation), which keeps every rotation a plain array shift.
+* Arithmetic: grey values are handled in hundredths of a grey value and the ramp half-width
+  ``eps * 255`` is rounded to one (exact for 0.098: 24.99). Every difference, clip and sum is
+  then an integer below 2**24, exact in float32 whatever the summation order: invariants
+  that equal a bin boundary ``k/8`` exactly (very common: ``T = 1/2`` wherever the rotations
+  balance) deterministically fall into bin ``k``, and a brightness offset leaves the feature
+  bit-identical.
 * Border: the image is mirrored without repeating the edge pixel (OpenCV's
   ``BORDER_REFLECT_101``), so kernels near the border compare real image content instead of
   an invented constant that would read as an edge.
@@ -65,6 +71,7 @@ SPARSE_STEP: int = 2
 """``wgii2_sparse`` evaluates every 2nd row and every 2nd column: a quarter of the pixels."""
 
 _N_BINS = 8
+_UNITS = 100  # grey values are handled in hundredths, so that eps * 255 = 24.99 is an integer
 
 
 def rotated_offsets(p: tuple[int, int], q: int) -> np.ndarray:
@@ -103,7 +110,8 @@ def integral_invariant(grey: np.ndarray, p1: tuple[int, int] = P1, p2: tuple[int
         Values in [0, 1]; 0.5 where the neighbourhood is flat.
     """
     _check_kernel(p1, p2, eps, q, step)
-    return _invariant(FrameInputs(check_grey(grey)), tuple(p1), tuple(p2), eps, q, step)
+    p1, p2 = tuple(int(v) for v in p1), tuple(int(v) for v in p2)
+    return _invariant(FrameInputs(check_grey(grey)), p1, p2, float(eps), int(q), int(step))
 
 
 def wgii(grey: np.ndarray) -> np.ndarray:
@@ -156,34 +164,49 @@ def _wgii2_sparse_inputs(inputs: FrameInputs) -> np.ndarray:
     return _wgii2_inputs(inputs, SPARSE_STEP)
 
 
+def _ramp_units(eps: float) -> int:
+    """Ramp half-width ``eps * 255`` in hundredths of a grey value (24.99 -> 2499)."""
+    return int(round(eps * 255.0 * _UNITS))
+
+
 def _histogram(inputs: FrameInputs, p1, p2, step: int) -> np.ndarray:
-    t = _invariant(inputs, p1, p2, EPS, Q, step)
-    # T = 1 exactly would be bin 8: it belongs to the top bin
-    bins = np.minimum((t * np.float32(_N_BINS)).astype(np.intp), _N_BINS - 1)
+    acc = _accumulated(inputs, p1, p2, EPS, Q, step)
+    # 8 T = (4 R q - 4 acc) / (R q) with integers below 2**24: the float32 quotient is an
+    # exact integer where 8 T is one, so ties T = k/8 fall into bin k (T = 1 into bin 7)
+    scale = np.float32(_ramp_units(EPS) * Q)
+    bins = ((scale - acc) * np.float32(4.0) / scale).astype(np.intp)
+    np.minimum(bins, _N_BINS - 1, out=bins)
     return grid_histogram(bins, None, SIGMA_FACTOR, shape=inputs.grey.shape, step=step)
 
 
 def _invariant(inputs: FrameInputs, p1, p2, eps: float, q: int, step: int) -> np.ndarray:
+    """``T`` from the accumulated clipped differences: ``1/2 - acc / (2 R q)``."""
+    acc = _accumulated(inputs, p1, p2, eps, q, step)
+    t = acc * np.float32(-0.5 / (_ramp_units(eps) * q)) + np.float32(0.5)
+    return np.clip(t, 0.0, 1.0, out=t)
+
+
+def _accumulated(inputs: FrameInputs, p1, p2, eps: float, q: int, step: int) -> np.ndarray:
+    """``sum_r clip(d_r, -R, R)`` in hundredths of a grey value, memoised per frame."""
     key = ("wgii", p1, p2, eps, q, step)
-    dense = inputs.memo.get(("wgii", p1, p2, eps, q, 1))
     if key in inputs.memo:
         return inputs.memo[key]
+    dense = inputs.memo.get(("wgii", p1, p2, eps, q, 1))
     if dense is not None:
         # the sparse grid is a subset of the dense one: same values, no recomputation
-        t = dense[::step, ::step]
+        acc = dense[::step, ::step]
     else:
-        t = _compute_invariant(inputs, rotated_offsets(p1, q), rotated_offsets(p2, q),
-                               eps, step)
-    inputs.memo[key] = t
-    return t
+        acc = _compute(inputs, rotated_offsets(p1, q), rotated_offsets(p2, q), eps, step)
+    inputs.memo[key] = acc
+    return acc
 
 
-def _compute_invariant(inputs: FrameInputs, o1: np.ndarray, o2: np.ndarray, eps: float,
-                       step: int) -> np.ndarray:
+def _compute(inputs: FrameInputs, o1: np.ndarray, o2: np.ndarray, eps: float,
+             step: int) -> np.ndarray:
     h, w = inputs.grey.shape
     pad = int(max(np.abs(o1).max(), np.abs(o2).max()))
     padded, have = _padded(inputs, pad)
-    ramp = np.float32(eps * 255.0)  # eps in grey values
+    ramp = np.float32(_ramp_units(eps))
     hs, ws = (h + step - 1) // step, (w + step - 1) // step
     acc = np.zeros((hs, ws), np.float32)
     diff = np.empty_like(acc)
@@ -201,22 +224,21 @@ def _compute_invariant(inputs: FrameInputs, o1: np.ndarray, o2: np.ndarray, eps:
         return phases[phase][y // step:y // step + hs, x // step:x // step + ws]
 
     for (dx1, dy1), (dx2, dy2) in zip(o1, o2, strict=True):
-        # differences of integer grey values are exact, so the clip (the ramp) and the sum
-        # do not depend on a brightness offset at all
+        # integers below 2**24 throughout: every sum is exact, whatever the order, and a
+        # brightness offset changes no difference at all
         np.subtract(shifted(dx1, dy1), shifted(dx2, dy2), out=diff)
         np.clip(diff, -ramp, ramp, out=diff)
         acc += diff
-    # rel = 1/2 - clip(d, -ramp, ramp) / (2 ramp), averaged over the q rotations
-    t = acc * np.float32(-0.5 / (ramp * len(o1))) + np.float32(0.5)
-    return np.clip(t, 0.0, 1.0, out=t)
+    return acc
 
 
 def _padded(inputs: FrameInputs, pad: int) -> tuple[np.ndarray, int]:
-    """The grey image mirrored by at least ``pad`` pixels, shared between kernels."""
+    """Grey values x 100, mirrored by at least ``pad`` pixels, shared between kernels."""
     cached = inputs.memo.get("wgii_padded")
     if cached is not None and cached[1] >= pad:
         return cached
-    padded = cv2.copyMakeBorder(inputs.grey_f32, pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
+    padded = cv2.copyMakeBorder(inputs.grey_f32 * np.float32(_UNITS), pad, pad, pad, pad,
+                                cv2.BORDER_REFLECT_101)
     inputs.memo["wgii_padded"] = (padded, pad)
     return padded, pad
 
@@ -224,9 +246,11 @@ def _padded(inputs: FrameInputs, pad: int) -> tuple[np.ndarray, int]:
 def _check_kernel(p1, p2, eps: float, q: int, step: int) -> None:
     if len(p1) != 2 or len(p2) != 2:
         raise ValueError(f"kernel offsets must be (x, y) pairs, got {p1!r} and {p2!r}")
-    if not (eps > 0 and np.isfinite(eps)):
-        raise ValueError(f"eps must be positive and finite, got {eps!r}")
-    if int(q) != q or q < 1:
-        raise ValueError(f"q must be a positive integer, got {q!r}")
+    if not (np.isfinite(eps) and _ramp_units(eps) >= 1):
+        raise ValueError(f"eps must be at least 1/100 of a grey value (4e-5), got {eps!r}")
+    if int(q) != q or not 1 <= q <= 64:
+        raise ValueError(f"q must be an integer in 1..64, got {q!r}")
+    if eps > 1:
+        raise ValueError(f"eps beyond 1 exceeds the intensity range [0, 1], got {eps!r}")
     if int(step) != step or step < 1:
         raise ValueError(f"step must be a positive integer, got {step!r}")
