@@ -210,3 +210,16 @@ def test_similarities_lie_in_0_1_and_a_vector_matches_itself(data):
         if measure != "weiss":  # all others are symmetric
             back = [similarities(measure, row, q[None])[0] for row in M]
             np.testing.assert_allclose(s, back, atol=1e-9)
+
+
+@pytest.mark.parametrize("measure", MEASURES)
+def test_inputs_are_left_untouched(measure):
+    rng = np.random.default_rng(10)
+    M = rng.random((6, 5))
+    q = rng.random(5)
+    M_before, q_before = M.copy(), q.copy()
+    for flag in (False, True):
+        similarities(measure, q, M, normalised=flag)
+        normalise(M, measure)
+    np.testing.assert_array_equal(M, M_before)
+    np.testing.assert_array_equal(q, q_before)
