@@ -22,6 +22,10 @@ the registry wraps them as functions of a :class:`~workers.core.image.Frame`, an
 :func:`extract_many` computes several features of one frame sharing the intermediate arrays
 (the float grey image, the mirrored image of the WGII kernels, the dense invariant map that
 ``wgii2_sparse`` subsamples).
+
+The package attributes ``grid_hist``, ``wgoh``, ``wgii`` and ``hue_hist`` are these functions,
+which shadow the modules of the same name; reach a module's constants with
+``from workers.core.features.wgii import EPS``.
 """
 
 from __future__ import annotations

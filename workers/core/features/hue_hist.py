@@ -24,7 +24,8 @@ Choices the paper leaves open, and what is used here:
   invariant to intensity scaling, with no threshold for pixels to cross.
 * An image without any colour (all grey) gives the all-zero vector.
 
-The histogram is compared with Euclidean distance (Li et al. eq. 5): measure ``"l2"``.
+The histogram is compared with Euclidean distance (Li et al. eq. 5): measure ``"l2"`` of
+:mod:`workers.core.similarity`, which scales both vectors to unit L2 norm first.
 """
 
 from __future__ import annotations
