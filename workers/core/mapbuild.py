@@ -15,7 +15,7 @@ from .features import FEATURE_NAMES, extract_many
 from .geo import GeoOrigin
 from .image import Frame
 from .mapdata import MapData
-from .sift import RATIO, SiftFeatures, extract_sift, reduce_map
+from .sift import RATIO, SiftFeatures, extract_sift, reduction_masks
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,7 +55,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     origin : GeoOrigin or None
         The local frame; by default at the centroid of the images.
     reduce_sift : bool
-        Keep only keypoints matching one of the two GPS-nearest map images.
+        Mark the keypoints matching one of the two GPS-nearest map images (Weiss III);
+        all keypoints are kept, the mark lets localisers match the reduced set.
 
     Returns
     -------
@@ -78,11 +79,10 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     glob = {name: np.stack([f.global_features[name] for f in features]).astype(np.float32)
             for name in sorted(names_in_all)}
     sift = [f.sift for f in features]
-    if reduce_sift:
-        sift = reduce_map(sift, xy, ratio=ratio)
+    keep = reduction_masks(sift, xy, ratio=ratio) if reduce_sift else None
     times = None
     if captured_at is not None:
         times = np.array([np.nan if t is None else t for t in captured_at], np.float64)
     return MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
                               global_features=glob, sift=sift, map_id=map_id,
-                              revision=revision, captured_at=times)
+                              revision=revision, captured_at=times, sift_keep=keep)

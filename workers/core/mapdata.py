@@ -14,6 +14,9 @@ sift_offsets : (N + 1,) int64
     Image ``i`` owns keypoint rows ``sift_offsets[i]:sift_offsets[i + 1]``.
 sift_keypoints : (K, 4) float32
 sift_descriptors : (K, 128) uint8
+sift_keep : (K,) bool
+    Keypoints kept by the neighbour reduction (Weiss III); all keypoints are stored so a
+    localiser can choose to match against the full or the reduced set.
 captured_at : (N,) float64
     Capture times of the map images in seconds since the epoch, NaN where unknown; the
     motion model derives the platform's typical speed from them.
@@ -45,7 +48,9 @@ class MapData:
     map_id: str = ""
     revision: int = 0
     captured_at: np.ndarray | None = None
+    sift_keep: np.ndarray | None = None
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
+    _reduced: tuple | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         n = len(self.names)
@@ -56,6 +61,10 @@ class MapData:
         for name, mat in self.global_features.items():
             if mat.ndim != 2 or mat.shape[0] != n:
                 raise ValueError(f"global feature {name!r} must have {n} rows, got {mat.shape}")
+        if self.sift_keep is None:
+            self.sift_keep = np.ones(len(self.sift_descriptors), dtype=bool)
+        if self.sift_keep.shape != (len(self.sift_descriptors),):
+            raise ValueError("sift_keep must have one entry per keypoint")
         if self.captured_at is None:
             self.captured_at = np.full(n, np.nan)
         self.captured_at = np.asarray(self.captured_at, np.float64)
@@ -79,9 +88,23 @@ class MapData:
         hi = self.positions.max(axis=0)
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
-    def sift(self, i: int) -> SiftFeatures:
-        a, b = int(self.sift_offsets[i]), int(self.sift_offsets[i + 1])
-        return SiftFeatures(self.sift_keypoints[a:b], self.sift_descriptors[a:b])
+    def sift(self, i: int, *, reduced: bool = False) -> SiftFeatures:
+        """Keypoints of map image ``i``: all, or those kept by the neighbour reduction."""
+        if reduced:
+            offsets, kps, desc = self._reduced_arrays()
+        else:
+            offsets, kps, desc = self.sift_offsets, self.sift_keypoints, self.sift_descriptors
+        a, b = int(offsets[i]), int(offsets[i + 1])
+        return SiftFeatures(kps[a:b], desc[a:b])
+
+    def _reduced_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self._reduced is None:
+            keep = np.asarray(self.sift_keep)
+            kept_before = np.concatenate([[0], np.cumsum(keep, dtype=np.int64)])
+            offsets = kept_before[np.asarray(self.sift_offsets)]
+            self._reduced = (offsets, np.asarray(self.sift_keypoints)[keep],
+                             np.asarray(self.sift_descriptors)[keep])
+        return self._reduced
 
     def sift_counts(self) -> np.ndarray:
         return np.diff(self.sift_offsets)
@@ -117,7 +140,7 @@ class MapData:
     def from_parts(cls, *, origin: GeoOrigin, names, positions, altitudes,
                    global_features: dict[str, np.ndarray], sift: list[SiftFeatures],
                    map_id: str = "", revision: int = 0,
-                   captured_at=None) -> MapData:
+                   captured_at=None, sift_keep: list[np.ndarray] | None = None) -> MapData:
         counts = np.array([len(s) for s in sift], dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         kps = (np.concatenate([s.keypoints for s in sift]) if sift
@@ -132,7 +155,9 @@ class MapData:
                    sift_offsets=offsets, sift_keypoints=kps.astype(np.float32),
                    sift_descriptors=desc.astype(np.uint8), map_id=map_id, revision=revision,
                    captured_at=None if captured_at is None
-                   else np.asarray(captured_at, np.float64))
+                   else np.asarray(captured_at, np.float64),
+                   sift_keep=None if sift_keep is None or not sift
+                   else np.concatenate(sift_keep).astype(bool))
 
     # -- persistence as a folder of .npy files (memory-mappable) ---------------------------
 
@@ -147,6 +172,7 @@ class MapData:
         np.save(tmp / "sift_keypoints.npy", self.sift_keypoints)
         np.save(tmp / "sift_descriptors.npy", self.sift_descriptors)
         np.save(tmp / "captured_at.npy", self.captured_at)
+        np.save(tmp / "sift_keep.npy", self.sift_keep)
         for name, mat in self.global_features.items():
             np.save(tmp / f"global_{name}.npy", mat)
         meta = {"origin": [self.origin.lat, self.origin.lon, self.origin.alt],
@@ -173,4 +199,5 @@ class MapData:
                    global_features={n: ld(f"global_{n}.npy") for n in meta["features"]},
                    sift_offsets=ld("sift_offsets.npy"), sift_keypoints=ld("sift_keypoints.npy"),
                    sift_descriptors=ld("sift_descriptors.npy"), map_id=meta["map_id"],
-                   revision=int(meta["revision"]), captured_at=ld("captured_at.npy"))
+                   revision=int(meta["revision"]), captured_at=ld("captured_at.npy"),
+                   sift_keep=ld("sift_keep.npy"))

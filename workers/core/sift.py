@@ -132,9 +132,9 @@ def _matched_any(a: SiftFeatures, others: list[SiftFeatures], ratio: float) -> n
     return keep
 
 
-def reduce_map(features: list[SiftFeatures], positions: np.ndarray, *,
-               neighbours: int = 2, ratio: float = RATIO) -> list[SiftFeatures]:
-    """Keep each map image's keypoints that match one of its GPS-nearest map images.
+def reduction_masks(features: list[SiftFeatures], positions: np.ndarray, *,
+                    neighbours: int = 2, ratio: float = RATIO) -> list[np.ndarray]:
+    """Which keypoints of each map image match one of its GPS-nearest map images.
 
     Weiss et al. 2008, section III, with ``neighbours = 2``.
 
@@ -146,18 +146,22 @@ def reduce_map(features: list[SiftFeatures], positions: np.ndarray, *,
 
     Returns
     -------
-    list of SiftFeatures, reduced
+    list of (K_i,) bool ndarrays
     """
     n = len(features)
     if n < 2:
-        return list(features)
+        return [np.ones(len(f), dtype=bool) for f in features]
     k = min(neighbours, n - 1)
     _, idx = cKDTree(positions).query(positions, k=k + 1)
-    reduced = []
-    for i, feats in enumerate(features):
-        nbrs = [features[j] for j in np.atleast_1d(idx[i])[1:]]
-        reduced.append(feats.subset(_matched_any(feats, nbrs, ratio)))
-    return reduced
+    return [_matched_any(feats, [features[j] for j in np.atleast_1d(idx[i])[1:]], ratio)
+            for i, feats in enumerate(features)]
+
+
+def reduce_map(features: list[SiftFeatures], positions: np.ndarray, *,
+               neighbours: int = 2, ratio: float = RATIO) -> list[SiftFeatures]:
+    """Keep each map image's keypoints that match one of its GPS-nearest map images."""
+    masks = reduction_masks(features, positions, neighbours=neighbours, ratio=ratio)
+    return [f.subset(m) for f, m in zip(features, masks, strict=True)]
 
 
 def reduce_with_previous(current: SiftFeatures, previous: SiftFeatures | None, *,

@@ -66,13 +66,17 @@ class FilterLocaliser(Localiser):
                 return global_similarity(q, self.map, idx, features=cfg.global_features,
                                          measure=cfg.global_measure)
         else:
-            q_sift, feat_ms = query.reduced_sift(self.prev_sift, self.prev_key,
-                                                 ratio=cfg.sift_ratio,
-                                                 min_keep=MIN_REDUCED_KEYPOINTS)
+            if cfg.sift_reduce in ("both", "query"):
+                q_sift, feat_ms = query.reduced_sift(self.prev_sift, self.prev_key,
+                                                     ratio=cfg.sift_ratio,
+                                                     min_keep=MIN_REDUCED_KEYPOINTS)
+            else:
+                q_sift, feat_ms = query.sift()
+            reduced_map = cfg.sift_reduce in ("both", "map")
 
             def similarity(idx: np.ndarray) -> np.ndarray:
                 return sift_similarity(q_sift, self.map, idx, ratio=cfg.sift_ratio,
-                                       verify=cfg.sift_verify)
+                                       verify=cfg.sift_verify, reduced=reduced_map)
         t_filter = time.perf_counter()
         every = kind == GLOBAL and cfg.replacement == "retrieval"
         stats, used, scored, sims = self.pf.step(similarity, dt, all_similarities=every)

@@ -47,7 +47,7 @@ def verified_count(query: SiftFeatures, ref: SiftFeatures, matches: np.ndarray,
 
 
 def sift_similarity(query: SiftFeatures, map_data: MapData, idx: np.ndarray, *, ratio: float,
-                    verify: str) -> np.ndarray:
+                    verify: str, reduced: bool = False) -> np.ndarray:
     """Share of the query's keypoints matched (and verified) in each map image (Weiss III).
 
     Returns
@@ -59,7 +59,7 @@ def sift_similarity(query: SiftFeatures, map_data: MapData, idx: np.ndarray, *, 
     if n == 0:
         return out
     for j, i in enumerate(idx):
-        ref = map_data.sift(int(i))
+        ref = map_data.sift(int(i), reduced=reduced)
         m = ratio_matches(query.descriptors, ref.descriptors, ratio=ratio)
         out[j] = verified_count(query, ref, m, verify) / n
     return out

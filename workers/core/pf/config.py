@@ -27,6 +27,7 @@ REFERENCE_SIGMA: float = 4.0
 RESAMPLERS = ("multinomial", "systematic")
 REPLACEMENTS = ("uniform", "retrieval")
 VERIFICATIONS = ("none", "homography", "fundamental")
+REDUCTIONS = ("both", "map", "query", "none")
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,11 @@ class FilterConfig:
         Lowe ratio-test threshold.
     sift_verify : {"none", "homography", "fundamental"}
         Geometric verification: count only RANSAC inliers as matches.
+    sift_reduce : {"both", "map", "query", "none"}
+        Feature reduction (Weiss III): map images keep the keypoints matching their two
+        GPS-nearest map images, a frame those matching the previous frame.
+    sift_power : float
+        Exponent applied to SIFT similarities (1 in the paper).
     velocity : bool
         Particles carry a velocity (constant-velocity motion model).
     resampler : {"multinomial", "systematic"}
@@ -85,6 +91,8 @@ class FilterConfig:
     global_measure: str = "weiss"
     sift_ratio: float = 0.8
     sift_verify: str = "none"
+    sift_reduce: str = "both"
+    sift_power: float = 1.0
     velocity: bool = False
     resampler: str = "multinomial"
 
@@ -104,7 +112,8 @@ def _check(c: FilterConfig) -> None:
 
     if not isinstance(c.n_particles, int) or not 1 <= c.n_particles <= 100_000:
         raise ValueError(f"n_particles must be an integer in 1..100000, got {c.n_particles!r}")
-    for name in ("motion_sigma", "global_power", "d_global", "d_sift", "sift_ratio"):
+    for name in ("motion_sigma", "global_power", "d_global", "d_sift", "sift_ratio",
+                 "sift_power"):
         positive(name, getattr(c, name))
     if c.distance_scale is not None:
         positive("distance_scale", c.distance_scale)
@@ -118,6 +127,7 @@ def _check(c: FilterConfig) -> None:
         raise ValueError(f"sift_ratio must be below 1, got {c.sift_ratio!r}")
     for name, value, allowed in (("replacement", c.replacement, REPLACEMENTS),
                                  ("sift_verify", c.sift_verify, VERIFICATIONS),
+                                 ("sift_reduce", c.sift_reduce, REDUCTIONS),
                                  ("resampler", c.resampler, RESAMPLERS)):
         if value not in allowed:
             raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")

@@ -171,7 +171,7 @@ class ParticleFilter:
             scored, inverse = np.unique(nearest, return_inverse=True)
             sims = np.asarray(similarity(scored), dtype=np.float64)
             per_particle = sims[inverse]
-        power = cfg.global_power if used == GLOBAL else 1.0
+        power = cfg.global_power if used == GLOBAL else cfg.sift_power
         w = normalise_log(log_likelihoods(per_particle, dist, power=power,
                                           scale=self.distance_scale))
         # No image looked anything like the frame: the measurement says nothing, so the
