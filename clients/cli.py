@@ -1,0 +1,43 @@
+"""The ``vloc`` command line: one entry point, one module per subcommand.
+
+Subcommands are imported only when invoked, so ``vloc --help`` stays fast and a command's
+heavy dependencies (OpenCV, uvicorn, matplotlib) load only for the commands that need them.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import click
+
+# name -> (module, attribute, one-line help)
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "eval": ("clients.commands.eval", "eval_cmd",
+             "Run the localisers over a dataset offline and print the error/speed table."),
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in COMMANDS:
+            return None
+        module, attr, _ = COMMANDS[cmd_name]
+        return getattr(importlib.import_module(module), attr)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        rows = [(name, COMMANDS[name][2]) for name in self.list_commands(ctx)]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="vloc")
+def main() -> None:
+    """vloc: visual localisation from a map of GPS-tagged images."""
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""One module per ``vloc`` subcommand; :mod:`clients.cli` loads them on demand."""

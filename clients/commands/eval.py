@@ -1,0 +1,118 @@
+"""``vloc eval``: the localisers over a dataset, offline, with the paper-style table."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
+
+
+def _parse_params(items: tuple[str, ...]) -> dict:
+    params = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise click.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint="--param")
+        try:
+            params[key] = json.loads(value)
+        except json.JSONDecodeError:
+            params[key] = value
+    return params
+
+
+def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
+    items = [v.strip() for v in value.split(",") if v.strip()]
+    bad = [v for v in items if v not in allowed]
+    if bad or not items:
+        raise click.BadParameter(f"unknown {what} {', '.join(bad) or '(none)'}; "
+                                 f"valid: {', '.join(allowed)}")
+    return items
+
+
+@click.command("eval")
+@click.argument("dataset", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--map-pass", type=int, help="Pass number whose images build the map.")
+@click.option("--query-pass", type=int, help="Pass number replayed as the query sequence.")
+@click.option("--split", "rule", type=click.Choice(["pass", "alternate"]), default="pass",
+              show_default=True, help="Split by pass, or alternate images (even map, odd query).")
+@click.option("--modes", default="hybrid,global,sift,hierarchical,retrieval", show_default=True,
+              help="Comma-separated localisers to run.")
+@click.option("--config", "configs", default="default", show_default=True,
+              help="Comma-separated filter configurations (default, weiss2008).")
+@click.option("--photometric", default="none", show_default=True,
+              help="Relight the query images: none, darker, brighter, dusk, warm, shadows.")
+@click.option("--starts", type=click.IntRange(1, 1000), default=5, show_default=True,
+              help="Repeat from this many starting frames.")
+@click.option("--skip", type=click.IntRange(0), default=10, show_default=True,
+              help="Frames at the start of each run left out of the errors.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--param", "param_items", multiple=True, metavar="KEY=VALUE",
+              help="Override a localiser parameter (JSON value), e.g. n_particles=500.")
+@click.option("--retrieval-grid", is_flag=True,
+              help="Also the feature x measure retrieval table (Flyphone Fig. 7).")
+@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path),
+              help="Write a PNG of the true and estimated tracks.")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
+def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photometric, starts,
+             skip, seed, param_items, retrieval_grid, plot, as_json) -> None:
+    """Run the localisers over DATASET (a folder of geotagged images, optionally with a CSV
+    of positions and a `pass` column) and report error and speed per mode."""
+    from workers.core.datasets import DatasetError
+    from workers.core.evaluate import evaluate
+    from workers.core.evaluate import retrieval_grid as run_grid
+    from workers.core.experiment import load_experiment
+    from workers.core.features import FEATURE_NAMES
+    from workers.core.pf.config import CONFIGS
+    from workers.core.photometric import VARIANTS
+    from workers.core.report import grid_table, markdown_table, plot_tracks, results_dict
+    from workers.core.similarity import MEASURES
+
+    mode_list = _csv(modes, MODES, "mode")
+    config_list = _csv(configs, tuple(CONFIGS), "config")
+    if photometric not in VARIANTS:
+        raise click.BadParameter(f"valid: {', '.join(VARIANTS)}", param_hint="--photometric")
+    params = _parse_params(param_items)
+    say = (lambda *a, **k: None) if as_json else click.echo
+    try:
+        exp = load_experiment(dataset, rule=rule, map_pass=map_pass, query_pass=query_pass,
+                              photometric=photometric, seed=seed)
+    except (DatasetError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    say(f"{exp.dataset.summary()}\nmap: {len(exp.map_data)} images, "
+        f"queries: {len(exp.queries)} frames, photometric: {photometric}")
+    for name, reason in exp.dataset.skipped:
+        say(f"  skipped {name}: {reason}", err=True)
+
+    def progress(config, mode, k, n):
+        if not as_json:
+            click.echo(f"\r  {config}/{mode}: run {k}/{n}", nl=(k == n), err=True)
+
+    try:
+        results = evaluate(exp.map_data, exp.queries, exp.truth, modes=mode_list,
+                           configs=config_list, starts=starts, seed=seed, skip=skip,
+                           params=params, progress=progress)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from exc
+    data = results_dict(results)
+    data.update(dataset=str(dataset), photometric=photometric, starts=starts, skip=skip,
+                seed=seed, map_images=len(exp.map_data), query_frames=len(exp.queries))
+    if retrieval_grid:
+        data["retrieval_grid"] = run_grid(exp.map_data, exp.queries, exp.truth,
+                                          features=FEATURE_NAMES, measures=MEASURES, skip=skip)
+    if plot:
+        plot_tracks(plot, exp.map_data.positions, results)
+        data["plot"] = str(plot)
+    if as_json:
+        json.dump(data, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+        return
+    click.echo(markdown_table(data))
+    if retrieval_grid:
+        click.echo("\nretrieval error, mean / median (m), feature x measure:")
+        click.echo(grid_table(data["retrieval_grid"]))
+    if plot:
+        click.echo(f"\ntracks written to {plot}")
