@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.engine import FrameDone, FrameFailed, LocalEngine, SessionSpec, WorkerDied
+from workers.engine import Checkpoint, FrameDone, FrameFailed, LocalEngine, SessionSpec, WorkerDied
 
 FACTORY = "tests.engine.fakes:make_counting"
 TIMEOUT = 60
@@ -34,7 +34,7 @@ def outcomes() -> queue.Queue:
 
 @pytest.fixture
 def engine(outcomes):
-    eng = LocalEngine(2, on_frame=outcomes.put)
+    eng = LocalEngine(2, on_outcome=outcomes.put)
     eng.start()
     yield eng
     eng.close()
@@ -92,11 +92,14 @@ def test_controls_run_in_order_with_frames_and_checkpoint(engine, outcomes):
     engine.submit_frame("s", 1, _png(1))
     engine.control("s", "set_initial_pose", x=40, y=0).result(TIMEOUT)
     engine.submit_frame("s", 2, _png(1))
-    first, second = _take(outcomes, 2)
+    first, checkpoint, second = _take(outcomes, 3)
     assert (first.estimate["x"], second.estimate["x"]) == (1.0, 41.0)
+    # The control's state comes back between the frames, in the session's order.
+    assert isinstance(checkpoint, Checkpoint) and checkpoint.state == (40).to_bytes(8, "little")
     assert second.state == (41).to_bytes(8, "little")
     engine.control("s", "reset").result(TIMEOUT)
     assert engine.last_state("s") == (0).to_bytes(8, "little")
+    assert _take(outcomes, 1)[0].state == (0).to_bytes(8, "little")
     assert engine.control("s", "stats").result(TIMEOUT) == {"steps": 41}
 
 
@@ -110,7 +113,7 @@ def test_unknown_mode_fails_the_open_and_leaves_no_session(engine):
 
 
 def test_checkpoint_every_n_frames(outcomes):
-    eng = LocalEngine(1, on_frame=outcomes.put, checkpoint_every=3)
+    eng = LocalEngine(1, on_outcome=outcomes.put, checkpoint_every=3)
     eng.start()
     try:
         eng.open_session(_spec("s")).result(TIMEOUT)
@@ -123,7 +126,7 @@ def test_checkpoint_every_n_frames(outcomes):
 
 
 def test_killed_worker_is_replaced_and_its_sessions_resume(outcomes, tmp_path):
-    engine = LocalEngine(1, on_frame=outcomes.put)
+    engine = LocalEngine(1, on_outcome=outcomes.put)
     engine.start()
     try:
         engine.open_session(_spec("s")).result(TIMEOUT)
@@ -152,7 +155,7 @@ def test_killed_worker_is_replaced_and_its_sessions_resume(outcomes, tmp_path):
 
 
 def test_closed_engine_refuses_work(outcomes):
-    eng = LocalEngine(1, on_frame=outcomes.put)
+    eng = LocalEngine(1, on_outcome=outcomes.put)
     eng.start()
     eng.close()
     from workers.engine import EngineClosed

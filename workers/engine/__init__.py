@@ -6,8 +6,8 @@ session is pinned to one worker so its frames run in order, maps are memory-mapp
 its sessions resume from their last checkpoint.
 """
 
-from .messages import FrameDone, FrameFailed, FrameOutcome, SessionSpec
+from .messages import Checkpoint, FrameDone, FrameFailed, FrameOutcome, Outcome, SessionSpec
 from .pool import EngineClosed, LocalEngine, WorkerDied
 
-__all__ = ["EngineClosed", "FrameDone", "FrameFailed", "FrameOutcome", "LocalEngine",
-           "SessionSpec", "WorkerDied"]
+__all__ = ["Checkpoint", "EngineClosed", "FrameDone", "FrameFailed", "FrameOutcome", "LocalEngine",
+           "Outcome", "SessionSpec", "WorkerDied"]

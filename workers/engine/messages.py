@@ -62,7 +62,7 @@ class FrameTask:
 
 @dataclass(frozen=True, slots=True)
 class ControlTask:
-    """``reset``, ``set_initial_pose`` (kwargs x, y, sigma) or ``stats`` on one session."""
+    """``reset``, ``set_initial_pose`` (x, y or lat, lon; sigma) or ``stats`` on a session."""
 
     call_id: int
     session_id: str
@@ -132,7 +132,16 @@ class FrameFailed:
     reason: str
 
 
+@dataclass(frozen=True, slots=True)
+class Checkpoint:
+    """A session's state after a control (reset, initial pose), in order with its frames."""
+
+    session_id: str
+    state: bytes
+
+
 FrameOutcome = FrameDone | FrameFailed
+Outcome = FrameDone | FrameFailed | Checkpoint
 
 
 @dataclass(frozen=True, slots=True)

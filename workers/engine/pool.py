@@ -26,13 +26,14 @@ from multiprocessing.connection import Connection, wait
 from .messages import (
     CallDone,
     CallTask,
+    Checkpoint,
     CloseSession,
     ControlTask,
     FrameDone,
     FrameFailed,
-    FrameOutcome,
     FrameTask,
     OpenSession,
+    Outcome,
     Ready,
     SessionSpec,
     Stop,
@@ -74,9 +75,10 @@ class LocalEngine:
     Parameters
     ----------
     n_workers : int
-    on_frame : callable(FrameDone | FrameFailed) or None
-        Called in the engine's reader thread for every frame outcome, in each session's
-        order; keep it short (hand the outcome to another thread).
+    on_outcome : callable(FrameDone | FrameFailed | Checkpoint) or None
+        Called in the engine's reader thread for every frame outcome and for the state a
+        control leaves behind, in each session's order; keep it short (hand the outcome to
+        another thread).
     checkpoint_every : int
         Ask for the localiser's state after every ``checkpoint_every``-th frame of a session.
     max_pixels : int
@@ -86,7 +88,7 @@ class LocalEngine:
         copies the parent's threads' locks in whatever state they are in.
     """
 
-    def __init__(self, n_workers: int, *, on_frame: Callable[[FrameOutcome], None] | None = None,
+    def __init__(self, n_workers: int, *, on_outcome: Callable[[Outcome], None] | None = None,
                  checkpoint_every: int = 1, max_pixels: int = 50_000_000,
                  start_method: str | None = None) -> None:
         if n_workers < 1:
@@ -96,7 +98,7 @@ class LocalEngine:
         if start_method == "fork":
             raise ValueError("the fork start method is unsafe with threads; use forkserver")
         self.n_workers = n_workers
-        self.on_frame = on_frame
+        self.on_outcome = on_outcome
         self.checkpoint_every = checkpoint_every
         self.max_pixels = max_pixels
         self.restarts = 0
@@ -204,7 +206,7 @@ class LocalEngine:
 
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
                      captured_at: float | None = None) -> None:
-        """Queue a frame; its outcome comes back through ``on_frame``.
+        """Queue a frame; its outcome comes back through ``on_outcome``.
 
         Raises KeyError when the session is not open, ``EngineClosed`` when stopped.
         """
@@ -328,8 +330,11 @@ class LocalEngine:
         if isinstance(msg, CallDone):
             with self._lock:
                 fut = slot.calls.pop(msg.call_id, None)
-                if msg.state is not None and msg.session_id in self._pinned:
+                checkpoint = msg.state is not None and msg.session_id in self._pinned
+                if checkpoint:
                     self._states[msg.session_id] = msg.state
+            if checkpoint:
+                self._emit(Checkpoint(msg.session_id, msg.state))
             if fut is None:
                 return
             if msg.ok:
@@ -339,11 +344,11 @@ class LocalEngine:
             return
         log.warning("engine: unexpected message %r", type(msg).__name__)
 
-    def _emit(self, outcome: FrameOutcome) -> None:
-        if self.on_frame is None:
+    def _emit(self, outcome: Outcome) -> None:
+        if self.on_outcome is None:
             return
         try:
-            self.on_frame(outcome)
+            self.on_outcome(outcome)
         except Exception:  # noqa: BLE001 - a broken consumer must not kill the reader
             log.exception("engine: frame consumer failed")
 

@@ -106,13 +106,20 @@ class WorkerState:
         if task.op == "reset":
             localiser.reset()
         elif task.op == "set_initial_pose":
-            localiser.set_initial_pose(float(task.kwargs["x"]), float(task.kwargs["y"]),
-                                       float(task.kwargs.get("sigma", 5.0)))
+            x, y = self._local_xy(spec, task.kwargs)
+            localiser.set_initial_pose(x, y, float(task.kwargs.get("sigma", 5.0)))
         elif task.op == "stats":
             return dict(getattr(localiser, "stats", {})), None
         else:
             raise ValueError(f"unknown control {task.op!r}")
         return None, localiser.get_state()
+
+    def _local_xy(self, spec: SessionSpec, kwargs: dict) -> tuple[float, float]:
+        """x/y as given, or lat/lon converted in the frame of the session's map revision."""
+        if "lat" in kwargs:
+            east, north = self._map(spec).origin.to_local(kwargs["lat"], kwargs["lon"])
+            return float(east), float(north)
+        return float(kwargs["x"]), float(kwargs["y"])
 
     def _close(self, session_id: str) -> None:
         held = self.sessions.pop(session_id, None)

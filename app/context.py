@@ -1,0 +1,31 @@
+"""What one running application holds: settings, database, engine, fan-out, runtime."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.config import Settings
+from app.metrics import Metrics
+
+if TYPE_CHECKING:
+    from app.jobs.service import BuildRunner
+    from app.sessions.runtime import SessionRuntime
+    from app.stream.hub import LocalHub
+    from workers.engine import LocalEngine
+
+
+@dataclass(eq=False)
+class AppContext:
+    settings: Settings
+    db_engine: Engine
+    db_sessions: sessionmaker[Session]
+    admin_key_hash: str
+    metrics: Metrics
+    engine: LocalEngine
+    hub: LocalHub
+    runtime: SessionRuntime
+    builds: BuildRunner

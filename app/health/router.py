@@ -1,0 +1,40 @@
+"""``/healthz`` (the process answers), ``/readyz`` (database and workers), ``/metrics``."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from sqlalchemy import text
+
+from app.deps import Ctx
+from app.problems import Problem
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz")
+async def healthz() -> dict:
+    return {"status": "ok"}
+
+
+@router.get("/readyz")
+def readyz(ctx: Ctx) -> dict:
+    try:
+        with ctx.db_engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+    except Exception as exc:  # noqa: BLE001 - any failure means "not ready"
+        raise Problem(503, f"database unreachable: {type(exc).__name__}",
+                      kind="not-ready") from None
+    if not ctx.engine.alive():
+        raise Problem(503, "worker processes are not all running", kind="not-ready")
+    return {"status": "ready", "database": ctx.db_engine.dialect.name,
+            "workers": ctx.engine.n_workers}
+
+
+@router.get("/metrics", include_in_schema=False)
+def metrics(ctx: Ctx) -> Response:
+    m = ctx.metrics
+    m.workers_alive.set(sum(1 for _ in ctx.engine.worker_pids()) if ctx.engine.alive()
+                        else 0)
+    m.worker_restarts.set(ctx.engine.restarts)
+    return Response(generate_latest(m.registry), media_type=CONTENT_TYPE_LATEST)

@@ -1,0 +1,109 @@
+"""Header-level checks of an image upload, done in the API process before anything is stored.
+
+Only the file header is parsed here (format, pixel size, end marker): enough to refuse empty,
+non-image, truncated and decompression-bomb uploads at once with the right status. Pixel
+decoding happens in the workers.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from io import BytesIO
+
+from PIL import Image, UnidentifiedImageError
+
+from app.problems import Problem
+
+CONTENT_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
+_KIND_OF_TYPE = {v: k for k, v in CONTENT_TYPES.items()} | {"image/jpg": "jpeg"}
+
+
+@dataclass(frozen=True, slots=True)
+class ImageHeader:
+    kind: str
+    width: int
+    height: int
+
+    @property
+    def content_type(self) -> str:
+        return CONTENT_TYPES[self.kind]
+
+    @property
+    def suffix(self) -> str:
+        return ".jpg" if self.kind == "jpeg" else ".png"
+
+
+def sniff(data: bytes) -> str | None:
+    """``"jpeg"`` or ``"png"`` from the magic bytes, else None."""
+    if data[:3] == b"\xff\xd8\xff":
+        return "jpeg"
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        return "png"
+    return None
+
+
+def kind_of_content_type(content_type: str | None) -> str | None:
+    """``image/jpeg; q=1`` -> ``"jpeg"``; None for anything but JPEG and PNG."""
+    if not content_type:
+        return None
+    return _KIND_OF_TYPE.get(content_type.split(";")[0].strip().lower())
+
+
+def check_image(data: bytes, *, max_pixels: int, declared: str | None = None) -> ImageHeader:
+    """Check an encoded image from its header.
+
+    Parameters
+    ----------
+    data : bytes
+    max_pixels : int
+        Width x height above which the image is refused as a decompression bomb.
+    declared : ``"jpeg"``, ``"png"`` or None
+        The kind the client declared (Content-Type); it must match the bytes.
+
+    Raises
+    ------
+    Problem
+        422 empty, unreadable or truncated; 415 bytes of another kind than declared;
+        413 more pixels than allowed.
+    """
+    if not data:
+        raise Problem(422, "the image is empty", kind="empty-image")
+    kind = sniff(data)
+    if kind is None:
+        raise Problem(422, "not a JPEG or PNG image", kind="bad-image")
+    if declared is not None and kind != declared:
+        raise Problem(415, f"the body is a {kind.upper()} image, but the content type says "
+                      f"{declared.upper()}", kind="content-type-mismatch")
+    width, height = _header_size(data, max_pixels)
+    if width <= 0 or height <= 0:
+        raise Problem(422, "the image has no pixels", kind="bad-image")
+    if width * height > max_pixels:
+        raise Problem(413, f"an image of {width}x{height} pixels exceeds the limit of "
+                      f"{max_pixels} pixels", kind="too-many-pixels", max_pixels=max_pixels)
+    if _truncated(data, kind):
+        raise Problem(422, "the image is truncated", kind="truncated-image")
+    return ImageHeader(kind, width, height)
+
+
+def _header_size(data: bytes, max_pixels: int) -> tuple[int, int]:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(BytesIO(data)) as im:
+                size = im.size
+                if im.format == "PNG" and size[0] * size[1] <= max_pixels:
+                    # PNG chunk CRCs are checked without inflating the pixels.
+                    im.verify()
+                return size
+    except Image.DecompressionBombError as exc:
+        raise Problem(413, str(exc), kind="too-many-pixels", max_pixels=max_pixels) from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
+        raise Problem(422, f"the image header is unreadable: {exc}", kind="bad-image") from None
+
+
+def _truncated(data: bytes, kind: str) -> bool:
+    tail = data.rstrip(b"\x00")[-12:]
+    if kind == "jpeg":
+        return not tail.endswith(b"\xff\xd9")
+    return b"IEND" not in tail

@@ -1,0 +1,24 @@
+"""Bodies of the job routes."""
+
+from __future__ import annotations
+
+import uuid
+from datetime import datetime
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class JobRead(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+    id: uuid.UUID
+    map_id: uuid.UUID
+    status: str = Field(description="queued, running, done or failed")
+    progress: float = Field(ge=0, le=1)
+    error: str | None
+    n_images: int = Field(description="Images whose features this job extracts")
+    n_extracted: int
+    revision: int | None = Field(description="The map revision the job produced")
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None

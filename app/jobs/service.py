@@ -1,0 +1,174 @@
+"""Build jobs: extract the new images' features in the workers, then pack a new revision.
+
+The job runs as a task on the API's event loop that only awaits the workers and hands the
+database writes to threads; the numerics (decoding, features, SIFT reduction) all happen in
+the worker processes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import uuid
+from dataclasses import dataclass
+
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.config import Settings
+from app.db import utcnow
+from app.jobs.models import BuildJob, JobStatus
+from app.maps.models import ImageSift, Map, MapImage, MapStatus
+from app.maps.service import image_path
+from app.metrics import Metrics
+from app.problems import Problem
+
+log = logging.getLogger(__name__)
+
+EXTRACT_SHARE = 0.9
+"""Share of the progress bar that feature extraction fills; packing the map is the rest."""
+
+
+def start_build(db: Session, *, map_: Map) -> BuildJob:
+    """Queue a build of a map; 409 while one runs or when the map has no image."""
+    if db.scalar(select(func.count(BuildJob.id)).where(
+            BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
+        raise Problem(409, "a build of this map is already running", kind="map-busy")
+    if not db.scalar(select(func.count(MapImage.id)).where(MapImage.map_id == map_.id)):
+        raise Problem(409, "the map has no images to build from", kind="map-empty")
+    job = BuildJob(map_id=map_.id, status=JobStatus.QUEUED, progress=0.0)
+    db.add(job)
+    map_.status = MapStatus.BUILDING
+    db.commit()
+    return job
+
+
+def fail_interrupted(db: Session) -> int:
+    """Jobs left queued/running by a stopped server can never finish: mark them failed."""
+    jobs = list(db.scalars(select(BuildJob).where(BuildJob.status.in_(JobStatus.ACTIVE))))
+    for job in jobs:
+        job.status, job.error, job.finished_at = (JobStatus.FAILED,
+                                                  "interrupted by a server restart", utcnow())
+        m = db.get(Map, job.map_id)
+        if m is not None and m.status == MapStatus.BUILDING:
+            m.status = MapStatus.FAILED
+    db.commit()
+    return len(jobs)
+
+
+@dataclass(eq=False)
+class BuildRunner:
+    """Runs build jobs on the event loop, with the engine doing the work."""
+
+    settings: Settings
+    db_sessions: sessionmaker[Session]
+    engine: object
+    metrics: Metrics
+    loop: asyncio.AbstractEventLoop | None = None
+
+    def __post_init__(self) -> None:
+        self._tasks: set[asyncio.Task] = set()
+
+    def launch(self, job_id: uuid.UUID) -> None:
+        """Start a queued job; callable from any thread."""
+        assert self.loop is not None, "the runner starts with the application"
+        self.loop.call_soon_threadsafe(self._spawn, job_id)
+
+    def _spawn(self, job_id: uuid.UUID) -> None:
+        task = self.loop.create_task(self.run(job_id), name=f"build-{job_id}")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def wait_idle(self) -> None:
+        while self._tasks:
+            await asyncio.gather(*list(self._tasks), return_exceptions=True)
+
+    async def cancel_all(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*list(self._tasks), return_exceptions=True)
+
+    async def run(self, job_id: uuid.UUID) -> None:
+        try:
+            await self._run(job_id)
+        except asyncio.CancelledError:
+            await asyncio.to_thread(self._finish_failed, job_id, "cancelled by shutdown")
+            raise
+        except Exception as exc:  # noqa: BLE001 - the job records the failure
+            log.exception("build job %s failed", job_id)
+            await asyncio.to_thread(self._finish_failed, job_id, f"{type(exc).__name__}: {exc}")
+
+    async def _run(self, job_id: uuid.UUID) -> None:
+        map_id, todo = await asyncio.to_thread(self._begin, job_id)
+        url = self.settings.resolved_database_url
+        futures = [asyncio.wrap_future(self.engine.call(
+            "workers.engine.build:extract_image", url, image_id, path,
+            max_pixels=self.settings.max_pixels)) for image_id, path in todo]
+        for done, fut in enumerate(asyncio.as_completed(futures), start=1):
+            await fut
+            await asyncio.to_thread(self._progress, job_id, done, len(todo))
+        revision = await asyncio.to_thread(self._next_revision, map_id)
+        folder = self.settings.packed_map_dir(str(map_id), revision)
+        packed = await asyncio.wrap_future(self.engine.call(
+            "workers.engine.build:pack_map", url, str(map_id), revision, str(folder)))
+        await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
+
+    # -- database steps (threads) -----------------------------------------------------------
+
+    def _begin(self, job_id: uuid.UUID) -> tuple[uuid.UUID, list[tuple[int, str]]]:
+        with self.db_sessions() as db:
+            job = db.get(BuildJob, job_id)
+            images = list(db.scalars(
+                select(MapImage).outerjoin(ImageSift, ImageSift.image_id == MapImage.id)
+                .where(MapImage.map_id == job.map_id, ImageSift.image_id.is_(None))
+                .order_by(MapImage.id)))
+            job.status, job.started_at = JobStatus.RUNNING, utcnow()
+            job.n_images = len(images)
+            db.commit()
+            return job.map_id, [(img.id, str(image_path(self.settings, img))) for img in images]
+
+    def _progress(self, job_id: uuid.UUID, done: int, total: int) -> None:
+        with self.db_sessions() as db:
+            db.execute(update(BuildJob).where(BuildJob.id == job_id).values(
+                n_extracted=done, progress=EXTRACT_SHARE * done / max(total, 1)))
+            db.commit()
+
+    def _next_revision(self, map_id: uuid.UUID) -> int:
+        with self.db_sessions() as db:
+            return db.get(Map, map_id).revision + 1
+
+    def _finish_done(self, job_id: uuid.UUID, map_id: uuid.UUID, revision: int,
+                     packed: dict) -> None:
+        with self.db_sessions() as db:
+            m = db.get(Map, map_id)
+            lat, lon, alt = packed["origin"]
+            m.revision, m.origin_lat, m.origin_lon, m.origin_alt = revision, lat, lon, alt
+            m.built_at = utcnow()
+            for image_id, east, north in zip(packed["image_ids"], packed["east"],
+                                             packed["north"], strict=True):
+                db.execute(update(MapImage).where(MapImage.id == image_id).values(
+                    east=east, north=north,
+                    built_revision=func.coalesce(MapImage.built_revision, revision)))
+            # Images uploaded while the job ran are not in this revision yet.
+            waiting = db.scalar(select(func.count(MapImage.id)).where(
+                MapImage.map_id == map_id, MapImage.built_revision.is_(None)))
+            m.status = MapStatus.UNBUILT if waiting else MapStatus.READY
+            job = db.get(BuildJob, job_id)
+            job.status, job.progress, job.revision = JobStatus.DONE, 1.0, revision
+            job.finished_at = utcnow()
+            db.commit()
+        self.metrics.build_jobs.labels(JobStatus.DONE).inc()
+        log.info("map %s built: revision %d, %d images", map_id, revision,
+                 len(packed["image_ids"]))
+
+    def _finish_failed(self, job_id: uuid.UUID, error: str) -> None:
+        with self.db_sessions() as db:
+            job = db.get(BuildJob, job_id)
+            if job is None:
+                return  # the map (and its jobs) was deleted meanwhile
+            job.status, job.error, job.finished_at = JobStatus.FAILED, error[:2000], utcnow()
+            m = db.get(Map, job.map_id)
+            if m is not None:
+                m.status = MapStatus.FAILED
+            db.commit()
+        self.metrics.build_jobs.labels(JobStatus.FAILED).inc()

@@ -1,0 +1,107 @@
+"""The FastAPI application: ``create_app(settings)`` wires the domains, engine and database."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from app import logs, problems
+from app.config import Settings, ensure_admin_key
+from app.context import AppContext
+from app.db import make_engine, make_session_factory
+from app.health.router import router as health_router
+from app.jobs.router import router as jobs_router
+from app.jobs.service import BuildRunner, fail_interrupted
+from app.limits import BodySizeLimitMiddleware
+from app.maps.router import router as maps_router
+from app.metrics import Metrics, MetricsMiddleware
+from app.security import hash_secret
+from app.sessions.router import router as sessions_router
+from app.sessions.runtime import SessionRuntime
+from app.stream.hub import LocalHub
+from app.stream.router import router as stream_router
+from workers.engine import LocalEngine
+
+log = logging.getLogger("vloc.app")
+
+DRAIN_TIMEOUT_S = 10.0
+
+
+def create_app(settings: Settings | None = None, *, configure_logging: bool = False) -> FastAPI:
+    """Build the application; the engine and the database start with its lifespan."""
+    settings = settings or Settings()
+    if configure_logging:
+        logs.configure(settings.log_level, json_lines=settings.log_json)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    db_engine = make_engine(settings.resolved_database_url)
+    db_sessions = make_session_factory(db_engine)
+    metrics = Metrics()
+    engine = LocalEngine(settings.worker_count, checkpoint_every=settings.checkpoint_every,
+                         max_pixels=settings.max_pixels)
+    hub = _make_hub(settings)
+    runtime = SessionRuntime(settings=settings, db_sessions=db_sessions, engine=engine,
+                             hub=hub, metrics=metrics)
+    engine.on_outcome = runtime.on_outcome
+    ctx = AppContext(settings=settings, db_engine=db_engine, db_sessions=db_sessions,
+                     admin_key_hash=hash_secret(ensure_admin_key(settings)), metrics=metrics,
+                     engine=engine, hub=hub, runtime=runtime,
+                     builds=BuildRunner(settings, db_sessions, engine, metrics))
+
+    app = FastAPI(title="vloc", version="0.1.0", lifespan=_lifespan,
+                  description="Visual localisation: where is the camera, from a map of "
+                              "GPS-tagged images. Errors are RFC 9457 problem details.")
+    app.state.ctx = ctx
+    problems.install(app)
+    for router in (health_router, maps_router, jobs_router, sessions_router, stream_router):
+        app.include_router(router)
+    app.add_middleware(BodySizeLimitMiddleware,
+                       limit=max(settings.request_limit_bytes, settings.max_frame_bytes))
+    app.add_middleware(MetricsMiddleware, metrics=metrics)
+    app.add_middleware(logs.RequestLogMiddleware)
+    return app
+
+
+def _make_hub(settings: Settings) -> LocalHub:
+    if settings.redis_url:
+        from app.stream.redis_hub import RedisHub
+
+        return RedisHub(settings.redis_url)
+    return LocalHub()
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    ctx: AppContext = app.state.ctx
+    loop = asyncio.get_running_loop()
+    await asyncio.to_thread(_prepare_database, ctx)
+    await asyncio.to_thread(ctx.engine.start)
+    ctx.runtime.start(loop)
+    ctx.builds.loop = loop
+    await ctx.hub.start()
+    log.info("vloc ready", extra={"workers": ctx.engine.n_workers,
+                                  "database": ctx.db_engine.dialect.name})
+    try:
+        yield
+    finally:
+        await ctx.builds.cancel_all()
+        await ctx.runtime.drain(DRAIN_TIMEOUT_S)
+        await asyncio.to_thread(ctx.engine.close)
+        await asyncio.to_thread(ctx.runtime.stop)
+        await asyncio.sleep(0)  # let the last publications run
+        await ctx.hub.stop()
+        ctx.db_engine.dispose()
+        log.info("vloc stopped")
+
+
+def _prepare_database(ctx: AppContext) -> None:
+    from app import migrate
+
+    if ctx.settings.auto_migrate:
+        migrate.upgrade(ctx.db_engine)
+    with ctx.db_sessions() as db:
+        if (n := fail_interrupted(db)):
+            log.warning("marked %d interrupted build job(s) failed", n)

@@ -1,0 +1,252 @@
+"""Maps and their images: create, read, delete, add images (validated, deduplicated)."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from app.config import Settings
+from app.imagecheck import ImageHeader, check_image
+from app.jobs.models import BuildJob, JobStatus
+from app.maps.models import Map, MapImage, MapStatus
+from app.maps.schemas import (
+    GeoExtent,
+    ImageRejection,
+    ImageUploadResult,
+    LocalExtent,
+    MapImageRead,
+    MapRead,
+    Origin,
+)
+from app.problems import Problem
+from app.sessions.models import LocalisationSession
+
+
+@dataclass(frozen=True, slots=True)
+class Upload:
+    """One uploaded file as received."""
+
+    filename: str
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class GivenPosition:
+    """A position given with a single-file upload instead of EXIF GPS."""
+
+    lat: float
+    lon: float
+    alt: float | None = None
+    captured_at: datetime | None = None
+
+
+Verifier = Callable[[list[bytes]], list[str | None]]
+"""Decodes images fully (in the workers): one error message or None per image."""
+
+
+def create_map(db: Session, *, name: str) -> Map:
+    m = Map(name=name, status=MapStatus.EMPTY, revision=0)
+    db.add(m)
+    db.commit()
+    return m
+
+
+def list_maps(db: Session) -> list[MapRead]:
+    return [read_map(db, map_=m) for m in db.scalars(select(Map).order_by(Map.created_at))]
+
+
+def read_map(db: Session, *, map_: Map) -> MapRead:
+    count, pending, lat0, lon0, lat1, lon1 = db.execute(
+        select(func.count(MapImage.id),
+               func.count(MapImage.id).filter(MapImage.built_revision.is_(None)),
+               func.min(MapImage.lat), func.min(MapImage.lon),
+               func.max(MapImage.lat), func.max(MapImage.lon))
+        .where(MapImage.map_id == map_.id)).one()
+    e0, n0, e1, n1 = db.execute(
+        select(func.min(MapImage.east), func.min(MapImage.north),
+               func.max(MapImage.east), func.max(MapImage.north))
+        .where(MapImage.map_id == map_.id, MapImage.built_revision.is_not(None))).one()
+    last_job = db.scalar(select(BuildJob.id).where(BuildJob.map_id == map_.id)
+                         .order_by(BuildJob.created_at.desc()).limit(1))
+    origin = None
+    if map_.origin_lat is not None:
+        origin = Origin(lat=map_.origin_lat, lon=map_.origin_lon, alt=map_.origin_alt or 0.0)
+    return MapRead(
+        id=map_.id, name=map_.name, status=map_.status, revision=map_.revision,
+        image_count=count, pending_images=pending,
+        extent=GeoExtent(min_lat=lat0, min_lon=lon0, max_lat=lat1, max_lon=lon1)
+        if count else None,
+        local_extent=LocalExtent(min_east=e0, min_north=n0, max_east=e1, max_north=n1)
+        if e0 is not None else None,
+        origin=origin, created_at=map_.created_at, built_at=map_.built_at,
+        last_job_id=last_job)
+
+
+def delete_map(db: Session, *, map_: Map, settings: Settings) -> None:
+    """Delete a map with its images, features, jobs and packed revisions.
+
+    Refused (409) while a build runs or sessions use the map.
+    """
+    active = db.scalar(select(func.count(BuildJob.id)).where(
+        BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE)))
+    if active:
+        raise Problem(409, "a build of this map is running", kind="map-busy")
+    sessions = db.scalar(select(func.count(LocalisationSession.id))
+                         .where(LocalisationSession.map_id == map_.id))
+    if sessions:
+        raise Problem(409, f"{sessions} session(s) use this map; delete them first",
+                      kind="map-in-use", sessions=sessions)
+    map_id = str(map_.id)
+    db.delete(map_)
+    db.commit()
+    shutil.rmtree(settings.data_dir / "maps" / map_id, ignore_errors=True)
+
+
+def list_images(db: Session, *, map_: Map) -> list[MapImage]:
+    return list(db.scalars(select(MapImage).where(MapImage.map_id == map_.id)
+                           .order_by(MapImage.id)))
+
+
+def check_position(lat: float, lon: float, alt: float | None) -> None:
+    from workers.core.geo import check_lat_lon
+
+    try:
+        check_lat_lon(lat, lon)
+    except ValueError as exc:
+        raise Problem(422, str(exc), kind="bad-position") from None
+    if alt is not None and not math.isfinite(alt):
+        raise Problem(422, f"alt must be a finite number, got {alt!r}", kind="bad-position")
+
+
+def add_images(db: Session, *, map_: Map, uploads: Sequence[Upload],
+               position: GivenPosition | None, settings: Settings,
+               verify: Verifier) -> ImageUploadResult:
+    """Validate, store and register uploaded map images.
+
+    Every file is checked on its own (size, header, GPS, duplicate, full decode in the
+    workers); the good ones are stored, the others reported with the reason. When no file
+    is good, nothing is stored and a problem is raised with the reasons.
+    """
+    if not uploads:
+        raise Problem(422, "no files in the upload (form field 'files')", kind="no-files")
+    if len(uploads) > settings.max_files_per_upload:
+        raise Problem(413, f"{len(uploads)} files exceed the limit of "
+                      f"{settings.max_files_per_upload} per upload", kind="too-many-files")
+    if position is not None:
+        if len(uploads) != 1:
+            raise Problem(422, "lat/lon form fields apply to a single file; upload several "
+                          "files with EXIF GPS instead", kind="position-ambiguous")
+        check_position(position.lat, position.lon, position.alt)
+
+    rejected: list[ImageRejection] = []
+    candidates: list[tuple[Upload, ImageHeader, GivenPosition, str, str]] = []
+    existing = set(db.scalars(select(MapImage.file_hash).where(MapImage.map_id == map_.id)))
+    for up in uploads:
+        try:
+            header, pos = _check_one(up, position, settings)
+        except Problem as p:
+            rejected.append(ImageRejection(filename=up.filename, status=p.status,
+                                           reason=p.kind or "bad-request", detail=p.detail))
+            continue
+        digest = hashlib.sha256(up.data).hexdigest()
+        if digest in existing:
+            rejected.append(ImageRejection(
+                filename=up.filename, status=409, reason="duplicate",
+                detail=f"the map already has this image (sha256 {digest[:12]}...)"))
+            continue
+        existing.add(digest)
+        source = "form" if position is not None else "exif"
+        candidates.append((up, header, pos, digest, source))
+
+    errors = verify([c[0].data for c in candidates]) if candidates else []
+    good = []
+    for cand, error in zip(candidates, errors, strict=True):
+        if error is None:
+            good.append(cand)
+        else:
+            rejected.append(ImageRejection(filename=cand[0].filename, status=422,
+                                           reason="bad-image", detail=error))
+    if not good:
+        statuses = {r.status for r in rejected}
+        status = statuses.pop() if len(statuses) == 1 else 422
+        raise Problem(status, "no image was accepted: " + "; ".join(
+            f"{r.filename}: {r.detail}" for r in rejected), kind="no-image-accepted",
+            rejected=[r.model_dump() for r in rejected])
+    rows = _store(db, map_=map_, good=good, settings=settings)
+    return ImageUploadResult(accepted=[MapImageRead.model_validate(r) for r in rows],
+                             rejected=rejected)
+
+
+def _check_one(up: Upload, position: GivenPosition | None,
+               settings: Settings) -> tuple[ImageHeader, GivenPosition]:
+    from workers.core.exif import read_gps
+
+    if len(up.data) > settings.max_upload_bytes:
+        raise Problem(413, f"{len(up.data)} bytes exceed the limit of "
+                      f"{settings.max_upload_bytes} bytes per image", kind="too-large")
+    header = check_image(up.data, max_pixels=settings.max_pixels)
+    if position is not None:
+        return header, position
+    try:
+        tag = read_gps(up.data)
+    except ValueError as exc:
+        raise Problem(422, f"malformed EXIF GPS: {exc}", kind="bad-gps") from None
+    if tag is None:
+        raise Problem(422, "the image has no GPS position in its EXIF; give lat and lon "
+                      "form fields with a single file", kind="no-gps")
+    captured = tag.captured_at
+    if captured is not None and captured.tzinfo is None:
+        # Camera-local time without an offset: kept as is, labelled UTC. Only differences
+        # between capture times are used (the platform's speed), which this keeps.
+        captured = captured.replace(tzinfo=UTC)
+    return header, GivenPosition(tag.lat, tag.lon, tag.alt, captured)
+
+
+def _store(db: Session, *, map_: Map, good: list, settings: Settings) -> list[MapImage]:
+    folder = settings.images_dir(str(map_.id))
+    folder.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    try:
+        rows = []
+        for up, header, pos, digest, source in good:
+            path = folder / f"{digest}{header.suffix}"
+            if not path.exists():
+                tmp = path.with_suffix(path.suffix + ".part")
+                tmp.write_bytes(up.data)
+                os.replace(tmp, path)
+                written.append(path)
+            row = MapImage(map_id=map_.id, filename=_clean_name(up.filename),
+                           file_hash=digest, content_type=header.content_type,
+                           byte_size=len(up.data), width=header.width, height=header.height,
+                           lat=pos.lat, lon=pos.lon, alt=pos.alt, captured_at=pos.captured_at,
+                           position_source=source)
+            db.add(row)
+            rows.append(row)
+        if map_.status != MapStatus.BUILDING:
+            map_.status = MapStatus.UNBUILT
+        db.commit()
+        return rows
+    except BaseException:
+        db.rollback()
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
+
+
+def _clean_name(filename: str | None) -> str:
+    name = Path(filename or "image").name
+    return name[:255] or "image"
+
+
+def image_path(settings: Settings, image: MapImage) -> Path:
+    suffix = ".png" if image.content_type == "image/png" else ".jpg"
+    return settings.images_dir(str(image.map_id)) / f"{image.file_hash}{suffix}"

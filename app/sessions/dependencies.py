@@ -1,0 +1,60 @@
+"""Fetch-or-404 and authorisation for sessions: the admin key or the session's own token."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Annotated
+
+from fastapi import Depends
+from starlette.requests import HTTPConnection
+
+from app.context import AppContext
+from app.deps import Ctx, DbSession, unauthenticated
+from app.maps.dependencies import parse_id
+from app.problems import Problem, not_found
+from app.security import matches, presented_secret
+from app.sessions.models import LocalisationSession
+from app.sessions.runtime import LiveSession
+
+
+def authorise(secret: str | None, token_hash: str, ctx: AppContext, session_id: object) -> None:
+    """401 without credentials; 403 unless they are the admin key or this session's token."""
+    if secret is None:
+        raise unauthenticated("a session token is required: Authorization: Bearer <token>")
+    if not (matches(secret, token_hash) or matches(secret, ctx.admin_key_hash)):
+        raise Problem(403, f"these credentials do not open session {session_id}",
+                      kind="forbidden")
+
+
+def get_session(session_id: str, conn: HTTPConnection, db: DbSession,
+                ctx: Ctx) -> LocalisationSession:
+    secret = presented_secret(conn)
+    if secret is None:
+        raise unauthenticated("a session token is required: Authorization: Bearer <token>")
+    row = db.get(LocalisationSession, parse_id(session_id, "session"))
+    if row is None:
+        raise not_found("session", session_id)
+    authorise(secret, row.token_hash, ctx, session_id)
+    return row
+
+
+SessionDep = Annotated[LocalisationSession, Depends(get_session)]
+
+
+async def get_live_session(session_id: str, conn: HTTPConnection, ctx: Ctx) -> LiveSession:
+    """The live session (no database round trip once loaded), authorised."""
+    secret = presented_secret(conn)
+    if secret is None:
+        raise unauthenticated("a session token is required: Authorization: Bearer <token>")
+    live = await ctx.runtime.get(parse_id(session_id, "session"))
+    if live is None:
+        raise not_found("session", session_id)
+    authorise(secret, live.token_hash, ctx, session_id)
+    return live
+
+
+LiveSessionDep = Annotated[LiveSession, Depends(get_live_session)]
+
+
+def session_uuid(live: LiveSession) -> uuid.UUID:
+    return uuid.UUID(live.id)

@@ -1,0 +1,129 @@
+"""Sessions: create (validated against the core's localisers), read with statistics, delete."""
+
+from __future__ import annotations
+
+import math
+import secrets
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from app.maps.models import Map
+from app.problems import Problem, not_found
+from app.security import hash_secret, new_token
+from app.sessions.models import LocalisationSession, Pose
+from app.sessions.runtime import SessionRuntime
+from app.sessions.schemas import PoseEstimate, SessionCreate, SessionRead, SessionStats
+from workers.engine import WorkerDied
+
+LATENCY_WINDOW = 1000
+"""Latency percentiles are over the session's most recent estimates."""
+
+
+def resolve_seed(body: SessionCreate) -> int:
+    given = body.params.get("seed")
+    if given is not None and body.seed is not None and given != body.seed:
+        raise Problem(422, f"seed {body.seed} and params.seed {given} disagree",
+                      kind="bad-params")
+    seed = body.seed if body.seed is not None else given
+    return secrets.randbits(63) if seed is None else int(seed)
+
+
+def create_session(db: Session, *, body: SessionCreate,
+                   runtime: SessionRuntime) -> tuple[LocalisationSession, str]:
+    """Validate, create the localiser in the engine, store; returns the row and its token."""
+    from workers.core.localisers import validate_params
+
+    map_ = db.get(Map, body.map_id)
+    if map_ is None:
+        raise not_found("map", body.map_id)
+    if map_.revision == 0:
+        raise Problem(409, "the map has not been built yet; POST /v1/maps/{id}/build",
+                      kind="map-not-built")
+    try:
+        params = validate_params(body.mode, body.params)
+    except ValueError as exc:
+        raise Problem(422, str(exc), kind="bad-params") from None
+    seed = resolve_seed(body)
+    params.pop("seed", None)  # the seed travels as its own argument
+    token = new_token()
+    row = LocalisationSession(map_id=map_.id, map_revision=map_.revision, mode=body.mode,
+                              params=params, seed=seed, token_hash=hash_secret(token),
+                              frames_processed=0, frames_failed=0)
+    db.add(row)
+    db.flush()
+    try:
+        runtime.open_new(row)
+    except ValueError as exc:
+        db.rollback()
+        raise Problem(422, f"the localiser refused the session: {exc}",
+                      kind="bad-params") from None
+    except (WorkerDied, TimeoutError, RuntimeError) as exc:
+        db.rollback()
+        raise Problem(503, f"the engine could not open the session: {exc}",
+                      kind="engine-unavailable") from None
+    try:
+        db.commit()
+    except BaseException:
+        runtime.forget(row.id)
+        raise
+    return row, token
+
+
+def list_sessions(db: Session, *, runtime: SessionRuntime) -> list[SessionRead]:
+    rows = db.scalars(select(LocalisationSession).order_by(LocalisationSession.created_at))
+    return [read_session(db, row=row, runtime=runtime) for row in rows]
+
+
+def read_session(db: Session, *, row: LocalisationSession,
+                 runtime: SessionRuntime) -> SessionRead:
+    total, sift, mean_ms = db.execute(
+        select(func.count(Pose.id), func.count(Pose.id).filter(Pose.feature == "sift"),
+               func.avg(Pose.processing_ms)).where(Pose.session_id == row.id)).one()
+    latencies = sorted(db.scalars(
+        select(Pose.latency_ms).where(Pose.session_id == row.id)
+        .order_by(Pose.seq.desc()).limit(LATENCY_WINDOW)))
+    last = db.scalar(select(Pose).where(Pose.session_id == row.id)
+                     .order_by(Pose.seq.desc()).limit(1))
+    stats = SessionStats(
+        sift_share=sift / total if total else None,
+        latency_ms_p50=_quantile(latencies, 0.5), latency_ms_p99=_quantile(latencies, 0.99),
+        processing_ms_mean=float(mean_ms) if mean_ms is not None else None)
+    return SessionRead(
+        id=row.id, map_id=row.map_id, map_revision=row.map_revision, mode=row.mode,
+        params=row.params, seed=row.seed, created_at=row.created_at, last_seq=row.last_seq,
+        frames_processed=row.frames_processed, frames_failed=row.frames_failed,
+        frames_pending=runtime.pending(row.id), stats=stats,
+        last_pose=pose_read(last) if last is not None else None)
+
+
+def list_poses(db: Session, *, row: LocalisationSession, after_seq: int | None,
+               limit: int) -> list[PoseEstimate]:
+    q = select(Pose).where(Pose.session_id == row.id)
+    if after_seq is not None:
+        q = q.where(Pose.seq > after_seq)
+    return [pose_read(p) for p in db.scalars(q.order_by(Pose.seq).limit(limit))]
+
+
+def delete_session(db: Session, *, row: LocalisationSession, runtime: SessionRuntime) -> None:
+    session_id = row.id
+    db.delete(row)
+    db.commit()
+    runtime.forget(session_id)
+
+
+def pose_read(p: Pose) -> PoseEstimate:
+    return PoseEstimate(
+        session_id=p.session_id, seq=p.seq, captured_at=p.captured_at,
+        received_at=p.received_at, x=p.x, y=p.y, lat=p.lat, lon=p.lon, sigma_x=p.sigma_x,
+        sigma_y=p.sigma_y, cov=[p.cov_xx, p.cov_xy, p.cov_yx, p.cov_yy], feature=p.feature,
+        next_feature=p.next_feature, n_particles=p.n_particles, status=p.status,
+        best_image=p.best_image, processing_ms=p.processing_ms, latency_ms=p.latency_ms)
+
+
+def _quantile(sorted_values: list[float], q: float) -> float | None:
+    """Nearest-rank quantile of sorted values."""
+    if not sorted_values:
+        return None
+    rank = min(len(sorted_values) - 1, max(0, math.ceil(q * len(sorted_values)) - 1))
+    return float(sorted_values[rank])

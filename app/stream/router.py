@@ -1,0 +1,149 @@
+"""``WS /v1/sessions/{id}/stream``: estimates out, and optionally frames in.
+
+Out: a ``hello`` message once the subscription is live, then one ``pose`` or
+``frame_error`` message per accepted frame, in sequence order; ``error`` (with a ``problem``
+object) for a frame sent on the socket that was refused (it gets no sequence number); ``closed`` when the session
+is deleted.
+
+In: binary messages are frames (JPEG or PNG bytes). A text message
+``{"type": "frame_meta", "seq": 12, "captured_at": "..."}`` sets the sequence number and
+capture time of the next binary frame; ``{"type": "ping"}`` is answered with ``pong``.
+
+Close codes: 4401 no token, 4403 wrong token, 4404 unknown session, 1011 the session
+could not be restored, 1013 the client read too slowly.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+import uuid
+from datetime import UTC, datetime
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from pydantic import BaseModel, ValidationError
+
+from app.context import AppContext
+from app.imagecheck import check_image
+from app.limits import too_large
+from app.problems import Problem
+from app.security import matches, presented_secret
+from app.sessions.runtime import LiveSession
+from app.stream.hub import CLOSED, OVERFLOW, Subscription
+
+router = APIRouter(tags=["stream"])
+
+
+class FrameMeta(BaseModel):
+    type: str
+    seq: int | None = None
+    captured_at: datetime | None = None
+
+
+@router.websocket("/v1/sessions/{session_id}/stream")
+async def stream(websocket: WebSocket, session_id: str) -> None:
+    ctx: AppContext = websocket.app.state.ctx
+    secret = presented_secret(websocket)
+    await websocket.accept()
+    live = await _authorise(websocket, ctx, session_id, secret)
+    if live is None:
+        return
+    sub = ctx.hub.subscribe(live.id)
+    ctx.metrics.stream_subscribers.inc()
+    sender = asyncio.create_task(_send_loop(websocket, sub))
+    try:
+        await ctx.hub.ready(live.id)
+        sub.put({"type": "hello", "session_id": live.id, "last_seq": live.last_seq})
+        await _receive_loop(websocket, ctx, live, sub)
+    except WebSocketDisconnect:
+        pass
+    finally:
+        sender.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await sender
+        ctx.hub.unsubscribe(sub)
+        ctx.metrics.stream_subscribers.dec()
+
+
+async def _authorise(websocket: WebSocket, ctx: AppContext, session_id: str,
+                     secret: str | None) -> LiveSession | None:
+    if secret is None:
+        await websocket.close(4401, "a session token is required (?token=...)")
+        return None
+    try:
+        live = await ctx.runtime.get(uuid.UUID(session_id))
+    except ValueError:
+        live = None
+    except Problem as p:
+        await websocket.close(1011, p.detail[:120])
+        return None
+    if live is None:
+        await websocket.close(4404, f"session {session_id} does not exist")
+        return None
+    if not (matches(secret, live.token_hash) or matches(secret, ctx.admin_key_hash)):
+        await websocket.close(4403, "this token does not open this session")
+        return None
+    return live
+
+
+async def _send_loop(websocket: WebSocket, sub: Subscription) -> None:
+    """The only writer of the socket: everything it sends goes through the subscription."""
+    while True:
+        msg = await sub.get()
+        if msg is OVERFLOW:
+            await websocket.close(1013, "the client reads too slowly")
+            return
+        await websocket.send_text(json.dumps(msg))
+        if msg.get("type") == CLOSED["type"]:
+            await websocket.close(1000, "session deleted")
+            return
+
+
+async def _receive_loop(websocket: WebSocket, ctx: AppContext, live: LiveSession,
+                        sub: Subscription) -> None:
+    meta = FrameMeta(type="frame_meta")
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            return
+        if message.get("bytes") is not None:
+            _frame(ctx, live, sub, message["bytes"], meta)
+            meta = FrameMeta(type="frame_meta")
+        elif message.get("text") is not None:
+            meta = _text(sub, message["text"], meta)
+
+
+def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: bytes,
+           meta: FrameMeta) -> None:
+    t0 = time.perf_counter()
+    try:
+        if len(data) > ctx.settings.max_frame_bytes:
+            raise too_large(ctx.settings.max_frame_bytes)
+        check_image(data, max_pixels=ctx.settings.max_pixels)
+        captured = meta.captured_at
+        if captured is not None and captured.tzinfo is None:
+            captured = captured.replace(tzinfo=UTC)
+        ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured, t0=t0)
+    except Problem as p:
+        ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
+        sub.put({"type": "error", "problem": p.body()})
+
+
+def _text(sub: Subscription, text: str, meta: FrameMeta) -> FrameMeta:
+    try:
+        parsed = FrameMeta.model_validate_json(text)
+    except ValidationError as exc:
+        problem = Problem(422, f"unreadable message: {exc.errors()[0]['msg']}",
+                          kind="bad-message")
+        sub.put({"type": "error", "problem": problem.body()})
+        return meta
+    if parsed.type == "ping":
+        sub.put({"type": "pong"})
+        return meta
+    if parsed.type == "frame_meta":
+        return parsed
+    problem = Problem(422, f"unknown message type {parsed.type!r}", kind="bad-message")
+    sub.put({"type": "error", "problem": problem.body()})
+    return meta

@@ -1,0 +1,121 @@
+"""Map-building tasks that run in the worker processes (through ``LocalEngine.call``).
+
+Extraction is per image and writes its features straight into the database, so that big
+arrays never travel through the API process; packing reads every built image's features
+back, assembles the map (with the SIFT neighbour reduction) and saves it as a
+memory-mappable folder. Both open their own database connection, cached per URL.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from workers.core.sift import SiftFeatures
+
+
+def inspect_image(data: bytes, *, max_pixels: int) -> tuple[int, int]:
+    """Decode an image fully; (width, height), or ImageError (a ValueError)."""
+    from workers.core.image import decode_image
+
+    image = decode_image(data, max_pixels=max_pixels)
+    return int(image.shape[1]), int(image.shape[0])
+
+
+def encode_vector(vec: np.ndarray) -> bytes:
+    """(D,) float32 -> little-endian bytes."""
+    return np.ascontiguousarray(vec, dtype="<f4").tobytes()
+
+
+def decode_vector(data: bytes) -> np.ndarray:
+    return np.frombuffer(data, dtype="<f4").astype(np.float32)
+
+
+def encode_sift(sift: SiftFeatures) -> tuple[bytes, bytes]:
+    """Keypoints (K, 4) float32 and descriptors (K, 128) uint8 -> bytes."""
+    kps = np.ascontiguousarray(sift.keypoints, dtype="<f4").reshape(-1, 4)
+    desc = np.ascontiguousarray(sift.descriptors, dtype=np.uint8).reshape(-1, 128)
+    return kps.tobytes(), desc.tobytes()
+
+
+def decode_sift(n: int, keypoints: bytes, descriptors: bytes) -> SiftFeatures:
+    kps = np.frombuffer(keypoints, dtype="<f4").astype(np.float32).reshape(n, 4)
+    desc = np.frombuffer(descriptors, dtype=np.uint8).reshape(n, 128)
+    return SiftFeatures(kps, desc)
+
+
+@lru_cache(maxsize=8)
+def _sessions(database_url: str):
+    from app.db import make_engine, make_session_factory
+
+    return make_session_factory(make_engine(database_url))
+
+
+def extract_image(database_url: str, image_id: int, path: str, *, max_pixels: int) -> int:
+    """Extract one map image's global features and raw SIFT and store them.
+
+    Returns the number of SIFT keypoints. Raises ImageError for an undecodable file.
+    """
+    from sqlalchemy import delete
+
+    from app.maps.models import ImageGlobalFeature, ImageSift
+    from workers.core.image import load_frame
+    from workers.core.mapbuild import extract_image_features
+
+    frame = load_frame(Path(path).read_bytes(), max_pixels=max_pixels)
+    feats = extract_image_features(frame)
+    kps, desc = encode_sift(feats.sift)
+    with _sessions(database_url)() as db, db.begin():
+        db.execute(delete(ImageGlobalFeature).where(ImageGlobalFeature.image_id == image_id))
+        db.execute(delete(ImageSift).where(ImageSift.image_id == image_id))
+        for name, vec in sorted(feats.global_features.items()):
+            db.add(ImageGlobalFeature(image_id=image_id, name=name, dim=int(vec.shape[0]),
+                                      data=encode_vector(vec)))
+        db.add(ImageSift(image_id=image_id, n_keypoints=len(feats.sift), keypoints=kps,
+                         descriptors=desc))
+    return len(feats.sift)
+
+
+def pack_map(database_url: str, map_id: str, revision: int, folder: str) -> dict:
+    """Assemble every extracted image of a map into a MapData folder.
+
+    Returns
+    -------
+    dict
+        ``origin`` (lat, lon, alt), ``image_ids`` (in map order) and their ``east`` and
+        ``north`` in the new local frame.
+    """
+    import uuid
+
+    from sqlalchemy import select
+
+    from app.maps.models import ImageGlobalFeature, ImageSift, MapImage
+    from workers.core.mapbuild import ImageFeatures, assemble_map
+
+    with _sessions(database_url)() as db:
+        rows = db.execute(
+            select(MapImage, ImageSift).join(ImageSift, ImageSift.image_id == MapImage.id)
+            .where(MapImage.map_id == uuid.UUID(map_id)).order_by(MapImage.id)).all()
+        ids = [img.id for img, _ in rows]
+        vectors: dict[int, dict[str, np.ndarray]] = {i: {} for i in ids}
+        for feat in db.scalars(select(ImageGlobalFeature)
+                               .where(ImageGlobalFeature.image_id.in_(ids))):
+            vectors[feat.image_id][feat.name] = decode_vector(feat.data)
+        if not rows:
+            raise ValueError("the map has no image with extracted features")
+        features = [ImageFeatures(vectors[img.id],
+                                  decode_sift(s.n_keypoints, s.keypoints, s.descriptors))
+                    for img, s in rows]
+        images = [img for img, _ in rows]
+    times = [img.captured_at.timestamp() if img.captured_at else None for img in images]
+    data = assemble_map(names=[img.filename for img in images],
+                        lats=[img.lat for img in images], lons=[img.lon for img in images],
+                        alts=[img.alt for img in images], features=features,
+                        captured_at=times, map_id=map_id, revision=revision)
+    data.save(folder)
+    o = data.origin
+    return {"origin": (o.lat, o.lon, o.alt), "image_ids": ids,
+            "east": np.asarray(data.positions)[:, 0].tolist(),
+            "north": np.asarray(data.positions)[:, 1].tolist()}
