@@ -1,0 +1,291 @@
+"""Map routes against the real app: CRUD, upload validation, build and rebuild."""
+
+from __future__ import annotations
+
+import math
+import struct
+import uuid
+import zlib
+
+import numpy as np
+import pytest
+from sqlalchemy import select
+
+from app.maps.models import ImageGlobalFeature, ImageSift
+from tests.app.conftest import ADMIN, ADMIN_KEY, PROBLEM, jpeg_files, snapshot, wait_job
+from tests.app.imagery import plain_jpeg, png, png_bomb
+from workers.core.geo import GeoOrigin
+from workers.core.image import load_frame
+from workers.core.mapdata import MapData
+from workers.core.sift import extract_sift
+
+
+def new_map(client, name: str = "a map") -> str:
+    r = client.post("/v1/maps", json={"name": name}, headers=ADMIN)
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+def corrupt_png() -> bytes:
+    """A PNG whose header and chunk CRCs are valid but whose pixel stream is not zlib."""
+    data = bytearray(png(size=(64, 48)))
+    at = data.index(b"IDAT")
+    length = struct.unpack(">I", data[at - 4:at])[0]
+    body = bytes(range(7, 7 + length))
+    data[at + 4:at + 4 + length] = body
+    data[at + 4 + length:at + 8 + length] = struct.pack(">I", zlib.crc32(b"IDAT" + body))
+    return bytes(data)
+
+
+def test_create_read_list_delete(module_client):
+    c = module_client
+    r = c.post("/v1/maps", json={"name": "fields"}, headers=ADMIN)
+    assert r.status_code == 201
+    body = r.json()
+    assert r.headers["location"] == f"/v1/maps/{body['id']}"
+    assert (body["name"], body["status"], body["revision"], body["image_count"]) == \
+        ("fields", "empty", 0, 0)
+    assert body["extent"] is None and body["origin"] is None
+    assert c.get(f"/v1/maps/{body['id']}", headers=ADMIN).json() == body
+    assert body["id"] in {m["id"] for m in c.get("/v1/maps", headers=ADMIN).json()}
+    assert c.delete(f"/v1/maps/{body['id']}", headers=ADMIN).status_code == 204
+    r = c.get(f"/v1/maps/{body['id']}", headers=ADMIN)
+    assert r.status_code == 404 and r.headers["content-type"] == PROBLEM
+
+
+@pytest.mark.parametrize("name", ["", "x" * 201])
+def test_bad_map_name_is_422(module_client, name):
+    before = snapshot(module_client)
+    r = module_client.post("/v1/maps", json={"name": name}, headers=ADMIN)
+    assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "name"]
+    assert snapshot(module_client) == before
+
+
+ROUTES = [("post", "/v1/maps"), ("get", "/v1/maps"), ("get", "/v1/maps/{id}"),
+          ("delete", "/v1/maps/{id}"), ("post", "/v1/maps/{id}/images"),
+          ("get", "/v1/maps/{id}/images"), ("post", "/v1/maps/{id}/build"),
+          ("get", "/v1/jobs/{id}")]
+
+
+@pytest.mark.parametrize(("method", "path"), ROUTES)
+def test_admin_routes_need_the_admin_key(module_client, method, path):
+    c = module_client
+    map_id = new_map(c)
+    before = snapshot(c)
+    url = path.format(id=map_id)
+    r = getattr(c, method)(url)
+    assert r.status_code == 401 and r.headers["content-type"] == PROBLEM
+    assert r.headers["www-authenticate"].startswith("Bearer")
+    assert r.json()["type"] == "urn:vloc:problem:unauthenticated"
+    for headers in ({"Authorization": "Bearer not-the-key"}, {"X-API-Key": "wrong"},
+                    {"Authorization": f"Basic {ADMIN_KEY}"}):
+        r = getattr(c, method)(url, headers=headers)
+        assert r.status_code in (401, 403), (headers, r.status_code)
+    assert snapshot(c) == before
+    # The key also works as X-API-Key.
+    assert c.get(f"/v1/maps/{map_id}", headers={"X-API-Key": ADMIN_KEY}).status_code == 200
+
+
+@pytest.mark.parametrize(("method", "path"), [
+    ("get", "/v1/maps/{id}"), ("delete", "/v1/maps/{id}"), ("get", "/v1/maps/{id}/images"),
+    ("post", "/v1/maps/{id}/build"), ("get", "/v1/jobs/{id}")])
+@pytest.mark.parametrize("ident", [str(uuid.uuid4()), "not-a-uuid", "1"])
+def test_unknown_ids_are_404(module_client, method, path, ident):
+    before = snapshot(module_client)
+    r = getattr(module_client, method)(path.format(id=ident), headers=ADMIN)
+    assert r.status_code == 404 and r.json()["type"] == "urn:vloc:problem:not-found"
+    assert ident in r.json()["detail"]
+    assert snapshot(module_client) == before
+
+
+def test_upload_reads_gps_from_exif(module_client, shots):
+    c = module_client
+    map_id = new_map(c)
+    maps = shots[0][:3]
+    r = c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(maps), headers=ADMIN)
+    assert r.status_code == 201, r.text
+    accepted = r.json()["accepted"]
+    assert r.json()["rejected"] == []
+    assert [a["filename"] for a in accepted] == [s.name for s in maps]
+    for a, s in zip(accepted, maps, strict=True):
+        assert a["lat"] == pytest.approx(s.lat, abs=1e-9)
+        assert a["lon"] == pytest.approx(s.lon, abs=1e-9)
+        assert a["alt"] == pytest.approx(280.0)
+        assert a["captured_at"].startswith(s.captured_at.strftime("%Y-%m-%dT%H:%M:%S"))
+        assert (a["width"], a["height"], a["position_source"]) == (320, 240, "exif")
+        assert a["byte_size"] == len(s.jpeg) and a["built_revision"] is None
+    m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
+    assert (m["status"], m["image_count"], m["pending_images"], m["revision"]) == \
+        ("unbuilt", 3, 3, 0)
+    assert m["extent"]["min_lat"] == pytest.approx(min(s.lat for s in maps))
+    assert m["extent"]["max_lon"] == pytest.approx(max(s.lon for s in maps))
+    listed = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
+    assert listed == accepted
+
+
+def test_single_file_with_form_position(module_client):
+    c = module_client
+    map_id = new_map(c)
+    r = c.post(f"/v1/maps/{map_id}/images", headers=ADMIN,
+               files=[("files", ("plain.jpg", plain_jpeg(), "image/jpeg"))],
+               data={"lat": "41.5", "lon": "-83.25", "alt": "12",
+                     "captured_at": "2024-01-02T03:04:05Z"})
+    assert r.status_code == 201, r.text
+    (a,) = r.json()["accepted"]
+    assert (a["lat"], a["lon"], a["alt"], a["position_source"]) == (41.5, -83.25, 12.0, "form")
+    assert a["captured_at"] == "2024-01-02T03:04:05Z"
+
+
+def _truncated(shots):
+    return shots[0][0].jpeg[: len(shots[0][0].jpeg) // 2]
+
+
+BAD_UPLOADS = {
+    # name: (files builder, form fields, status, reason of the (first) rejection)
+    "no-gps": (lambda s: [("a.jpg", plain_jpeg())], {}, 422, "no-gps"),
+    "nan-lat": (lambda s: [("a.jpg", plain_jpeg())], {"lat": "nan", "lon": "1"}, 422, None),
+    "lat-out-of-range": (lambda s: [("a.jpg", plain_jpeg())], {"lat": "95", "lon": "1"},
+                         422, None),
+    "lon-out-of-range": (lambda s: [("a.jpg", plain_jpeg())], {"lat": "1", "lon": "-200"},
+                         422, None),
+    "infinite-alt": (lambda s: [("a.jpg", plain_jpeg())],
+                     {"lat": "1", "lon": "1", "alt": "inf"}, 422, None),
+    "lat-without-lon": (lambda s: [("a.jpg", plain_jpeg())], {"lat": "1"}, 422, None),
+    "position-for-two-files": (lambda s: [("a.jpg", plain_jpeg()), ("b.jpg", png())],
+                               {"lat": "1", "lon": "1"}, 422, None),
+    "empty": (lambda s: [("a.jpg", b"")], {}, 422, "empty-image"),
+    "not-an-image": (lambda s: [("a.txt", b"hello, world")], {}, 422, "bad-image"),
+    "truncated": (lambda s: [("a.jpg", _truncated(s))], {}, 422, "truncated-image"),
+    "corrupt-pixels": (lambda s: [("a.png", corrupt_png())], {"lat": "1", "lon": "1"},
+                       422, "bad-image"),
+    "decompression-bomb": (lambda s: [("a.png", png_bomb())], {"lat": "1", "lon": "1"},
+                           413, "too-many-pixels"),
+    "too-large": (lambda s: [("a.jpg", s[0][0].jpeg + b"\x00" * 1_000_000)], {}, 413,
+                  "too-large"),
+    "all-bad": (lambda s: [("a.jpg", b""), ("b.jpg", plain_jpeg())], {}, 422, "empty-image"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_UPLOADS))
+def test_rejected_upload_changes_nothing(module_client, shots, case):
+    build, form, status, reason = BAD_UPLOADS[case]
+    c = module_client
+    map_id = new_map(c)
+    before = snapshot(c)
+    files = [("files", (name, data, "application/octet-stream")) for name, data in build(shots)]
+    r = c.post(f"/v1/maps/{map_id}/images", files=files, data=form, headers=ADMIN)
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"] == PROBLEM
+    problem = r.json()
+    assert problem["status"] == status and problem["detail"]
+    if reason is not None:
+        assert problem["rejected"][0]["reason"] == reason
+    assert snapshot(c) == before
+
+
+def test_missing_files_field_is_422(module_client):
+    map_id = new_map(module_client)
+    before = snapshot(module_client)
+    r = module_client.post(f"/v1/maps/{map_id}/images", data={"lat": "1"}, headers=ADMIN)
+    assert r.status_code == 422 and r.json()["type"] == "urn:vloc:problem:validation"
+    assert snapshot(module_client) == before
+
+
+def test_partial_upload_keeps_the_good_files_and_reports_the_rest(module_client, shots):
+    c = module_client
+    map_id = new_map(c)
+    good = shots[0][:2]
+    files = [*jpeg_files(good), ("files", ("bare.jpg", plain_jpeg(), "image/jpeg")),
+             ("files", ("again.jpg", good[0].jpeg, "image/jpeg"))]
+    r = c.post(f"/v1/maps/{map_id}/images", files=files, headers=ADMIN)
+    assert r.status_code == 201
+    assert [a["filename"] for a in r.json()["accepted"]] == [s.name for s in good]
+    assert {(x["filename"], x["reason"], x["status"]) for x in r.json()["rejected"]} == {
+        ("bare.jpg", "no-gps", 422), ("again.jpg", "duplicate", 409)}
+    # The same file again later is a duplicate of the stored one: 409, nothing stored.
+    before = snapshot(c)
+    r = c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(good[:1]), headers=ADMIN)
+    assert r.status_code == 409 and r.json()["rejected"][0]["reason"] == "duplicate"
+    assert snapshot(c) == before
+
+
+def test_build_then_add_images_and_rebuild(module_client, shots):
+    c = module_client
+    ctx = c.app.state.ctx
+    maps = shots[0]
+    map_id = new_map(c)
+    assert c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(maps[:6]),
+                  headers=ADMIN).status_code == 201
+    r = c.post(f"/v1/maps/{map_id}/build", headers=ADMIN)
+    assert r.status_code == 202 and r.headers["location"] == f"/v1/jobs/{r.json()['job_id']}"
+    job = wait_job(c, r.json()["job_id"])
+    assert (job["status"], job["progress"], job["n_images"], job["n_extracted"],
+            job["revision"], job["error"]) == ("done", 1.0, 6, 6, 1, None)
+    m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
+    assert (m["status"], m["revision"], m["pending_images"]) == ("ready", 1, 0)
+    assert m["last_job_id"] == job["id"]
+
+    # The packed revision is the images' positions in a frame at their centroid.
+    first = MapData.load(ctx.settings.packed_map_dir(map_id, 1))
+    assert len(first) == 6 and first.revision == 1
+    origin = GeoOrigin(m["origin"]["lat"], m["origin"]["lon"], m["origin"]["alt"])
+    images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
+    assert origin.lat == pytest.approx(np.mean([i["lat"] for i in images]), abs=1e-12)
+    for img in images:
+        east, north = origin.to_local(img["lat"], img["lon"])
+        assert (img["east"], img["north"]) == pytest.approx((float(east), float(north)),
+                                                            abs=1e-6)
+        assert img["built_revision"] == 1
+    assert m["local_extent"]["min_east"] == pytest.approx(min(i["east"] for i in images))
+
+    # The stored SIFT is the raw (unreduced) extraction of the image, bit for bit.
+    with ctx.db_sessions() as db:
+        stored = db.get(ImageSift, images[2]["id"])
+        names = set(db.scalars(select(ImageGlobalFeature.name)
+                               .where(ImageGlobalFeature.image_id == images[2]["id"])))
+    reference = extract_sift(load_frame(maps[2].jpeg).grey)
+    assert stored.n_keypoints == len(reference) > 0
+    assert stored.descriptors == reference.descriptors.tobytes()
+    assert np.frombuffer(stored.keypoints, "<f4").reshape(-1, 4).tolist() == \
+        reference.keypoints.tolist()
+    assert set(first.global_features) <= names
+    # The map keeps the reduced SIFT: never more than the raw keypoints.
+    assert first.sift_counts()[2] <= stored.n_keypoints
+
+    # Four more images: the map waits for a build; the rebuild extracts only those four.
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(maps[6:]), headers=ADMIN)
+    m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
+    assert (m["status"], m["revision"], m["pending_images"]) == ("unbuilt", 1, 4)
+    job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"])
+    assert (job["status"], job["n_images"], job["revision"]) == ("done", 4, 2)
+    m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
+    assert (m["status"], m["revision"], m["pending_images"], m["image_count"]) == \
+        ("ready", 2, 0, 10)
+    second = MapData.load(ctx.settings.packed_map_dir(map_id, 2))
+    assert len(second) == 10 and list(second.names) == [s.name for s in maps]
+    # Sessions on revision 1 keep their folder.
+    assert len(MapData.load(ctx.settings.packed_map_dir(map_id, 1))) == 6
+    images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
+    assert math.isclose(m["origin"]["lat"], np.mean([i["lat"] for i in images]), abs_tol=1e-12)
+    assert [i["built_revision"] for i in images] == [1] * 6 + [2] * 4
+
+
+def test_build_conflicts(module_client, shots, hold_worker):
+    c = module_client
+    empty = new_map(c)
+    before = snapshot(c)
+    r = c.post(f"/v1/maps/{empty}/build", headers=ADMIN)
+    assert r.status_code == 409 and r.json()["type"] == "urn:vloc:problem:map-empty"
+    assert snapshot(c) == before
+
+    map_id = new_map(c)
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][:2]), headers=ADMIN)
+    hold_worker()  # the build below waits behind it
+    job_id = c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"]
+    before = snapshot(c)
+    assert c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).status_code == 409
+    r = c.delete(f"/v1/maps/{map_id}", headers=ADMIN)
+    assert r.status_code == 409 and r.json()["type"] == "urn:vloc:problem:map-busy"
+    assert c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()["status"] == "building"
+    assert snapshot(c) == before
+    assert c.get(f"/v1/jobs/{job_id}", headers=ADMIN).json()["status"] in ("queued", "running")
