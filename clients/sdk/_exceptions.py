@@ -1,0 +1,187 @@
+"""Errors raised by the vloc client.
+
+Every error the client raises is a :class:`VlocError`::
+
+    VlocError
+    ├── TransportError ........ no HTTP answer: connection refused or reset, timeout, TLS
+    ├── APIError .............. the server answered with an RFC 9457 problem document
+    │   ├── BadRequest ........ 400
+    │   ├── Unauthorized ...... 401  no credentials, or not for this route
+    │   ├── Forbidden ......... 403  credentials that do not grant this
+    │   ├── NotFound .......... 404  unknown map, job, session or route
+    │   ├── Conflict .......... 409  duplicate or stale frame ``seq``, map busy building
+    │   ├── PayloadTooLarge ... 413
+    │   ├── UnsupportedMediaType 415 not a JPEG/PNG image
+    │   ├── ValidationError ... 422  a body, query or form field the server refused
+    │   ├── TooManyRequests ... 429  too many frames of the session still queued
+    │   └── ServerError ....... 5xx
+    ├── StreamError ........... the pose stream ended abnormally
+    ├── JobFailed ............. a waited-for build job ended ``failed``
+    └── WaitTimeout ........... a wait ran out of time (also a built-in ``TimeoutError``)
+
+:func:`error_for_response` picks the class from the status code; a status without a class
+of its own (418, 451...) gives a plain :class:`APIError`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from typing import Any
+
+import httpx
+
+
+class VlocError(Exception):
+    """Base class of every error raised by the client."""
+
+
+class TransportError(VlocError):
+    """The request got no HTTP answer (wraps the ``httpx`` exception in ``__cause__``)."""
+
+
+class APIError(VlocError):
+    """A problem response (RFC 9457).
+
+    Attributes
+    ----------
+    status : int
+        HTTP status code.
+    type : str
+        Problem type URI, e.g. ``urn:vloc:problem:stale-seq``; ``about:blank`` when generic.
+    title, detail : str
+        Short summary and the specific explanation.
+    instance : str or None
+        The request path the problem occurred on.
+    body : dict
+        The whole problem document, extension members included (``errors``, ``last_seq``).
+    """
+
+    def __init__(self, status: int, *, type: str = "about:blank", title: str = "",
+                 detail: str = "", instance: str | None = None,
+                 body: dict[str, Any] | None = None) -> None:
+        self.status = status
+        self.type = type
+        self.title = title
+        self.detail = detail
+        self.instance = instance
+        self.body = dict(body or {})
+        super().__init__(f"{status} {title}: {detail}" if detail else f"{status} {title}")
+
+    @property
+    def kind(self) -> str | None:
+        """The slug of a ``urn:vloc:problem:<kind>`` type (``stale-seq``), else None."""
+        prefix = "urn:vloc:problem:"
+        return self.type[len(prefix):] if self.type.startswith(prefix) else None
+
+
+class BadRequest(APIError):
+    """400."""
+
+
+class Unauthorized(APIError):
+    """401: no credentials were presented, or the wrong kind."""
+
+
+class Forbidden(APIError):
+    """403: the credentials are valid but not for this resource."""
+
+
+class NotFound(APIError):
+    """404."""
+
+
+class Conflict(APIError):
+    """409: the request conflicts with the resource's state."""
+
+
+class PayloadTooLarge(APIError):
+    """413."""
+
+
+class UnsupportedMediaType(APIError):
+    """415."""
+
+
+class ValidationError(APIError):
+    """422: a field was refused; ``body["errors"]`` lists each one where the server says."""
+
+
+class TooManyRequests(APIError):
+    """429: back off; ``retry_after`` is the server's advice in seconds, where given."""
+
+    @property
+    def retry_after(self) -> float | None:
+        value = self.body.get("retry_after")
+        return float(value) if isinstance(value, int | float) else None
+
+
+class ServerError(APIError):
+    """5xx."""
+
+
+class StreamError(VlocError):
+    """The pose stream was closed by the server with an error, or could not be read.
+
+    Attributes
+    ----------
+    code : int or None
+        The WebSocket close code, where one was received.
+    reason : str
+    """
+
+    def __init__(self, reason: str, *, code: int | None = None) -> None:
+        self.code = code
+        self.reason = reason
+        super().__init__(f"{reason} (close code {code})" if code is not None else reason)
+
+
+class JobFailed(VlocError):
+    """The build job ended with status ``failed``; ``job`` is its last state."""
+
+    def __init__(self, job: Any) -> None:
+        self.job = job
+        super().__init__(f"job {job.id} failed: {job.error or 'no reason given'}")
+
+
+class WaitTimeout(VlocError, TimeoutError):
+    """A wait (for a job, for readiness, for a stream message) ran out of time."""
+
+
+_BY_STATUS: dict[int, type[APIError]] = {
+    400: BadRequest, 401: Unauthorized, 403: Forbidden, 404: NotFound, 409: Conflict,
+    413: PayloadTooLarge, 415: UnsupportedMediaType, 422: ValidationError,
+    429: TooManyRequests,
+}
+
+
+def error_class(status: int) -> type[APIError]:
+    """The :class:`APIError` subclass for an HTTP status."""
+    if status >= 500:
+        return ServerError
+    return _BY_STATUS.get(status, APIError)
+
+
+def error_for_response(response: httpx.Response) -> APIError:
+    """Build the error for a non-2xx response, problem document or not.
+
+    A body that is not a JSON object (a proxy's HTML error page) still gives the right
+    class, with the start of the body as the detail.
+    """
+    try:
+        body = response.json()
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        body = None
+    if not isinstance(body, dict):
+        body = {"detail": response.text[:500].strip()}
+    retry = response.headers.get("retry-after")
+    if retry is not None and "retry_after" not in body:
+        with contextlib.suppress(ValueError):
+            body["retry_after"] = float(retry)
+    return error_class(response.status_code)(
+        response.status_code,
+        type=str(body.get("type") or "about:blank"),
+        title=str(body.get("title") or response.reason_phrase or ""),
+        detail=str(body.get("detail") or ""),
+        instance=body.get("instance"),
+        body=body)

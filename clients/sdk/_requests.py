@@ -1,0 +1,268 @@
+"""Each API route as a :class:`Call`: what to send, whether a retry is safe, how to read
+the answer. Shared by the sync and async clients, which only differ in how they send."""
+
+from __future__ import annotations
+
+import mimetypes
+import random
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from ._exceptions import APIError, error_for_response
+from ._models import FrameAccepted, Job, Map, MapImage, Pose, Session, UploadResult
+
+ImageSource = str | PathLike | bytes | tuple[str, bytes]
+"""A file path, raw JPEG/PNG bytes, or ``(filename, bytes)``."""
+
+RETRY_STATUSES = frozenset({429, 502, 503, 504})
+WAIT_READ_TIMEOUT_S = 120.0
+"""Read timeout of ``?wait=true`` frames: longer than the server's own wait (60 s)."""
+
+
+def _none(response: httpx.Response) -> None:
+    return None
+
+
+def _model(cls) -> Callable[[httpx.Response], Any]:
+    return lambda r: cls.model_validate(r.json())
+
+
+def _models(cls) -> Callable[[httpx.Response], Any]:
+    return lambda r: [cls.model_validate(item) for item in r.json()]
+
+
+@dataclass(frozen=True)
+class Call:
+    """One request to the API.
+
+    Attributes
+    ----------
+    idempotent : bool
+        Sending it twice has the effect of sending it once, so it may be retried.
+    token : str or None
+        Credentials for this call instead of the client's admin key (a session token).
+    accepted_seq : int or None
+        A frame POST with an explicit ``seq``: a retry answered ``409 duplicate-seq``
+        means an earlier attempt got through, so it counts as accepted.
+    read_timeout : float or None
+        A longer read timeout than the client's, for calls that wait on the server.
+    """
+
+    method: str
+    path: str
+    parse: Callable[[httpx.Response], Any] = _none
+    params: dict[str, Any] | None = None
+    json: Any = None
+    data: dict[str, Any] | None = None
+    files: list[tuple[str, tuple[str, bytes, str]]] | None = None
+    content: bytes | None = None
+    headers: dict[str, str] = field(default_factory=dict)
+    idempotent: bool = False
+    token: str | None = None
+    accepted_seq: int | None = None
+    read_timeout: float | None = None
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """Exponential backoff with full jitter for idempotent calls.
+
+    A call is retried on a connection failure (nothing was sent) and on 429/502/503/504;
+    a ``Retry-After`` header, when given, replaces the computed delay (capped at
+    ``max_delay``).
+    """
+
+    retries: int = 3
+    backoff: float = 0.25
+    max_delay: float = 8.0
+
+    def delay(self, attempt: int, error: APIError | None = None,
+              rng: random.Random | None = None) -> float:
+        advised = error.body.get("retry_after") if error is not None else None
+        if isinstance(advised, int | float) and advised >= 0:
+            return min(float(advised), self.max_delay)
+        cap = min(self.backoff * 2 ** attempt, self.max_delay)
+        return (rng or random).uniform(0.5 * cap, cap)
+
+
+def retryable(call: Call, error: Exception) -> bool:
+    """Whether a failed attempt of ``call`` may be sent again."""
+    if not call.idempotent:
+        return False
+    if isinstance(error, APIError):
+        return error.status in RETRY_STATUSES
+    # Connect failures mean the request never reached the server.
+    return isinstance(error, httpx.ConnectError | httpx.ConnectTimeout | httpx.PoolTimeout)
+
+
+def outcome(call: Call, response: httpx.Response, *, retried: bool) -> Any:
+    """The parsed answer of a response, or raise its :class:`APIError`."""
+    if response.is_success:
+        return call.parse(response)
+    error = error_for_response(response)
+    if (retried and call.accepted_seq is not None and error.status == 409
+            and error.kind == "duplicate-seq"):
+        return FrameAccepted(seq=call.accepted_seq)
+    raise error
+
+
+# -- maps -------------------------------------------------------------------------------------
+
+def create_map(name: str) -> Call:
+    return Call("POST", "/v1/maps", _model(Map), json={"name": name})
+
+
+def list_maps() -> Call:
+    return Call("GET", "/v1/maps", _models(Map), idempotent=True)
+
+
+def get_map(map_id: str) -> Call:
+    return Call("GET", f"/v1/maps/{map_id}", _model(Map), idempotent=True)
+
+
+def delete_map(map_id: str) -> Call:
+    return Call("DELETE", f"/v1/maps/{map_id}", idempotent=True)
+
+
+def list_images(map_id: str) -> Call:
+    return Call("GET", f"/v1/maps/{map_id}/images", _models(MapImage), idempotent=True)
+
+
+def upload_images(map_id: str, images: Sequence[ImageSource], *, lat: float | None = None,
+                  lon: float | None = None, alt: float | None = None,
+                  captured_at: datetime | None = None) -> Call:
+    """Multipart ``files``; ``lat``/``lon`` (and ``alt``, ``captured_at``) for one file."""
+    files = [("files", _file_part(img, i)) for i, img in enumerate(images)]
+    form = {k: str(v) for k, v in (("lat", lat), ("lon", lon), ("alt", alt)) if v is not None}
+    if captured_at is not None:
+        form["captured_at"] = captured_at.isoformat()
+    return Call("POST", f"/v1/maps/{map_id}/images", _model(UploadResult), files=files,
+                data=form or None)
+
+
+def build_map(map_id: str) -> Call:
+    def parse(r: httpx.Response) -> Job:
+        body = r.json()
+        return Job(id=str(body["job_id"]), map_id=str(map_id), status=body.get("status", ""))
+
+    return Call("POST", f"/v1/maps/{map_id}/build", parse)
+
+
+def get_job(job_id: str) -> Call:
+    return Call("GET", f"/v1/jobs/{job_id}", _model(Job), idempotent=True)
+
+
+# -- sessions ---------------------------------------------------------------------------------
+
+def create_session(map_id: str, *, mode: str, params: dict[str, Any] | None,
+                   seed: int | None) -> Call:
+    body: dict[str, Any] = {"map_id": str(map_id), "mode": mode, "params": dict(params or {})}
+    if seed is not None:
+        body["seed"] = seed
+    return Call("POST", "/v1/sessions", _model(Session), json=body)
+
+
+def list_sessions() -> Call:
+    return Call("GET", "/v1/sessions", _models(Session), idempotent=True)
+
+
+def get_session(session_id: str, token: str | None) -> Call:
+    return Call("GET", f"/v1/sessions/{session_id}", _model(Session), idempotent=True,
+                token=token)
+
+
+def delete_session(session_id: str, token: str | None) -> Call:
+    return Call("DELETE", f"/v1/sessions/{session_id}", idempotent=True, token=token)
+
+
+def list_poses(session_id: str, token: str | None, *, after_seq: int | None,
+               limit: int) -> Call:
+    params: dict[str, Any] = {"limit": limit}
+    if after_seq is not None:
+        params["after_seq"] = after_seq
+    return Call("GET", f"/v1/sessions/{session_id}/poses", _models(Pose), params=params,
+                idempotent=True, token=token)
+
+
+def send_frame(session_id: str, token: str | None, image: ImageSource, *,
+               seq: int | None, captured_at: datetime | float | None, wait: bool,
+               content_type: str | None) -> Call:
+    """The raw image as the body. With ``seq`` the server refuses a second copy, so the
+    POST is safe to retry; without one it is not."""
+    name, data = _read_source(image, 0)
+    params: dict[str, Any] = {}
+    if seq is not None:
+        params["seq"] = seq
+    if captured_at is not None:
+        params["captured_at"] = (captured_at.isoformat() if isinstance(captured_at, datetime)
+                                 else repr(float(captured_at)))
+    if wait:
+        params["wait"] = "true"
+
+    def parse(r: httpx.Response) -> FrameAccepted | Pose:
+        body = r.json()
+        return Pose.model_validate(body) if body.get("type") == "pose" \
+            else FrameAccepted.model_validate(body)
+
+    ctype = content_type or image_content_type(data, name)
+    return Call("POST", f"/v1/sessions/{session_id}/frames", parse, params=params,
+                content=data, headers={"Content-Type": ctype}, idempotent=seq is not None,
+                token=token, accepted_seq=seq if not wait else None,
+                read_timeout=WAIT_READ_TIMEOUT_S if wait else None)
+
+
+def reset_session(session_id: str, token: str | None) -> Call:
+    return Call("POST", f"/v1/sessions/{session_id}/reset", _model(Session), token=token)
+
+
+def set_initial_pose(session_id: str, token: str | None, *, lat: float | None,
+                     lon: float | None, x: float | None, y: float | None,
+                     sigma: float) -> Call:
+    body = {k: v for k, v in (("lat", lat), ("lon", lon), ("x", x), ("y", y))
+            if v is not None}
+    body["sigma"] = sigma
+    return Call("POST", f"/v1/sessions/{session_id}/initial-pose", _model(Session),
+                json=body, token=token)
+
+
+# -- health -----------------------------------------------------------------------------------
+
+def readyz() -> Call:
+    return Call("GET", "/readyz", lambda r: r.json(), idempotent=True)
+
+
+def healthz() -> Call:
+    return Call("GET", "/healthz", lambda r: r.json(), idempotent=True)
+
+
+# -- helpers ----------------------------------------------------------------------------------
+
+def image_content_type(data: bytes, name: str = "") -> str:
+    """``image/jpeg`` or ``image/png`` from the magic bytes, else from the file name."""
+    if data[:3] == b"\xff\xd8\xff":
+        return "image/jpeg"
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        return "image/png"
+    guessed, _ = mimetypes.guess_type(name)
+    return guessed or "application/octet-stream"
+
+
+def _read_source(image: ImageSource, index: int) -> tuple[str, bytes]:
+    if isinstance(image, bytes | bytearray | memoryview):
+        return f"image-{index}", bytes(image)
+    if isinstance(image, tuple):
+        name, data = image
+        return str(name), bytes(data)
+    path = Path(image)
+    return path.name, path.read_bytes()
+
+
+def _file_part(image: ImageSource, index: int) -> tuple[str, bytes, str]:
+    name, data = _read_source(image, index)
+    return name, data, image_content_type(data, name)
