@@ -99,6 +99,8 @@ def _header_size(data: bytes, max_pixels: int) -> tuple[int, int]:
     except Image.DecompressionBombError as exc:
         raise Problem(413, str(exc), kind="too-many-pixels", max_pixels=max_pixels) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
+        if "truncated" in str(exc).lower() or isinstance(exc, EOFError):
+            raise Problem(422, "the image is truncated", kind="truncated-image") from None
         raise Problem(422, f"the image header is unreadable: {exc}", kind="bad-image") from None
 
 

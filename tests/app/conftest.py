@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -137,5 +138,5 @@ def hold_worker(module_client, tmp_path) -> Iterator[callable]:
 
     yield hold
     release.touch()
-    for fut in held:
-        fut.result(60)
+    # A held worker may have been killed by the test: the futures then hold WorkerDied.
+    concurrent.futures.wait(held, 60)

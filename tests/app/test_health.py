@@ -1,0 +1,66 @@
+"""Health, readiness, metrics, OpenAPI and the problem shape of unrouted requests."""
+
+from __future__ import annotations
+
+from tests.app.conftest import ADMIN, PROBLEM
+
+
+def test_healthz_and_readyz(module_client):
+    assert module_client.get("/healthz").json() == {"status": "ok"}
+    r = module_client.get("/readyz").json()
+    assert r["status"] == "ready" and r["workers"] == 1
+    assert r["database"] in ("sqlite", "postgresql")
+
+
+def test_readyz_fails_when_the_engine_is_down(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+    from tests.app.conftest import service_settings
+
+    app = create_app(service_settings(tmp_path / "d", f"sqlite:///{tmp_path}/x.db"))
+    with TestClient(app) as c:
+        app.state.ctx.engine.close()
+        r = c.get("/readyz")
+        assert r.status_code == 503 and r.headers["content-type"] == PROBLEM
+
+
+def test_metrics_count_requests_by_route_template(module_client):
+    c = module_client
+    for _ in range(3):
+        c.get("/v1/maps/00000000-0000-0000-0000-000000000000", headers=ADMIN)
+    text = c.get("/metrics").text
+    line = next(ln for ln in text.splitlines() if ln.startswith(
+        'vloc_http_requests_total{method="GET",route="/v1/maps/{map_id}",status="404"}'))
+    assert float(line.split()[-1]) >= 3
+    assert "vloc_workers_alive 1.0" in text
+    assert "vloc_frame_latency_seconds_bucket" in text
+    assert "00000000-0000" not in text
+
+
+def test_unknown_route_and_method_are_problems(module_client):
+    r = module_client.get("/v2/nothing")
+    assert r.status_code == 404 and r.headers["content-type"] == PROBLEM
+    assert r.json()["detail"] == "no route GET /v2/nothing"
+    r = module_client.put("/v1/maps", headers=ADMIN)
+    assert r.status_code == 405 and r.headers["content-type"] == PROBLEM
+
+
+def test_request_id_is_echoed(module_client):
+    r = module_client.get("/healthz", headers={"X-Request-ID": "abc123"})
+    assert r.headers["x-request-id"] == "abc123"
+    assert len(module_client.get("/healthz").headers["x-request-id"]) == 32
+
+
+def test_openapi_documents_the_routes(module_client):
+    spec = module_client.get("/openapi.json").json()
+    paths = spec["paths"]
+    for path in ("/v1/maps", "/v1/maps/{map_id}/images", "/v1/maps/{map_id}/build",
+                 "/v1/jobs/{job_id}", "/v1/sessions", "/v1/sessions/{session_id}/frames",
+                 "/v1/sessions/{session_id}/reset", "/v1/sessions/{session_id}/initial-pose",
+                 "/healthz", "/readyz"):
+        assert path in paths, path
+    frames = paths["/v1/sessions/{session_id}/frames"]["post"]
+    assert set(frames["requestBody"]["content"]) == {"image/jpeg", "image/png"}
+    assert {"MapCreate", "MapRead", "SessionCreate", "PoseEstimate"} <= set(
+        spec["components"]["schemas"])

@@ -1,0 +1,40 @@
+"""Header checks of uploads in the API process."""
+
+from __future__ import annotations
+
+import pytest
+
+from app.imagecheck import check_image, kind_of_content_type, sniff
+from app.problems import Problem
+from tests.app.imagery import plain_jpeg, png, png_bomb
+
+
+def test_sniff_and_content_types():
+    assert sniff(plain_jpeg()) == "jpeg" and sniff(png()) == "png" and sniff(b"GIF89a") is None
+    assert kind_of_content_type("image/jpeg; charset=binary") == "jpeg"
+    assert kind_of_content_type("IMAGE/PNG") == "png"
+    assert kind_of_content_type("image/gif") is None and kind_of_content_type(None) is None
+
+
+def test_good_images_give_their_size():
+    h = check_image(plain_jpeg(size=(64, 48)), max_pixels=10_000)
+    assert (h.kind, h.width, h.height, h.content_type, h.suffix) == (
+        "jpeg", 64, 48, "image/jpeg", ".jpg")
+    assert check_image(png(size=(30, 20)), max_pixels=600, declared="png").width == 30
+
+
+@pytest.mark.parametrize(("data", "declared", "max_pixels", "status", "kind"), [
+    (b"", None, 10**6, 422, "empty-image"),
+    (b"hello", None, 10**6, 422, "bad-image"),
+    (plain_jpeg()[:200], None, 10**6, 422, "truncated-image"),
+    (plain_jpeg()[:-300], None, 10**6, 422, "truncated-image"),
+    (png()[:-12], None, 10**6, 422, "truncated-image"),
+    (png(), "jpeg", 10**6, 415, "content-type-mismatch"),
+    (plain_jpeg(size=(64, 48)), None, 64 * 48 - 1, 413, "too-many-pixels"),
+    (png_bomb(), None, 10**6, 413, "too-many-pixels"),
+    (b"\xff\xd8\xff" + b"\x00" * 50, None, 10**6, 422, "bad-image"),
+])
+def test_bad_images(data, declared, max_pixels, status, kind):
+    with pytest.raises(Problem) as info:
+        check_image(data, max_pixels=max_pixels, declared=declared)
+    assert (info.value.status, info.value.kind) == (status, kind)
