@@ -101,9 +101,12 @@ class Client:
 
     def _send(self, call: Call) -> httpx.Response:
         headers = {**auth_headers(call.token or self.admin_key), **call.headers}
-        timeout = self._timeout if call.read_timeout is None else httpx.Timeout(
-            self._timeout.connect, read=call.read_timeout, write=self._timeout.write,
-            pool=self._timeout.pool)
+        timeout: httpx.Timeout | object = self._timeout
+        if not self._owns_http:
+            timeout = httpx.USE_CLIENT_DEFAULT  # a caller's client keeps its own timeouts
+        elif call.read_timeout is not None:
+            timeout = httpx.Timeout(self._timeout.connect, read=call.read_timeout,
+                                    write=self._timeout.write, pool=self._timeout.pool)
         try:
             return self._http.request(call.method, self._url(call.path), params=call.params,
                                       json=call.json, data=call.data, files=call.files,
