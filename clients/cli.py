@@ -14,6 +14,8 @@ import click
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "eval": ("clients.commands.eval", "eval_cmd",
              "Run the localisers over a dataset offline and print the error/speed table."),
+    "serve": ("clients.commands.serve", "serve_cmd", "Run the API server (uvicorn) with settings from the environment."),
+    "world": ("clients.commands.world", "world_cmd", "Generate a synthetic world: a route rendered under several illuminations, as a dataset folder."),
 }
 
 

@@ -39,6 +39,7 @@ from workers.engine import (
     LocalEngine,
     Outcome,
     SessionSpec,
+    WorkerDied,
 )
 
 log = logging.getLogger(__name__)
@@ -212,7 +213,7 @@ class SessionRuntime:
         live.arrivals[seq] = Arrival(t0, utcnow(), captured_at)
         try:
             self.engine.submit_frame(live.id, seq, data, captured_at=captured)
-        except (KeyError, EngineClosed) as exc:
+        except (KeyError, EngineClosed, WorkerDied) as exc:
             del live.arrivals[seq]
             with self._lock:
                 # Reloaded from its checkpoint on the next request.

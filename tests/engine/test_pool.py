@@ -162,3 +162,33 @@ def test_closed_engine_refuses_work(outcomes):
 
     with pytest.raises(EngineClosed):
         eng.call("tests.engine.fakes:square", 2)
+
+
+def test_a_worker_that_cannot_be_replaced_at_once_is_retried(outcomes):
+    import time
+
+    engine = LocalEngine(1, on_outcome=outcomes.put)
+    engine.start()
+    try:
+        engine.open_session(_spec("s")).result(TIMEOUT)
+        engine.submit_frame("s", 0, _png(1))
+        _take(outcomes, 1)
+        real, attempts = engine._spawn, []
+
+        def flaky(index):
+            attempts.append(index)
+            if len(attempts) == 1:
+                raise OSError("fork refused")
+            return real(index)
+
+        engine._spawn = flaky
+        os.kill(engine.worker_pids()[0], signal.SIGKILL)
+        deadline = time.monotonic() + TIMEOUT
+        while engine.restarts == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert attempts == [0, 0] and engine.restarts == 1
+        engine.submit_frame("s", 1, _png(1))
+        (after,) = _take(outcomes, 1)
+        assert after.estimate["x"] == 2.0  # resumed from the checkpoint after frame 0
+    finally:
+        engine.close()

@@ -42,6 +42,9 @@ from .worker import THREAD_ENV, worker_main
 
 log = logging.getLogger(__name__)
 
+RESPAWN_RETRY_S = 1.0
+"""How soon a worker that could not be replaced is tried again."""
+
 PRELOAD = ["workers.engine.worker", "workers.core.localisers", "workers.core.mapbuild"]
 
 
@@ -60,6 +63,8 @@ class _Slot:
     tasks: object
     conn: Connection
     ready: threading.Event = field(default_factory=threading.Event)
+    broken: bool = False
+    """Dead and not yet replaced: nothing may be queued on it."""
     sessions: set[str] = field(default_factory=set)
     frames: dict[tuple[str, int], None] = field(default_factory=dict)
     calls: dict[int, Future] = field(default_factory=dict)
@@ -140,7 +145,8 @@ class LocalEngine:
             if not self._running:
                 return
             self._running = False
-            slots = list(self._slots)
+            # A broken slot's worker is dead and its queue already closed.
+            slots = [s for s in self._slots if not s.broken]
         for slot in slots:
             slot.tasks.put(Stop())
         for slot in slots:
@@ -168,7 +174,8 @@ class LocalEngine:
 
     def alive(self) -> bool:
         with self._lock:
-            return self._running and all(s.process.is_alive() for s in self._slots)
+            return self._running and all(not s.broken and s.process.is_alive()
+                                         for s in self._slots)
 
     # -- sessions ---------------------------------------------------------------------------
 
@@ -181,9 +188,9 @@ class LocalEngine:
         fut: Future = Future()
         with self._lock:
             self._check_running()
-            slot = self._slots[self._pinned[spec.session_id]] \
-                if spec.session_id in self._pinned else min(
-                    self._slots, key=lambda s: (len(s.sessions), s.load, s.index))
+            slot = self._usable(self._slots[self._pinned[spec.session_id]]
+                                if spec.session_id in self._pinned else min(
+                self._slots, key=lambda s: (s.broken, len(s.sessions), s.load, s.index)))
             call_id = next(self._call_ids)
             self._specs[spec.session_id] = spec
             self._pinned[spec.session_id] = slot.index
@@ -212,7 +219,7 @@ class LocalEngine:
         """
         with self._lock:
             self._check_running()
-            slot = self._slots[self._pinned[session_id]]
+            slot = self._usable(self._slots[self._pinned[session_id]])
             n = self._counts[session_id] = self._counts[session_id] + 1
             slot.frames[(session_id, seq)] = None
             slot.tasks.put(FrameTask(session_id, seq, data, captured_at,
@@ -230,7 +237,7 @@ class LocalEngine:
         fut: Future = Future()
         with self._lock:
             self._check_running()
-            slot = self._slots[self._pinned[session_id]]
+            slot = self._usable(self._slots[self._pinned[session_id]])
             call_id = next(self._call_ids)
             slot.calls[call_id] = fut
             slot.tasks.put(ControlTask(call_id, session_id, op, kwargs))
@@ -240,7 +247,7 @@ class LocalEngine:
         with self._lock:
             index = self._pinned.get(session_id)
             self._forget(session_id)
-            if index is not None and self._running:
+            if index is not None and self._running and not self._slots[index].broken:
                 self._slots[index].tasks.put(CloseSession(session_id))
 
     def last_state(self, session_id: str) -> bytes | None:
@@ -254,7 +261,7 @@ class LocalEngine:
         fut: Future = Future()
         with self._lock:
             self._check_running()
-            slot = min(self._slots, key=lambda s: (s.load, s.index))
+            slot = self._usable(min(self._slots, key=lambda s: (s.broken, s.load, s.index)))
             call_id = next(self._call_ids)
             slot.calls[call_id] = fut
             slot.tasks.put(CallTask(call_id, fn, args, kwargs))
@@ -265,6 +272,12 @@ class LocalEngine:
     def _check_running(self) -> None:
         if not self._running:
             raise EngineClosed("the engine is not running")
+
+    @staticmethod
+    def _usable(slot: _Slot) -> _Slot:
+        if slot.broken:
+            raise WorkerDied(f"worker {slot.index} died and is being replaced; retry")
+        return slot
 
     def _forget(self, session_id: str) -> None:
         with self._lock:
@@ -290,9 +303,12 @@ class LocalEngine:
             with self._lock:
                 if not self._running:
                     return
-                by_conn = {s.conn: s for s in self._slots}
-                by_sentinel = {s.process.sentinel: s for s in self._slots}
-            ready = wait([*by_conn, *by_sentinel, self._wakeup_r])
+                live = [s for s in self._slots if not s.broken]
+                broken = [s for s in self._slots if s.broken]
+            by_conn = {s.conn: s for s in live}
+            by_sentinel = {s.process.sentinel: s for s in live}
+            ready = wait([*by_conn, *by_sentinel, self._wakeup_r],
+                         timeout=RESPAWN_RETRY_S if broken else None)
             dead: list[_Slot] = []
             for obj in ready:
                 if obj is self._wakeup_r:
@@ -310,10 +326,9 @@ class LocalEngine:
                 elif not slot.process.is_alive():
                     dead.append(slot)
             for slot in dead:
-                with self._lock:
-                    if not self._running:
-                        return
                 self._replace(slot)
+            for slot in broken:
+                self._revive(slot)
 
     def _dispatch(self, slot: _Slot, msg) -> None:
         if isinstance(msg, Ready):
@@ -371,26 +386,45 @@ class LocalEngine:
             self._emit(FrameFailed(session_id, seq, "worker_died", reason))
 
     def _replace(self, slot: _Slot) -> None:
+        """A worker died: report what it held, then start another in its place."""
         self._drain(slot)
         slot.process.join(1.0)
         code = slot.process.exitcode
         reason = f"worker process {slot.process.pid} exited (code {code}) before finishing it"
+        with self._lock:
+            if not self._running:
+                return
+            # From here on nothing is queued on the dead worker: submissions get WorkerDied
+            # until the replacement exists, and its in-flight work is failed below.
+            slot.broken = True
         log.error("engine: worker %d (pid %s) died with code %s; replacing it",
                   slot.index, slot.process.pid, code)
+        slot.tasks.cancel_join_thread()
+        slot.tasks.close()
+        slot.conn.close()
+        self._revive(slot)
+        # Reported after the replacement exists, so that whoever hears of the loss can
+        # already send the session its next frame.
+        self._fail_slot(slot, reason)
+
+    def _revive(self, slot: _Slot) -> None:
+        """Start a worker in a dead worker's place and reopen its sessions from their last
+        checkpoints, before anything else reaches the new worker."""
         with self._lock:
-            # Everything submitted from here on goes to the new worker, after the reopening
-            # of the sessions, so no frame can reach it before its session does.
-            fresh = self._spawn(slot.index)
+            if not self._running:
+                return
+            try:
+                fresh = self._spawn(slot.index)
+            except Exception as exc:  # noqa: BLE001 - retried by the reader loop
+                log.error("engine: cannot start a worker in slot %d yet (%s); retrying",
+                          slot.index, exc)
+                return
             fresh.sessions = set(slot.sessions)
             for session_id in sorted(fresh.sessions):
                 fresh.tasks.put(OpenSession(self._specs[session_id],
                                             self._states.get(session_id)))
             self._slots[slot.index] = fresh
             self.restarts += 1
-        self._fail_slot(slot, reason)
-        slot.tasks.cancel_join_thread()
-        slot.tasks.close()
-        slot.conn.close()
 
 
 def _remote_error(error_type: str, message: str) -> Exception:

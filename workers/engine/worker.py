@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import queue
 import signal
 import time
 from collections.abc import Callable
@@ -29,6 +30,7 @@ from .messages import (
     Stop,
 )
 
+ORPHAN_CHECK_S = 1.0
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -164,14 +166,22 @@ def _describe(exc: BaseException) -> str:
 
 def worker_main(index: int, tasks, results: Connection, max_pixels: int) -> None:
     """Entry point of a worker process."""
-    # The parent handles Ctrl-C and stops the workers in order; a worker that died of the
-    # terminal's SIGINT first would report its frames as lost.
+    # The parent stops the workers in order (after the frames already queued) on Ctrl-C or
+    # SIGTERM; a worker that died of a signal sent to the whole process group first would
+    # lose its frames.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _single_threaded()
+    parent = os.getppid()
     state = WorkerState(max_pixels=max_pixels)
     results.send(Ready(os.getpid()))
     while True:
-        task = tasks.get()
+        try:
+            task = tasks.get(timeout=ORPHAN_CHECK_S)
+        except queue.Empty:
+            if os.getppid() != parent:
+                break  # the pool is gone (killed without stopping us): nobody will ask
+            continue
         if isinstance(task, Stop):
             break
         out = state.handle(task)
