@@ -163,6 +163,10 @@ class LocalEngine:
             slot.tasks.cancel_join_thread()
             slot.tasks.close()
             slot.conn.close()
+        with self._lock:
+            # Dropping the queues releases their semaphores now rather than at exit, which
+            # a server stopped by a signal never reaches.
+            self._slots = []
 
     @property
     def running(self) -> bool:

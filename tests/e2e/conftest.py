@@ -1,0 +1,81 @@
+"""A real ``vloc serve`` process on a free port."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.conftest import REPO_ROOT
+
+
+@dataclass
+class Server:
+    base_url: str
+    ws_url: str
+    data_dir: Path
+    process: subprocess.Popen
+    stderr_path: Path
+
+    def admin_key(self) -> str:
+        return (self.data_dir / "admin_key").read_text().strip()
+
+    def stop(self, timeout: float = 60.0) -> int:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            self.process.wait(timeout)
+        return self.process.returncode
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(data_dir: Path, *, workers: int = 2, env: dict | None = None,
+                 timeout: float = 120.0) -> Server:
+    port = free_port()
+    stderr_path = data_dir.parent / f"server-{port}.log"
+    environ = {**os.environ, "VLOC_DATA_DIR": str(data_dir), "VLOC_WORKERS": str(workers),
+               "VLOC_LOG_LEVEL": "INFO", **(env or {})}
+    environ.pop("VLOC_ADMIN_KEY", None)
+    environ.pop("VLOC_DATABASE_URL", None)
+    environ.update(env or {})
+    process = subprocess.Popen(
+        [sys.executable, "-m", "clients.cli", "serve", "--host", "127.0.0.1", "--port",
+         str(port)], cwd=REPO_ROOT, env=environ, stdout=subprocess.DEVNULL,
+        stderr=stderr_path.open("wb"))
+    server = Server(f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}", data_dir, process,
+                    stderr_path)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            pytest.fail(f"the server exited with {process.returncode}:\n"
+                        + stderr_path.read_text()[-3000:])
+        try:
+            if httpx.get(server.base_url + "/readyz", timeout=1.0).status_code == 200:
+                return server
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    server.stop()
+    pytest.fail("the server did not become ready:\n" + stderr_path.read_text()[-3000:])
+
+
+@pytest.fixture
+def server(tmp_path) -> Iterator[Server]:
+    srv = start_server(tmp_path / "data")
+    yield srv
+    if srv.process.poll() is None:
+        srv.process.kill()
+        srv.process.wait(10)
