@@ -74,6 +74,8 @@ class Pose(Base):
     n_particles: Mapped[int] = mapped_column(Integer)
     status: Mapped[str] = mapped_column(String(16))
     best_image: Mapped[int] = mapped_column(Integer)
+    decode_ms: Mapped[float] = mapped_column(Float)
+    """Decoding and resizing the frame in the worker."""
     processing_ms: Mapped[float] = mapped_column(Float)
     """Time in the core's step (decoding excluded)."""
     latency_ms: Mapped[float] = mapped_column(Float)

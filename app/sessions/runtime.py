@@ -281,7 +281,8 @@ class SessionRuntime:
                 sigma_x=e["sigma_x"], sigma_y=e["sigma_y"], cov=list(e["cov"]),
                 feature=e["feature"], next_feature=e["next_feature"],
                 n_particles=e["n_particles"], status=e["status"],
-                best_image=e.get("best_image", -1), processing_ms=e["processing_ms"],
+                best_image=e.get("best_image", -1), decode_ms=outcome.decode_ms,
+                processing_ms=e["processing_ms"],
                 latency_ms=latency_ms)
         else:
             msg = FrameError(session_id=outcome.session_id, seq=outcome.seq,
@@ -335,7 +336,8 @@ class SessionRuntime:
                     cov_xy=cov[1], cov_yx=cov[2], cov_yy=cov[3], feature=msg["feature"],
                     next_feature=msg["next_feature"], n_particles=msg["n_particles"],
                     status=msg["status"], best_image=msg["best_image"],
-                    processing_ms=msg["processing_ms"], latency_ms=msg["latency_ms"]))
+                    decode_ms=msg["decode_ms"], processing_ms=msg["processing_ms"],
+                    latency_ms=msg["latency_ms"]))
 
     def _publish(self, messages: list[tuple[str, int, dict]]) -> None:
         """Event loop: fan the stored messages out and wake their waiters."""

@@ -47,6 +47,7 @@ class PoseEstimate(BaseModel):
     n_particles: int
     status: str = Field(description="initialising, tracking or lost")
     best_image: int
+    decode_ms: float = Field(description="Decoding and resizing the frame in the worker")
     processing_ms: float = Field(description="The core's step time")
     latency_ms: float = Field(description="Frame arrival to estimate back in the API")
 

@@ -118,7 +118,8 @@ def pose_read(p: Pose) -> PoseEstimate:
         received_at=p.received_at, x=p.x, y=p.y, lat=p.lat, lon=p.lon, sigma_x=p.sigma_x,
         sigma_y=p.sigma_y, cov=[p.cov_xx, p.cov_xy, p.cov_yx, p.cov_yy], feature=p.feature,
         next_feature=p.next_feature, n_particles=p.n_particles, status=p.status,
-        best_image=p.best_image, processing_ms=p.processing_ms, latency_ms=p.latency_ms)
+        best_image=p.best_image, decode_ms=p.decode_ms, processing_ms=p.processing_ms,
+        latency_ms=p.latency_ms)
 
 
 def _quantile(sorted_values: list[float], q: float) -> float | None:

@@ -56,6 +56,7 @@ def upgrade() -> None:
         sa.Column("n_particles", sa.Integer(), nullable=False),
         sa.Column("status", sa.String(16), nullable=False),
         sa.Column("best_image", sa.Integer(), nullable=False),
+        sa.Column("decode_ms", sa.Float(), nullable=False),
         sa.Column("processing_ms", sa.Float(), nullable=False),
         sa.Column("latency_ms", sa.Float(), nullable=False),
         sa.ForeignKeyConstraint(["session_id"], ["sessions.id"], ondelete="CASCADE",
