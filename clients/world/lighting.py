@@ -109,8 +109,8 @@ ILLUMINATIONS: dict[str, Illumination] = {
         cloud_colour=(168, 168, 170), time="11:12:40", day_offset=42),
     "dusk": Illumination(
         name="dusk", sun_azimuth_deg=298.0, sun_elevation_deg=4.0,
-        sun=(0.10, 0.22, 0.38), sky=(0.46, 0.36, 0.30), penumbra_m=0.15,
-        contrast=0.72, gamma=1.25, noise=4.0,
+        sun=(0.15, 0.33, 0.55), sky=(0.80, 0.64, 0.54), penumbra_m=0.15,
+        contrast=1.0, gamma=1.15, noise=2.5,
         horizon=(110, 150, 225), zenith=(95, 55, 35), clouds=0.45,
         cloud_colour=(120, 110, 150), time="21:04:10", day_offset=1),
 }

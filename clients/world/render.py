@@ -158,8 +158,8 @@ class Renderer:
             sign = 1.0 if H_inv[2] @ (centre[0], centre[1], 1.0) > 0 else -1.0
             tex = self._warp_levels(levels, H_inv, det, (bw, bh), write, lo, hi, sign)
         if plane.alpha is not None:
-            write = cv2.bitwise_and(write, cv2.compare(cv2.extractChannel(tex, 3), 127,
-                                                        cv2.CMP_GT))
+            # (numpy here: OpenCV takes a 4-element array for a scalar.)
+            write = cv2.bitwise_and(write, (tex[..., 3] > 127).view(np.uint8) * np.uint8(255))
             tex = cv2.cvtColor(tex, cv2.COLOR_BGRA2BGR)
         cv2.copyTo(tex, write, image[y0:y1, x0:x1])
         cv2.copyTo(inv_z, write, region)

@@ -104,8 +104,8 @@ def terrain_ground(rng: np.random.Generator, land: Parcels, extent: np.ndarray, 
     phase = (x * np.cos(angle)[labels] + y * np.sin(angle)[labels]) / spacing[labels]
     rows = np.abs(np.sin(np.pi * phase)).astype(np.float32)
     is_field = kinds[labels] == USES.index("field")
-    light = 1.0 + 0.12 * patches + 0.07 * grain
-    light = np.where(is_field, light * (0.72 + 0.4 * rows), light)
+    light = 1.0 + 0.14 * patches + 0.03 * grain
+    light = np.where(is_field, light * (0.8 + 0.25 * rows), light)
     base = colour[labels]                                     # (h, w, 3)
     meadow = np.isin(kinds[labels], [USES.index(u) for u in ("meadow", "orchard", "forest")])
     base[meadow] = np.array([70, 135, 90], np.float32) * (1.0 + 0.25 * patches[meadow, None])
@@ -116,6 +116,7 @@ def terrain_ground(rng: np.random.Generator, land: Parcels, extent: np.ndarray, 
     img = np.clip(base * light[..., None], 0, 255).astype(np.uint8)
     del base, light, phase, rows, labels
     _flowers(img, rng, meadow, texel)
+    _landmarks(img, rng, texel)
     for start, end, width in roads:
         _road(img, rng, extent, texel, start, end, width)
     return img
@@ -129,6 +130,40 @@ def _flowers(img, rng, where, texel) -> None:
     keep = where[ys, xs]
     colours = np.array([(240, 240, 240), (40, 200, 230), (200, 80, 200), (60, 60, 220)], np.uint8)
     img[ys[keep], xs[keep]] = colours[rng.integers(0, len(colours), int(keep.sum()))]
+
+
+def _landmarks(img, rng, texel) -> None:
+    """What makes one stretch of field look unlike the next: tyre tracks curving across
+    the crops, bare and wet patches, stones and hay bales, dark bushes."""
+    h, w = img.shape[:2]
+    area = h * w * texel * texel
+    for _ in range(int(area / 400)):                    # tyre tracks
+        pts = np.cumsum(rng.normal(0, 3.0 / texel, (6, 2)), axis=0) + rng.uniform(0, [w, h])
+        gauge = max(1, int(1.6 / texel))
+        tone = tuple(float(v) for v in rng.uniform(60, 110, 3))
+        for off in (0, gauge):
+            cv2.polylines(img, [(pts + off).astype(np.int32)], False, tone,
+                          max(1, int(0.35 / texel)), cv2.LINE_AA)
+    for _ in range(int(area / 250)):                    # bare or wet patches
+        c = rng.uniform(0, [w, h]).astype(int)
+        axes = (rng.uniform(0.5, 4.0, 2) / texel).astype(int)
+        t = rng.uniform(45, 85) if rng.random() < 0.5 else rng.uniform(100, 150)
+        tone = (0.75 * t, 0.95 * t, 1.1 * t)            # wet earth or dry sand, BGR
+        cv2.ellipse(img, (int(c[0]), int(c[1])), (int(axes[0]), int(axes[1])),
+                    float(rng.uniform(0, 180)), 0, 360, tone, -1, cv2.LINE_AA)
+    for _ in range(int(area / 60)):                     # stones, bales, bushes
+        c = (int(rng.uniform(0, w)), int(rng.uniform(0, h)))
+        r = max(2, int(rng.uniform(0.2, 1.0) / texel))
+        kind = rng.random()
+        if kind < 0.4:
+            cv2.circle(img, c, r, (170, 200, 215), -1, cv2.LINE_AA)
+            cv2.circle(img, c, max(1, r // 2), (140, 170, 190), max(1, r // 6), cv2.LINE_AA)
+        elif kind < 0.7:
+            cv2.circle(img, c, r, tuple(float(v) for v in rng.uniform(120, 190, 3)), -1, cv2.LINE_AA)
+        else:
+            for _ in range(4):
+                o = (rng.normal(0, r / 2, 2)).astype(int)
+                cv2.circle(img, (c[0] + int(o[0]), c[1] + int(o[1])), r, (30, 75, 40), -1, cv2.LINE_AA)
 
 
 def _to_px(extent, texel, p) -> tuple[int, int]:

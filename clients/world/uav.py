@@ -34,6 +34,12 @@ def footprint_width(altitude: float) -> float:
     return 2.0 * altitude * math.tan(math.radians(HFOV_DEG) / 2.0)
 
 
+def shortest_route(altitude: float) -> float:
+    """Length of the shortest survey: two lanes, each one lane spacing long."""
+    lane = 0.6 * footprint_width(altitude)
+    return 2 * lane + math.pi * lane / 2 + 1.0
+
+
 def survey_route(route_length: float, altitude: float, pitch_deg: float) -> Route:
     """A lawnmower path whose lanes overlap by 40 % (nadir camera), or a loop (camera
     looking ahead), about ``route_length`` metres long, centred on the origin."""

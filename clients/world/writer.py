@@ -141,7 +141,7 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
     out_dir = Path(out_dir)
     image_dir = out_dir / "images"
     _prepare_folder(image_dir, overwrite)
-    spacing, length, frames = _sizes(kind, frames, route_length)
+    spacing, length, frames = _sizes(kind, frames, route_length, altitude)
     gps_sigma = GPS_NOISE_M[kind] if gps_noise_m is None else float(gps_noise_m)
     scene_rng, gps_rng, pass_parent = np.random.default_rng(seed).spawn(3)
     pass_rngs = pass_parent.spawn(len(passes))
@@ -215,7 +215,8 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
                    "frame": "local east-north-up tangent plane at the origin"},
         "camera": {"width": camera.width, "height": camera.height, "hfov_deg": camera.hfov_deg,
                    "focal_px": round(camera.focal, 6), "supersample": supersample, **options},
-        "route": {"shape": "closed loop round a block" if kind == "robot" else "lawnmower survey",
+        "route": {"shape": ("closed loop round a block" if kind == "robot" else
+                            "loop" if route.closed else "lawnmower survey"),
                   "length_m": round(route.length, 3), "closed": route.closed},
         "frames_per_pass": frames, "frame_spacing_m": round(spacing, 6),
         "frame_interval_s": FRAME_INTERVAL_S, "jpeg_quality": quality,
@@ -233,16 +234,23 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
                      images=len(truth_rows), timings=timings)
 
 
-def _sizes(kind: str, frames: int | None, route_length: float | None) -> tuple[float, float, int]:
-    """(frame spacing, route length, frames per pass) from what the caller fixed."""
-    spacing = robot.SPACING if kind == "robot" else uav.SPACING
-    default_length = robot.ROUTE_LENGTH if kind == "robot" else uav.ROUTE_LENGTH
+def _sizes(kind: str, frames: int | None, route_length: float | None,
+           altitude: float | None) -> tuple[float, float, int]:
+    """(frame spacing, route length, frames per pass) from what the caller fixed.
+
+    ``frames`` alone gives a route of ``frames`` times the kind's spacing, but never
+    shorter than the kind's shortest route; then the frames spread out over it.
+    """
+    if kind == "robot":
+        spacing, default_length, shortest = robot.SPACING, robot.ROUTE_LENGTH, robot.MIN_ROUTE
+    else:
+        spacing, default_length = uav.SPACING, uav.ROUTE_LENGTH
+        shortest = uav.shortest_route(uav.ALTITUDE if altitude is None else altitude)
     if frames is None:
         length = default_length if route_length is None else float(route_length)
         return spacing, length, max(2, int(round(length / spacing)))
-    if route_length is None:
-        return spacing, frames * spacing, frames
-    return float(route_length) / frames, float(route_length), frames
+    length = max(frames * spacing, shortest) if route_length is None else float(route_length)
+    return length / frames, length, frames
 
 
 def _check(kind, passes, frames, route_length, gps_noise_m, quality, supersample, altitude) -> None:
