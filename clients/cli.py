@@ -16,7 +16,6 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
              "Run the localisers over a dataset offline and print the error/speed table."),
     "serve": ("clients.commands.serve", "serve_cmd", "Run the API server (uvicorn) with settings from the environment."),
     "world": ("clients.commands.world", "world_cmd", "Generate a synthetic world: a route rendered under several illuminations, as a dataset folder."),
-    "world": ("clients.commands.world", "world_cmd", "Generate a synthetic world: a route rendered under several illuminations, as a dataset folder."),
 }
 
 
