@@ -162,9 +162,10 @@ def test_hybrid_switch_follows_thresholds():
 def test_thresholds_scale_with_motion_sigma():
     map_xy = _route()
     pf = ParticleFilter(map_xy, cKDTree(map_xy), FilterConfig(),
-                        MotionModel(sigma_floor=4.0, speed=7.0), 2.0, np.random.default_rng(0))
+                        MotionModel(sigma_floor=4.0, speed=7.0, nominal_dt=5.0), 2.0,
+                        np.random.default_rng(0))
     k = np.hypot(4.0, 35.0) / 4.0
-    assert pf.thresholds(5.0) == pytest.approx((5.5 * k, 7.0 * k))
+    assert pf.thresholds() == pytest.approx((5.5 * k, 7.0 * k))
 
 
 def test_zero_similarity_everywhere_keeps_uniform_weights():

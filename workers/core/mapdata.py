@@ -129,6 +129,13 @@ class MapData:
         keep = dt <= 5.0 * np.median(dt)
         return float(np.median(dist[keep] / dt[keep]))
 
+    def typical_interval(self) -> float | None:
+        """Median time (s) between consecutive map captures, if timed."""
+        t = np.sort(self.captured_at[np.isfinite(self.captured_at)])
+        dt = np.diff(t)
+        dt = dt[dt > 0]
+        return float(np.median(dt)) if len(dt) >= 2 else None
+
     def median_spacing(self) -> float:
         """Median distance from each map image to its nearest neighbour (metres)."""
         if len(self) < 2:

@@ -39,8 +39,12 @@ class FilterLocaliser(Localiser):
         self.config = cfg = config_from_params(params)
         speed = map_data.typical_speed() if cfg.speed == "auto" else cfg.speed
         self.motion = MotionModel(sigma_floor=cfg.motion_sigma, speed=speed, pull=cfg.pull,
-                                  velocity=cfg.velocity)
-        scale = cfg.distance_scale or max(2.0 * map_data.median_spacing(), 1.0)
+                                  velocity=cfg.velocity,
+                                  nominal_dt=map_data.typical_interval() or 1.0)
+        # A particle between two map images is at most half the spacing from one; the
+        # factor should fall off over about that, not over the motion noise.
+        scale = cfg.distance_scale or max(0.7 * map_data.median_spacing(),
+                                          0.5 * cfg.motion_sigma)
         self.pf = ParticleFilter(np.asarray(map_data.positions), map_data.tree, cfg,
                                  self.motion, scale, self.rng)
         self._fixed = {"global": GLOBAL, "sift": SIFT}.get(mode)
@@ -59,6 +63,7 @@ class FilterLocaliser(Localiser):
         if query.captured_at is not None and self.last_time is not None:
             dt = query.captured_at - self.last_time
         kind = self.pf.mode
+        candidates = None
         if kind == GLOBAL:
             q, feat_ms = query.global_features(cfg.global_features)
 
@@ -73,13 +78,22 @@ class FilterLocaliser(Localiser):
             else:
                 q_sift, feat_ms = query.sift()
             reduced_map = cfg.sift_reduce in ("both", "map")
+            if cfg.sift_candidates:
+                # The cheap global features shortlist places for SIFT to verify.
+                qg, g_ms = query.global_features(cfg.global_features)
+                feat_ms += g_ms
+                every_image = np.arange(len(self.map))
+                g = global_similarity(qg, self.map, every_image, features=cfg.global_features,
+                                      measure=cfg.global_measure)
+                candidates = np.argsort(-g, kind="stable")[: cfg.sift_candidates]
 
             def similarity(idx: np.ndarray) -> np.ndarray:
                 return sift_similarity(q_sift, self.map, idx, ratio=cfg.sift_ratio,
                                        verify=cfg.sift_verify, reduced=reduced_map)
         t_filter = time.perf_counter()
-        every = kind == GLOBAL and cfg.replacement == "retrieval"
-        stats, used, scored, sims = self.pf.step(similarity, dt, all_similarities=every)
+        every = kind == GLOBAL and (cfg.replacement == "retrieval" or cfg.global_check > 0)
+        stats, used, scored, sims = self.pf.step(similarity, dt, all_similarities=every,
+                                                 candidates=candidates)
         self._pin()
         filter_ms = (time.perf_counter() - t_filter) * 1e3
         if used == SIFT:
@@ -88,7 +102,7 @@ class FilterLocaliser(Localiser):
             self.prev_sift, self.prev_key = None, None
         if query.captured_at is not None:
             self.last_time = query.captured_at
-        _, d_sift = self.pf.thresholds(dt)
+        _, d_sift = self.pf.thresholds()
         spread = max(stats.sigma_x, stats.sigma_y)
         if spread < d_sift:
             status = Status.TRACKING

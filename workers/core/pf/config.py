@@ -71,6 +71,15 @@ class FilterConfig:
         GPS-nearest map images, a frame those matching the previous frame.
     sift_power : float
         Exponent applied to SIFT similarities (1 in the paper).
+    sift_candidates : int
+        In a SIFT step, also score the map images the global features rank highest over
+        the whole map (a shortlist, as in Li et al.'s hierarchy), so that replacement
+        particles can start at places SIFT confirmed. 0: only the particles' images.
+    global_check : int
+        After a global step, switch to SIFT unless one of the ``global_check`` map images
+        most similar to the frame (over the whole map) lies within d_global of the
+        estimate: the global features disagreeing with the cloud is a sign of trouble
+        that the cloud's own spread cannot show. 0 disables the check (the paper).
     velocity : bool
         Particles carry a velocity (constant-velocity motion model).
     resampler : {"multinomial", "systematic"}
@@ -93,6 +102,8 @@ class FilterConfig:
     sift_verify: str = "none"
     sift_reduce: str = "both"
     sift_power: float = 1.0
+    global_check: int = 0
+    sift_candidates: int = 0
     velocity: bool = False
     resampler: str = "multinomial"
 
@@ -115,6 +126,10 @@ def _check(c: FilterConfig) -> None:
     for name in ("motion_sigma", "global_power", "d_global", "d_sift", "sift_ratio",
                  "sift_power"):
         positive(name, getattr(c, name))
+    for name in ("global_check", "sift_candidates"):
+        value = getattr(c, name)
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= 1000:
+            raise ValueError(f"{name} must be an integer in 0..1000, got {value!r}")
     if c.distance_scale is not None:
         positive("distance_scale", c.distance_scale)
     if c.speed is not None and c.speed != "auto":

@@ -119,15 +119,20 @@ class ParticleFilter:
         angle = self.rng.random(k) * 2.0 * np.pi
         return self.motion.speed * np.stack([np.cos(angle), np.sin(angle)], axis=1)
 
-    def thresholds(self, dt: float | None) -> tuple[float, float]:
-        """(d_global, d_sift) scaled to the motion sigma for a gap of ``dt`` seconds."""
-        k = self.motion.sigma(dt) / REFERENCE_SIGMA
+    def thresholds(self) -> tuple[float, float]:
+        """(d_global, d_sift) scaled to the motion sigma between frames a nominal gap apart.
+
+        The nominal gap, not the last one: after a long gap the cloud is spread because the
+        platform could be anywhere, and that is exactly when SIFT is needed.
+        """
+        k = self.motion.sigma(None) / REFERENCE_SIGMA
         return self.config.d_global * k, self.config.d_sift * k
 
     # -- one step ------------------------------------------------------------------------
 
     def step(self, similarity: SimilarityFn, dt: float | None, *,
-             all_similarities: bool = False) -> tuple[CloudStats, str, np.ndarray, np.ndarray]:
+             all_similarities: bool = False, candidates: np.ndarray | None = None
+             ) -> tuple[CloudStats, str, np.ndarray, np.ndarray]:
         """Run one filter step with the feature type in ``self.mode``.
 
         Parameters
@@ -140,6 +145,9 @@ class ParticleFilter:
         all_similarities : bool
             Ask for every map image's similarity (cheap for global features), which lets
             replacement particles start at the best retrieved images.
+        candidates : (c,) int ndarray or None
+            Further map images to score besides the particles' nearest ones (e.g. the best
+            global matches, shortlisted for SIFT), so replacement particles can start there.
 
         Returns
         -------
@@ -168,9 +176,10 @@ class ParticleFilter:
             sims = np.asarray(similarity(scored), dtype=np.float64)
             per_particle = sims[nearest]
         else:
-            scored, inverse = np.unique(nearest, return_inverse=True)
+            scored = np.unique(nearest if candidates is None
+                               else np.concatenate([nearest, candidates]))
             sims = np.asarray(similarity(scored), dtype=np.float64)
-            per_particle = sims[inverse]
+            per_particle = sims[np.searchsorted(scored, nearest)]
         power = cfg.global_power if used == GLOBAL else cfg.sift_power
         w = normalise_log(log_likelihoods(per_particle, dist, power=power,
                                           scale=self.distance_scale))
@@ -180,12 +189,17 @@ class ParticleFilter:
         # 4. estimate
         stats = cloud_stats(self.xy, self.w)
         # 5. decide the next step's features (IV-B)
-        d_global, d_sift = self.thresholds(dt)
+        d_global, d_sift = self.thresholds()
         spread = max(stats.sigma_x, stats.sigma_y)
         if used == SIFT:
             self.mode = GLOBAL if spread < d_sift else SIFT
         else:
             self.mode = SIFT if spread > d_global else GLOBAL
+            if self.mode == GLOBAL and cfg.global_check and len(scored) == len(self.map_xy):
+                top = np.argsort(-sims, kind="stable")[: cfg.global_check]
+                gap = np.min(np.linalg.norm(self.map_xy[scored[top]] - stats.mean, axis=1))
+                if gap > d_global:
+                    self.mode = SIFT
         if spread < d_sift:
             self.converged = True
         # 6. replace the worst particles

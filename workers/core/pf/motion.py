@@ -32,7 +32,8 @@ class MotionModel:
     pull : float
     velocity : bool
     nominal_dt : float
-        Seconds between frames assumed when a frame carries no time.
+        Seconds between frames assumed when a frame carries no time (the map's typical
+        interval between captures, where known).
     """
 
     sigma_floor: float = 4.0
