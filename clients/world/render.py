@@ -17,7 +17,6 @@ keypoints that exist in one frame and not the next.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -30,15 +29,6 @@ NEAR = 0.05
 
 SKY_SUBSAMPLE = 4
 """The sky is smooth; it is looked up at 1/4 of the render resolution and interpolated."""
-
-
-@dataclass(frozen=True)
-class _Frame:
-    """Per-frame camera quantities shared by all quads."""
-
-    R: np.ndarray
-    C: np.ndarray
-    KR: np.ndarray
 
 
 class Renderer:
@@ -73,7 +63,7 @@ class Renderer:
         self.normals = np.array([p.normal for p in planes]).reshape(-1, 3)
         self.two_sided = np.array([p.two_sided for p in planes], bool)
         self.max_distance = np.array([p.max_distance for p in planes], np.float64)
-        self.basis = [np.stack([p.u, p.v, p.origin], axis=1) for p in planes]
+        self.basis = np.array([np.stack([p.u, p.v, p.origin], axis=1) for p in planes]).reshape(-1, 3, 3)
         self.sky = np.ascontiguousarray(sky)
         w, h = self.internal.width, self.internal.height
         self._xs = np.arange(w, dtype=np.float32)
@@ -91,18 +81,43 @@ class Renderer:
         w, h = self.internal.width, self.internal.height
         image = self._sky_image(R, (w, h))
         inv_depth = np.zeros((h, w), np.float32)
-        frame = _Frame(R=R, C=C, KR=self.K @ R)
-        for i, cam, clip in self._visible(R, C):
-            self._draw(i, cam, clip, frame, image, inv_depth)
+        visible, cam, clip = self._visible(R, C)
+        if len(visible):
+            # Homographies texel -> pixel of all visible quads at once, and their inverses.
+            KR = self.K @ R
+            H = KR @ self.basis[visible]
+            H[:, :, 2] -= KR @ C
+            H_inv = np.linalg.inv(H)
+            det = np.abs(np.linalg.det(H_inv))
+            proj = cam @ self.K.T
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xy = proj[..., :2] / proj[..., 2:]
+            for j, i in enumerate(visible.tolist()):
+                if clip[j]:
+                    poly = _clip(cam[j], *self.frustum)
+                    if len(poly) < 3:
+                        continue
+                    pts = poly @ self.K.T
+                    corners = pts[:, :2] / pts[:, 2:]
+                else:
+                    corners = xy[j]
+                self._draw(i, corners, H_inv[j], float(det[j]), image, inv_depth)
         if self.supersample > 1:
             image = cv2.resize(image, (self.camera.width, self.camera.height),
                                interpolation=cv2.INTER_AREA)
         return image
 
-    def _visible(self, R: np.ndarray, C: np.ndarray):
-        """Quads facing the camera, near enough and not wholly outside the frustum."""
-        if len(self.planes) == 0:
-            return
+    def _visible(self, R: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Quads facing the camera, near enough and not wholly outside the frustum.
+
+        Returns
+        -------
+        index : (V,) int ndarray
+        cam : (V, 4, 3) float64 ndarray
+            Their corners in the camera frame.
+        clip : (V,) bool ndarray
+            Whether a corner lies outside the frustum (the quad needs clipping).
+        """
         rel = self.corners - C                                   # (P, 4, 3)
         facing = self.two_sided | (np.einsum("pj,pj->p", self.normals, -rel[:, 0]) > 0)
         dist = np.sqrt((rel ** 2).sum(axis=2)).min(axis=1)
@@ -111,41 +126,33 @@ class Renderer:
         d = cam @ normals.T - offsets                            # (P, 4, 5)
         outside = d < 0
         inside = ~outside.all(axis=1).any(axis=1)
-        needs_clip = outside.any(axis=(1, 2))
-        for i in np.flatnonzero(facing & inside & (dist <= self.max_distance)):
-            yield int(i), cam[i], bool(needs_clip[i])
+        index = np.flatnonzero(facing & inside & (dist <= self.max_distance))
+        return index, cam[index], outside[index].any(axis=(1, 2))
 
-    def _draw(self, i: int, cam: np.ndarray, clip: bool, frame: _Frame,
+    def _draw(self, i: int, xy: np.ndarray, H_inv_image: np.ndarray, det: float,
               image: np.ndarray, inv_depth: np.ndarray) -> None:
-        plane, levels = self.planes[i], self.pyramids[i]
-        R, C = frame.R, frame.C
-        poly = _clip(cam, *self.frustum) if clip else cam
-        if len(poly) < 3:
-            return
-        proj = poly @ self.K.T
-        xy = proj[:, :2] / proj[:, 2:]
+        """Draw quad ``i`` whose (clipped) outline projects to ``xy``; ``H_inv_image`` maps
+        image pixels to its texels."""
+        levels = self.pyramids[i]
         h_img, w_img = inv_depth.shape
-        x0, y0 = max(0, math.floor(xy[:, 0].min())), max(0, math.floor(xy[:, 1].min()))
-        x1 = min(w_img, math.floor(xy[:, 0].max()) + 1)
-        y1 = min(h_img, math.floor(xy[:, 1].max()) + 1)
+        (xa, ya), (xb, yb) = xy.min(axis=0).tolist(), xy.max(axis=0).tolist()
+        x0, y0 = max(0, math.floor(xa)), max(0, math.floor(ya))
+        x1, y1 = min(w_img, math.floor(xb) + 1), min(h_img, math.floor(yb) + 1)
         if x1 <= x0 or y1 <= y0:
             return
         bw, bh = x1 - x0, y1 - y0
-        # Homography texel -> bounding-box pixel.
-        H = frame.KR @ self.basis[i]
-        H[:, 2] -= frame.KR @ C
-        H[0] -= x0 * H[2]
-        H[1] -= y0 * H[2]
-        H_inv, det = _inverse(H)
+        # Bounding-box pixel -> texel: shift the image homography by the box origin.
+        H_inv = H_inv_image.copy()
+        H_inv[:, 2] += x0 * H_inv_image[:, 0] + y0 * H_inv_image[:, 1]
         local = xy - (x0, y0)
         mask = np.zeros((bh, bw), np.uint8)
         cv2.fillConvexPoly(mask, np.round(local * 16).astype(np.int32), 255, cv2.LINE_8, 4)
-        # Inverse depth of the plane at every box pixel; masks stay 8-bit OpenCV images
-        # because OpenCV's masked copies are two orders of magnitude faster than numpy's.
-        n_c = R @ plane.normal
-        g = (self.K_inv.T @ n_c) / float(n_c @ (R @ (plane.origin - C)))
-        gx, gy, g0 = (float(v) for v in g)       # Python floats keep the arrays float32
-        inv_z = (gx * self._xs[x0:x1])[None, :] + (gy * self._ys[y0:y1] + g0)[:, None]
+        # H^-1 (x, y, 1) = (c, r, 1) / z for H = K R [u | v | origin - C], so its third
+        # row gives the inverse depth of the plane at every pixel. Masks stay 8-bit OpenCV
+        # images: OpenCV's masked copies are two orders of magnitude faster than numpy's.
+        a, b, c = H_inv[2].tolist()
+        inv_z = (np.float32(a) * self._xs[:bw])[None, :] + (np.float32(b) * self._ys[:bh]
+                                                            + np.float32(c))[:, None]
         region = inv_depth[y0:y1, x0:x1]
         write = cv2.bitwise_and(mask, cv2.compare(inv_z, region, cv2.CMP_GT))
         if not cv2.countNonZero(write):
@@ -154,17 +161,15 @@ class Renderer:
         if lo == hi:
             tex = _warp(levels[lo], H_inv, (bw, bh))
         else:
-            centre = local.mean(axis=0)
-            sign = 1.0 if H_inv[2] @ (centre[0], centre[1], 1.0) > 0 else -1.0
-            tex = self._warp_levels(levels, H_inv, det, (bw, bh), write, lo, hi, sign)
-        if plane.alpha is not None:
+            tex = self._warp_levels(levels, H_inv, det, (bw, bh), write, lo, hi)
+        if self.planes[i].alpha is not None:
             # (numpy here: OpenCV takes a 4-element array for a scalar.)
             write = cv2.bitwise_and(write, (tex[..., 3] > 127).view(np.uint8) * np.uint8(255))
             tex = cv2.cvtColor(tex, cv2.COLOR_BGRA2BGR)
         cv2.copyTo(tex, write, image[y0:y1, x0:x1])
         cv2.copyTo(inv_z, write, region)
 
-    def _warp_levels(self, levels, H_inv, det, size, write, lo, hi, sign) -> np.ndarray:
+    def _warp_levels(self, levels, H_inv, det, size, write, lo, hi) -> np.ndarray:
         """Warp with a per-pixel mip level (quads seen at grazing angles, the ground).
 
         The level depends on the pixel only through ``|w|``, the third coordinate of
@@ -173,9 +178,9 @@ class Renderer:
         column parts of ``|w|``, so each level is warped only over its own box.
         """
         bw, bh = size
-        # w keeps one sign over the visible quad (it is proportional to the inverse depth).
-        col = float(sign * H_inv[2, 0]) * np.arange(bw, dtype=np.float32)
-        row = float(sign * H_inv[2, 1]) * np.arange(bh, dtype=np.float32) + float(sign * H_inv[2, 2])
+        # w is the inverse depth: positive over the visible quad.
+        col = np.float32(H_inv[2, 0]) * self._xs[:bw]
+        row = np.float32(H_inv[2, 1]) * self._ys[:bh] + np.float32(H_inv[2, 2])
         out = np.zeros((bh, bw, levels[0][0].shape[2]), np.uint8)
         for lv in range(lo, hi + 1):
             upper = _FLOAT_MAX if lv == 0 else _w_threshold(det, lv)
@@ -272,18 +277,6 @@ def _level_of(det: float, w: float, n_levels: int) -> int:
     footprint = math.sqrt(det) / max(w, 1e-12) ** 1.5
     level = math.floor(math.log2(max(footprint, 1.0)) + _LEVEL_BIAS)
     return min(max(level, 0), n_levels - 1)
-
-
-def _inverse(H: np.ndarray) -> tuple[np.ndarray, float]:
-    """Inverse of a 3x3 matrix and the absolute value of its determinant, by cofactors
-    (numpy's batched LAPACK call costs more than the arithmetic for one 3x3)."""
-    (a, b, c), (d, e, f), (g, h, i) = H.tolist()
-    co = (e * i - f * h, f * g - d * i, d * h - e * g)
-    det_h = a * co[0] + b * co[1] + c * co[2]
-    inv = np.array([[co[0], c * h - b * i, b * f - c * e],
-                    [co[1], a * i - c * g, c * d - a * f],
-                    [co[2], b * g - a * h, a * e - b * d]]) / det_h
-    return inv, abs(1.0 / det_h)
 
 
 def _warp(level: tuple[np.ndarray, np.ndarray], H_inv: np.ndarray,

@@ -196,7 +196,7 @@ def test_layout_and_ground_truth(robot_world):
         break
     times = [datetime.fromisoformat(r["captured_at"]) for r in rows if r["pass"] == "1"]
     assert rows[0]["captured_at"] == "2013-06-04T13:37:29.000"
-    assert {(b - a).total_seconds() for a, b in zip(times, times[1:])} == {1.0}
+    assert {(b - a).total_seconds() for a, b in zip(times[:-1], times[1:], strict=True)} == {1.0}
     meta = json.loads((out / "world.json").read_text())
     assert meta["kind"] == "robot" and meta["seed"] == 11
     assert [p["illumination"] for p in meta["passes"]] == ["sunny", "cloudy", "dusk"]
