@@ -1,0 +1,109 @@
+"""The frames a simulated device sends: a data set's query pass, optionally relit.
+
+Relit frames are made exactly as ``vloc eval`` makes them (the working-size colour frame
+through :func:`~workers.core.photometric.apply_variant` with ``variant_rng(seed, i)``) and
+sent as lossless PNG, so the server's decoder sees the same pixels the offline evaluation
+does. Unrelit frames are sent as the original files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+from workers.core.datasets import Dataset, DatasetImage, load_dataset, split
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceFrame:
+    """One frame of the replayed sequence.
+
+    Attributes
+    ----------
+    index : int
+        Position in the query sequence; sent as the frame's ``seq``.
+    data : bytes
+        JPEG or PNG file.
+    content_type : str
+    captured_at : datetime or None
+    truth_lat, truth_lon : float
+        Ground truth: the CSV's position where the data set has one, else the image's tag.
+    """
+
+    index: int
+    name: str
+    data: bytes
+    content_type: str
+    captured_at: datetime | None
+    truth_lat: float
+    truth_lon: float
+
+
+@dataclass
+class ReplayData:
+    dataset: Dataset
+    map_images: list[DatasetImage]
+    frames: list[DeviceFrame]
+    photometric: str
+
+
+def load_replay_data(folder: str | Path, *, rule: str = "pass", map_pass: int | None = None,
+                     query_pass: int | None = None, photometric: str = "none",
+                     seed: int = 0, limit: int | None = None) -> ReplayData:
+    """Split a data set folder into map images and the device's frames.
+
+    Parameters
+    ----------
+    folder : path
+        A data set folder as ``vloc eval`` reads it.
+    rule, map_pass, query_pass
+        As :func:`workers.core.datasets.split`.
+    photometric : str
+        One of :data:`workers.core.photometric.VARIANTS`.
+    seed : int
+        Seeds the photometric variant of frame ``i`` (``variant_rng(seed, i)``).
+    limit : int, optional
+        Replay only the first ``limit`` query frames.
+
+    Raises
+    ------
+    DatasetError, FileNotFoundError, ValueError
+    """
+    from workers.core.photometric import VARIANTS
+
+    if photometric not in VARIANTS:
+        raise ValueError(f"unknown photometric variant {photometric!r}; "
+                         f"valid: {', '.join(VARIANTS)}")
+    ds = load_dataset(folder)
+    map_images, query_images = split(ds, rule, map_pass=map_pass, query_pass=query_pass)
+    if limit is not None:
+        query_images = query_images[:limit]
+    frames = [_device_frame(i, img, photometric, seed) for i, img in enumerate(query_images)]
+    return ReplayData(ds, list(map_images), frames, photometric)
+
+
+def _device_frame(index: int, img: DatasetImage, photometric: str, seed: int) -> DeviceFrame:
+    from clients.sdk._requests import image_content_type
+
+    data = img.path.read_bytes()
+    if photometric != "none":
+        data = _relit_png(data, photometric, seed, index)
+    return DeviceFrame(
+        index=index, name=img.name, data=data, content_type=image_content_type(data, img.name),
+        captured_at=img.captured_at,
+        truth_lat=img.truth_lat if img.truth_lat is not None else img.lat,
+        truth_lon=img.truth_lon if img.truth_lon is not None else img.lon)
+
+
+def _relit_png(data: bytes, variant: str, seed: int, index: int) -> bytes:
+    import cv2
+
+    from workers.core.image import load_frame
+    from workers.core.photometric import apply_variant, variant_rng
+
+    colour = apply_variant(load_frame(data).colour, variant, rng=variant_rng(seed, index))
+    ok, buf = cv2.imencode(".png", colour)
+    if not ok:
+        raise ValueError(f"could not encode the relit frame {index} as PNG")
+    return buf.tobytes()

@@ -1,0 +1,180 @@
+"""``vloc map``: create, list, show, delete, import a folder, build."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from clients.commands._common import (
+    CommandError,
+    make_client,
+    model_json,
+    print_json,
+    reports_errors,
+    server_options,
+)
+
+
+@click.group("map")
+def map_group() -> None:
+    """Maps: GPS-tagged images the server localises against.
+
+    A map is filled with images (`vloc map import FOLDER`) and then built
+    (`vloc map build ID`); sessions open on a built map.
+    """
+
+
+def _describe(m) -> str:
+    lines = [f"{m.id}  {m.name}",
+             f"  status: {m.status}, revision {m.revision}, {m.image_count} images "
+             f"({m.pending_images} not yet built)"]
+    if m.extent is not None:
+        e = m.extent
+        lines.append(f"  extent: lat {e.min_lat:.6f}..{e.max_lat:.6f}, "
+                     f"lon {e.min_lon:.6f}..{e.max_lon:.6f}")
+    if m.local_extent is not None:
+        x = m.local_extent
+        lines.append(f"  size: {x.max_east - x.min_east:.0f} m east x "
+                     f"{x.max_north - x.min_north:.0f} m north")
+    if m.last_job_id:
+        lines.append(f"  last build job: {m.last_job_id}")
+    return "\n".join(lines)
+
+
+@map_group.command("create")
+@click.argument("name")
+@click.option("--json", "as_json", is_flag=True, help="Print the map as JSON.")
+@server_options
+@reports_errors
+def create_cmd(name: str, as_json: bool, server: str, admin_key: str | None) -> None:
+    """Create an empty map called NAME; prints its id."""
+    with make_client(server, admin_key) as vloc:
+        m = vloc.create_map(name)
+    print_json(model_json(m)) if as_json else click.echo(m.id)
+
+
+@map_group.command("list")
+@click.option("--json", "as_json", is_flag=True)
+@server_options
+@reports_errors
+def list_cmd(as_json: bool, server: str, admin_key: str | None) -> None:
+    """List the maps."""
+    with make_client(server, admin_key) as vloc:
+        maps = vloc.list_maps()
+    if as_json:
+        print_json(model_json(maps))
+        return
+    if not maps:
+        click.echo("no maps; create one with `vloc map import FOLDER`")
+    for m in maps:
+        click.echo(f"{m.id}  {m.status:<8} rev {m.revision:<3} {m.image_count:>5} images  "
+                   f"{m.name}")
+
+
+@map_group.command("show")
+@click.argument("map_id")
+@click.option("--json", "as_json", is_flag=True)
+@server_options
+@reports_errors
+def show_cmd(map_id: str, as_json: bool, server: str, admin_key: str | None) -> None:
+    """Show one map: status, revision, images, extent."""
+    with make_client(server, admin_key) as vloc:
+        m = vloc.get_map(map_id)
+    print_json(model_json(m)) if as_json else click.echo(_describe(m))
+
+
+@map_group.command("delete")
+@click.argument("map_id")
+@server_options
+@reports_errors
+def delete_cmd(map_id: str, server: str, admin_key: str | None) -> None:
+    """Delete a map with its images (refused while sessions use it)."""
+    with make_client(server, admin_key) as vloc:
+        vloc.delete_map(map_id)
+    click.echo(f"deleted map {map_id}")
+
+
+@map_group.command("import")
+@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--map", "map_id", metavar="ID", help="Add to this map [default: a new map].")
+@click.option("--name", help="Name of the new map [default: the folder's name].")
+@click.option("--pass", "pass_", type=int, help="Only the images of this pass (CSV column).")
+@click.option("--build/--no-build", default=False, show_default=True,
+              help="Build the map after the upload, waiting for it.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@server_options
+@reports_errors
+def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | None,
+               build: bool, quiet: bool, server: str, admin_key: str | None) -> None:
+    """Upload the geotagged images of FOLDER (EXIF GPS, else the folder's CSV).
+
+    The folder is read as `vloc eval` reads a data set: images directly in it or in
+    images/, positions from EXIF or from ground_truth.csv/positions.csv. Images the server
+    refuses are listed with the reason; the command fails only when none is accepted.
+    """
+    from tqdm import tqdm
+
+    from clients.mapping import import_images
+    from workers.core.datasets import DatasetError, load_dataset
+
+    try:
+        ds = load_dataset(folder)
+    except (DatasetError, FileNotFoundError) as exc:
+        raise CommandError(str(exc)) from exc
+    images = [im for im in ds.images if pass_ is None or im.pass_ == pass_]
+    if not images:
+        raise CommandError(f"no images of pass {pass_} in {folder}; passes present: "
+                           f"{', '.join(map(str, ds.passes)) or 'none'}")
+    for skipped, reason in ds.skipped:
+        click.echo(f"  skipped {skipped}: {reason}", err=True)
+    with make_client(server, admin_key) as vloc:
+        if map_id is None:
+            map_id = vloc.create_map(name or folder.resolve().name).id
+            click.echo(f"created map {map_id}", err=True)
+        with tqdm(total=len(images), unit="img", desc="upload", disable=quiet) as bar:
+            summary = import_images(vloc, map_id, images,
+                                    on_progress=lambda n, s: bar.update(n))
+        for r in summary.rejected:
+            click.echo(f"  rejected {r.filename}: {r.detail} ({r.reason})", err=True)
+        click.echo(f"{summary.accepted} of {summary.total} images added to map {map_id}",
+                   err=True)
+        if summary.accepted == 0:
+            raise CommandError("no image was accepted")
+        if build:
+            _build(vloc, map_id, quiet=quiet)
+    click.echo(map_id)
+
+
+@map_group.command("build")
+@click.argument("map_id")
+@click.option("--wait/--no-wait", default=True, show_default=True,
+              help="Wait for the build, with a progress bar.")
+@click.option("--timeout", type=float, default=3600.0, show_default=True,
+              help="Seconds to wait.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@server_options
+@reports_errors
+def build_cmd(map_id: str, wait: bool, timeout: float, quiet: bool, server: str,
+              admin_key: str | None) -> None:
+    """Extract the features of the new images of MAP_ID and pack a new revision."""
+    with make_client(server, admin_key) as vloc:
+        if not wait:
+            click.echo(vloc.build_map(map_id).id)
+            return
+        _build(vloc, map_id, quiet=quiet, timeout=timeout)
+
+
+def _build(vloc, map_id: str, *, quiet: bool, timeout: float = 3600.0) -> None:
+    from tqdm import tqdm
+
+    from clients.mapping import build_and_wait
+
+    with tqdm(total=100, unit="%", desc="build", disable=quiet,
+              bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}") as bar:
+        def progress(job) -> None:
+            bar.update(round(100 * job.progress) - bar.n)
+
+        job = build_and_wait(vloc, map_id, timeout=timeout, on_progress=progress)
+    click.echo(f"map {map_id} built: revision {job.revision}, {job.n_extracted} images "
+               "extracted", err=True)

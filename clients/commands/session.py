@@ -1,0 +1,185 @@
+"""``vloc session``: open, inspect and close localisation sessions; send frames; watch poses."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from clients.commands._common import (
+    make_client,
+    model_json,
+    parse_params,
+    print_json,
+    reports_errors,
+    server_options,
+)
+
+MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
+
+token_option = click.option("--token", envvar="VLOC_SESSION_TOKEN", metavar="TOKEN",
+                            help="The session's token [env VLOC_SESSION_TOKEN; else the "
+                                 "admin key].")
+
+
+@click.group("session")
+def session_group() -> None:
+    """Localisation sessions: a device's filter on one map.
+
+    `vloc session create MAP_ID` prints the session id and its token (shown once); frames
+    and the pose stream take either that token or the admin key.
+    """
+
+
+def _describe(s) -> str:
+    st = s.stats
+    lines = [f"{s.id}  mode {s.mode} on map {s.map_id} (revision {s.map_revision}), "
+             f"seed {s.seed}",
+             f"  frames: {s.frames_processed} processed, {s.frames_failed} failed, "
+             f"{s.frames_pending} pending; last seq {s.last_seq}"]
+    if st.sift_share is not None:
+        lines.append(f"  SIFT steps {100 * st.sift_share:.1f} %, processing "
+                     f"{st.processing_ms_mean:.1f} ms/frame, latency p50 "
+                     f"{st.latency_ms_p50:.0f} ms, p99 {st.latency_ms_p99:.0f} ms")
+    if s.last_pose is not None:
+        p = s.last_pose
+        lines.append(f"  last pose: seq {p.seq} at {p.lat:.6f}, {p.lon:.6f} "
+                     f"(x {p.x:.1f} m, y {p.y:.1f} m, sigma {p.sigma_x:.1f}/{p.sigma_y:.1f} m,"
+                     f" {p.feature}, {p.status})")
+    return "\n".join(lines)
+
+
+@session_group.command("create")
+@click.argument("map_id")
+@click.option("--mode", type=click.Choice(MODES), default="hybrid", show_default=True)
+@click.option("--param", "param_items", multiple=True, metavar="KEY=VALUE",
+              help="A localiser parameter (JSON value), e.g. n_particles=500.")
+@click.option("--seed", type=click.IntRange(0), help="Random seed [default: random].")
+@click.option("--json", "as_json", is_flag=True)
+@server_options
+@reports_errors
+def create_cmd(map_id: str, mode: str, param_items, seed, as_json: bool, server: str,
+               admin_key: str | None) -> None:
+    """Open a session on a built map. Prints `ID TOKEN`."""
+    with make_client(server, admin_key) as vloc:
+        s = vloc.create_session(map_id, mode=mode, params=parse_params(param_items), seed=seed)
+    print_json(model_json(s)) if as_json else click.echo(f"{s.id} {s.token}")
+
+
+@session_group.command("list")
+@click.option("--json", "as_json", is_flag=True)
+@server_options
+@reports_errors
+def list_cmd(as_json: bool, server: str, admin_key: str | None) -> None:
+    """List the sessions."""
+    with make_client(server, admin_key) as vloc:
+        sessions = vloc.list_sessions()
+    if as_json:
+        print_json(model_json(sessions))
+        return
+    if not sessions:
+        click.echo("no sessions")
+    for s in sessions:
+        click.echo(f"{s.id}  {s.mode:<12} map {s.map_id}  {s.frames_processed} frames")
+
+
+@session_group.command("show")
+@click.argument("session_id")
+@click.option("--json", "as_json", is_flag=True)
+@token_option
+@server_options
+@reports_errors
+def show_cmd(session_id: str, as_json: bool, token, server: str, admin_key) -> None:
+    """Show a session: counters, statistics, last pose."""
+    with make_client(server, admin_key) as vloc:
+        s = vloc.get_session(session_id, token=token)
+    print_json(model_json(s)) if as_json else click.echo(_describe(s))
+
+
+@session_group.command("delete")
+@click.argument("session_id")
+@token_option
+@server_options
+@reports_errors
+def delete_cmd(session_id: str, token, server: str, admin_key) -> None:
+    """Close a session (its streams end)."""
+    with make_client(server, admin_key) as vloc:
+        vloc.delete_session(session_id, token=token)
+    click.echo(f"deleted session {session_id}")
+
+
+@session_group.command("reset")
+@click.argument("session_id")
+@token_option
+@server_options
+@reports_errors
+def reset_cmd(session_id: str, token, server: str, admin_key) -> None:
+    """Global re-initialisation: particles spread over the whole map again."""
+    with make_client(server, admin_key) as vloc:
+        vloc.reset_session(session_id, token=token)
+    click.echo(f"reset session {session_id}")
+
+
+@session_group.command("initial-pose")
+@click.argument("session_id")
+@click.option("--lat", type=float)
+@click.option("--lon", type=float)
+@click.option("--x", type=float, help="East, metres in the map's frame.")
+@click.option("--y", type=float, help="North, metres in the map's frame.")
+@click.option("--sigma", type=float, default=5.0, show_default=True, help="Metres.")
+@token_option
+@server_options
+@reports_errors
+def initial_pose_cmd(session_id: str, lat, lon, x, y, sigma: float, token, server: str,
+                     admin_key) -> None:
+    """Restart the filter around a known position (--lat/--lon or --x/--y)."""
+    geo, local = (lat, lon) != (None, None), (x, y) != (None, None)
+    if geo == local or None in ((lat, lon) if geo else (x, y)):
+        raise click.UsageError("give --lat and --lon, or --x and --y")
+    with make_client(server, admin_key) as vloc:
+        vloc.set_initial_pose(session_id, lat=lat, lon=lon, x=x, y=y, sigma=sigma,
+                              token=token)
+    click.echo(f"initial pose set on session {session_id}")
+
+
+@session_group.command("send")
+@click.argument("session_id")
+@click.argument("images", nargs=-1, required=True,
+                type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--seq", type=click.IntRange(0), help="Sequence number of the first image.")
+@click.option("--wait/--no-wait", default=True, show_default=True,
+              help="Print each frame's estimate (else only its sequence number).")
+@token_option
+@server_options
+@reports_errors
+def send_cmd(session_id: str, images, seq, wait: bool, token, server: str, admin_key) -> None:
+    """Send IMAGES (JPEG/PNG) as frames, in order; prints one JSON line per frame."""
+    with make_client(server, admin_key) as vloc:
+        for i, path in enumerate(images):
+            got = vloc.send_frame(session_id, path, seq=None if seq is None else seq + i,
+                                  wait=wait, token=token)
+            click.echo(json.dumps(got.model_dump(mode="json") | {"file": path.name}))
+
+
+@session_group.command("watch")
+@click.argument("session_id")
+@click.option("--count", type=click.IntRange(1), help="Stop after this many messages.")
+@token_option
+@server_options
+@reports_errors
+def watch_cmd(session_id: str, count, token, server: str, admin_key) -> None:
+    """Print the session's pose stream, one JSON line per message, until it ends."""
+    from clients.sdk import FrameRejected
+
+    with make_client(server, admin_key) as vloc, vloc.stream(session_id, token=token) as poses:
+        for n, msg in enumerate(poses, start=1):
+            data = ({"type": "error", "problem": msg.error.body}
+                    if isinstance(msg, FrameRejected) else msg.model_dump(mode="json"))
+            click.echo(json.dumps(data), nl=True)
+            if count is not None and n >= count:
+                break
+    if count is None:
+        click.echo("stream ended", err=True)
+
+
