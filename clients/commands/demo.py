@@ -1,0 +1,48 @@
+"""``vloc demo``: the whole product in one command, on a synthetic world."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command("demo")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("demo-output"), show_default=True,
+              help="Folder for the world, tracks.png, results.json and the server log.")
+@click.option("--frames", type=click.IntRange(10, 2000), default=120, show_default=True,
+              help="Frames per pass (the loop is 260 m; fewer frames, longer strides).")
+@click.option("--seed", type=click.IntRange(0), default=0, show_default=True,
+              help="Seeds the world and the sessions.")
+@click.option("--query-light", type=click.Choice(["cloudy", "dusk"]), default="cloudy",
+              show_default=True, help="Illumination of the replayed pass (the map is sunny).")
+@click.option("--config", default="default", show_default=True,
+              help="Filter configuration of the sessions: default or weiss2008.")
+@click.option("--workers", type=click.IntRange(1), default=None,
+              help="Server worker processes [default: one per core].")
+@click.option("--keep", is_flag=True,
+              help="Keep the server's data folder (database, images, packed map) in --out.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def demo_cmd(out: Path, frames: int, seed: int, query_light: str, config: str, workers,
+             keep: bool, quiet: bool) -> None:
+    """Generate a synthetic street world, start a server on the embedded defaults, build
+    the map over HTTP, replay a traversal under other light as a device for the hybrid,
+    global and SIFT localisers, print their table, write OUT/tracks.png, stop the server.
+
+    Needs nothing but this package: no data, no database server, no network.
+    """
+    from clients.demo import DemoError, DemoOptions, run_demo
+    from clients.sdk import VlocError
+
+    opts = DemoOptions(out=out, frames=frames, seed=seed, query_light=query_light,
+                       config=config, workers=workers, keep=keep, quiet=quiet)
+    try:
+        results = run_demo(opts, say=click.echo)
+    except (DemoError, VlocError) as exc:
+        raise click.ClickException(f"demo failed: {exc}\n(server log: {out / 'server.log'})"
+                                   ) from exc
+    except KeyboardInterrupt:
+        click.echo("\ninterrupted; the server was stopped", err=True)
+        raise SystemExit(130) from None
+    click.echo(f"done in {results['timings_s']['total']:.0f} s; results in {out}")
