@@ -124,7 +124,11 @@ class SessionRuntime:
     def open_new(self, row: LocalisationSession) -> LiveSession:
         """Create a new session's localiser in the engine (blocking; request threads)."""
         spec = spec_for(row, self.settings)
-        self.engine.open_session(spec).result(OPEN_TIMEOUT_S)
+        try:
+            self.engine.open_session(spec).result(OPEN_TIMEOUT_S)
+        except BaseException:
+            self.engine.close_session(spec.session_id)
+            raise
         live = LiveSession(str(row.id), row.token_hash, spec, row.last_seq)
         with self._lock:
             self._live[live.id] = live

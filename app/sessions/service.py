@@ -8,6 +8,7 @@ import secrets
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from app.db import new_id
 from app.maps.models import Map
 from app.problems import Problem, not_found
 from app.security import hash_secret, new_token
@@ -47,22 +48,23 @@ def create_session(db: Session, *, body: SessionCreate,
     seed = resolve_seed(body)
     params.pop("seed", None)  # the seed travels as its own argument
     token = new_token()
-    row = LocalisationSession(map_id=map_.id, map_revision=map_.revision, mode=body.mode,
-                              params=params, seed=seed, token_hash=hash_secret(token),
-                              frames_processed=0, frames_failed=0)
-    db.add(row)
-    db.flush()
+    row = LocalisationSession(id=new_id(), map_id=map_.id, map_revision=map_.revision,
+                              mode=body.mode, params=params, seed=seed,
+                              token_hash=hash_secret(token), frames_processed=0,
+                              frames_failed=0, last_seq=None)
+    # End the read transaction before waiting for the engine: on SQLite an open transaction
+    # would hold up the writers (the pose writer among them) for as long as the wait lasts.
+    db.rollback()
     try:
         runtime.open_new(row)
     except ValueError as exc:
-        db.rollback()
         raise Problem(422, f"the localiser refused the session: {exc}",
                       kind="bad-params") from None
     except (WorkerDied, TimeoutError, RuntimeError) as exc:
-        db.rollback()
         raise Problem(503, f"the engine could not open the session: {exc}",
                       kind="engine-unavailable") from None
     try:
+        db.add(row)
         db.commit()
     except BaseException:
         runtime.forget(row.id)

@@ -7,6 +7,7 @@ import os
 import signal
 import uuid
 
+import pytest
 from fastapi.testclient import TestClient
 
 from app.jobs.models import BuildJob
@@ -15,6 +16,19 @@ from tests.app.conftest import ADMIN, FAST, build_map, service_settings
 from tests.app.test_sessions import open_stream, post_frame
 
 KEYS = ("x", "y", "sigma_x", "sigma_y", "cov", "feature", "next_feature", "status")
+
+
+def same_poses(a: list[dict], b: list[dict]) -> bool:
+    """Equal up to float round-off: the core's numpy reductions may differ in the last bits
+    between processes whose arrays happen to be aligned differently in memory."""
+    def flat(poses):
+        return [v for p in poses for k in KEYS for v in (p[k] if k == "cov" else [p[k]])]
+
+    fa, fb = flat(a), flat(b)
+    words = [(i, v) for i, v in enumerate(fa) if isinstance(v, str)]
+    return all(fb[i] == v for i, v in words) and \
+        [v for v in fa if not isinstance(v, str)] == pytest.approx(
+            [v for v in fb if not isinstance(v, str)], rel=1e-6, abs=1e-9)
 
 
 def _pose(client, sid, auth, shot) -> dict:
@@ -60,7 +74,7 @@ def test_killed_worker_reports_its_frames_and_the_session_resumes(service, shots
     ref, ref_auth = _new_session(c, service.map_id, seed=7)
     for shot in (q[0], q[1]):
         _pose(c, ref, ref_auth, shot)
-    assert _pose(c, ref, ref_auth, q[4]) == after
+    assert same_poses([_pose(c, ref, ref_auth, q[4])], [after])
     assert c.get("/readyz").status_code == 200
 
 
@@ -87,4 +101,4 @@ def test_restart_keeps_maps_sessions_and_filter_state(tmp_path, database_url, sh
     with TestClient(create_app(settings)) as c:
         ref, ref_auth = _new_session(c, map_id, seed=3)
         reference = [_pose(c, ref, ref_auth, q[i]) for i in range(3)]
-    assert reference == [*first, resumed]
+    assert same_poses(reference, [*first, resumed])
