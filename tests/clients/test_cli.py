@@ -1,0 +1,196 @@
+"""The ``vloc`` command line against the real app over real HTTP: every client command,
+its output, its errors and exit codes, and configuration from flags or environment."""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+import time
+
+import pytest
+from click.testing import CliRunner
+
+from clients.cli import COMMANDS
+from clients.cli import main as cli
+from clients.sdk import Client
+from tests.clients.conftest import ADMIN_KEY, FAST
+
+UUID = re.compile(r"^[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}$")
+
+
+@pytest.fixture
+def vloc(live_server, monkeypatch, tmp_path):
+    """``vloc`` with VLOC_URL / VLOC_ADMIN_KEY set, run in an empty folder."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("VLOC_DATA_DIR", raising=False)
+    monkeypatch.delenv("VLOC_SESSION_TOKEN", raising=False)
+    env = {"VLOC_URL": live_server, "VLOC_ADMIN_KEY": ADMIN_KEY}
+
+    def run(*args: str, code: int = 0, env_extra: dict | None = None):
+        result = CliRunner().invoke(cli, list(args), env=env | (env_extra or {}),
+                                    prog_name="vloc")
+        assert result.exit_code == code, (result.output, result.exception)
+        return result
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def sdk(live_server) -> Client:
+    return Client(live_server, admin_key=ADMIN_KEY)
+
+
+def test_help_for_every_command():
+    top = CliRunner().invoke(cli, ["--help"])
+    assert top.exit_code == 0
+    for name in ("map", "session", "replay", "demo", "eval", "serve", "world"):
+        assert name in top.output and name in COMMANDS
+    for args in (["map", "--help"], ["map", "import", "--help"], ["map", "build", "-h"],
+                 ["session", "--help"], ["session", "send", "--help"], ["replay", "--help"],
+                 ["demo", "--help"]):
+        result = CliRunner().invoke(cli, args, prog_name="vloc")
+        assert result.exit_code == 0 and "Usage: vloc" in result.output, args
+    replay_help = CliRunner().invoke(cli, ["replay", "--help"]).output
+    for option in ("--map-id", "--build-map", "--rate", "--transport", "--devices",
+                   "--photometric", "VLOC_URL", "VLOC_ADMIN_KEY"):
+        assert option in replay_help
+
+
+def test_map_commands(vloc, dataset_dir):
+    map_id = vloc("map", "create", "cli map").stdout.strip()
+    assert UUID.match(map_id)
+    assert map_id in vloc("map", "list").stdout
+    shown = json.loads(vloc("map", "show", map_id, "--json").stdout)
+    assert (shown["name"], shown["status"], shown["image_count"]) == ("cli map", "empty", 0)
+    imported = vloc("map", "import", str(dataset_dir), "--map", map_id, "--pass", "1",
+                    "--build", "--quiet")
+    assert imported.stdout.strip() == map_id
+    assert "10 of 10 images added" in imported.stderr
+    assert "revision 1, 10 images extracted" in imported.stderr
+    text = vloc("map", "show", map_id).stdout
+    assert "status: ready, revision 1, 10 images (0 not yet built)" in text
+    # The same images again: every one a duplicate, nothing added, a failure.
+    again = vloc("map", "import", str(dataset_dir), "--map", map_id, "--pass", "1", "--quiet",
+                 code=1)
+    assert "duplicate" in again.stderr and "no image was accepted" in again.stderr
+    vloc("map", "delete", map_id)
+    assert map_id not in vloc("map", "list").stdout
+
+
+def test_map_import_into_a_new_map_and_build_later(vloc, sdk, dataset_dir):
+    out = vloc("map", "import", str(dataset_dir), "--pass", "2", "--quiet")
+    map_id = out.stdout.strip()
+    assert "created map" in out.stderr and "9 of 9 images added" in out.stderr
+    assert json.loads(vloc("map", "show", map_id, "--json").stdout)["name"] == \
+        dataset_dir.name
+    job_id = vloc("map", "build", map_id, "--no-wait").stdout.strip()
+    assert sdk.wait_for_job(job_id, timeout=120, poll_interval=0.1).n_images == 9
+    empty = vloc("map", "create", "empty").stdout.strip()
+    assert "no images to build from" in vloc("map", "build", empty, "--quiet", code=1).stderr
+    assert "no images of pass 7" in vloc("map", "import", str(dataset_dir), "--pass", "7",
+                                         code=1).stderr
+
+
+def _subscribed(sdk: Client, n: int) -> bool:
+    metrics = sdk.request("GET", "/metrics").text
+    found = re.search(r"^vloc_stream_subscribers\S* (\S+)$", metrics, re.M)
+    return found is not None and float(found.group(1)) >= n
+
+
+def test_session_commands(vloc, sdk, shots, dataset_dir, tmp_path):
+    maps, queries = shots
+    m = sdk.create_map("sessions")
+    sdk.upload_images(m.id, [(s.name, s.jpeg) for s in maps])
+    sdk.wait_for_job(sdk.build_map(m.id).id, timeout=120, poll_interval=0.1)
+
+    created = vloc("session", "create", m.id, "--mode", "hybrid", "--seed", "4",
+                   "--param", f"n_particles={FAST['n_particles']}").stdout.split()
+    session_id, token = created
+    assert UUID.match(session_id) and len(token) > 20
+    assert session_id in vloc("session", "list").stdout
+
+    images = [tmp_path / f"q{i}.jpg" for i in range(3)]
+    for path, q in zip(images, queries, strict=False):
+        path.write_bytes(q.jpeg)
+    sent = vloc("session", "send", session_id, *map(str, images), "--seq", "0",
+                env_extra={"VLOC_SESSION_TOKEN": token}).stdout.splitlines()
+    poses = [json.loads(line) for line in sent]
+    assert [(p["seq"], p["type"], p["file"]) for p in poses] == \
+        [(0, "pose", "q0.jpg"), (1, "pose", "q1.jpg"), (2, "pose", "q2.jpg")]
+    queued = json.loads(vloc("session", "send", session_id, str(images[0]), "--no-wait")
+                        .stdout)
+    assert queued["seq"] == 3
+
+    # watch: a frame sent once the stream is subscribed comes out as one JSON line.
+    def send_when_watched() -> None:
+        deadline = time.monotonic() + 60
+        while not _subscribed(sdk, 1) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        sdk.send_frame(session_id, queries[4].jpeg, seq=10, token=token)
+
+    sender = threading.Thread(target=send_when_watched)
+    sender.start()
+    watched = vloc("session", "watch", session_id, "--count", "1", "--token", token)
+    sender.join()
+    assert json.loads(watched.stdout)["seq"] == 10
+
+    shown = vloc("session", "show", session_id, "--token", token).stdout
+    assert "mode hybrid" in shown and "last pose: seq 10" in shown
+    stats = json.loads(vloc("session", "show", session_id, "--json").stdout)
+    assert stats["frames_processed"] == 5 and stats["seed"] == 4
+    vloc("session", "reset", session_id)
+    vloc("session", "initial-pose", session_id, "--lat", str(maps[0].lat), "--lon",
+         str(maps[0].lon), "--sigma", "3")
+    vloc("session", "initial-pose", session_id, "--x", "1", "--y", "2")
+    vloc("session", "initial-pose", session_id, "--lat", "41.0", code=2)
+    vloc("session", "initial-pose", session_id, code=2)
+    bad = vloc("session", "send", session_id, str(images[0]), "--seq", "1", code=1)
+    assert "409" in bad.stderr and "not after the last accepted seq" in bad.stderr
+    vloc("session", "delete", session_id)
+    vloc("session", "show", session_id, code=1)
+
+
+def test_errors_and_exit_codes(vloc, live_server, dataset_dir, tmp_path):
+    missing = vloc("map", "show", "00000000-0000-0000-0000-000000000000", code=1)
+    assert "404" in missing.stderr and "does not exist" in missing.stderr
+    wrong = vloc("map", "list", env_extra={"VLOC_ADMIN_KEY": "not-the-admin-key"}, code=1)
+    assert "403" in wrong.stderr
+    nokey = vloc("map", "list", env_extra={"VLOC_ADMIN_KEY": ""}, code=1)
+    assert "401" in nokey.stderr and "--admin-key" in nokey.stderr
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    down = vloc("map", "list", "--server", f"http://127.0.0.1:{port}", code=3)
+    assert "cannot reach" in down.stderr and "vloc serve" in down.stderr
+    # Replay: usage errors exit 2, bad inputs 1.
+    usage = vloc("replay", str(dataset_dir), code=2)
+    assert "--map-id" in usage.output
+    vloc("replay", str(dataset_dir), "--build-map", "--mode", "teleport", code=2)
+    vloc("replay", str(dataset_dir), "--build-map", "--param", "oops", code=2)
+    unbuilt = vloc("map", "create", "unbuilt").stdout.strip()
+    not_built = vloc("replay", str(dataset_dir), "--map-id", unbuilt, "--quiet", code=1)
+    assert "not built" in not_built.stderr
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    (flat / "a.jpg").write_bytes((dataset_dir / "images" / "map_000.jpg").read_bytes())
+    no_pass = vloc("replay", str(flat), "--build-map", code=1)
+    assert "pass" in no_pass.stderr
+
+
+def test_flags_override_the_environment_and_the_stored_key(vloc, live_server, tmp_path):
+    # Flags win over the environment.
+    listed = vloc("map", "list", "--json", "--server", live_server, "--admin-key", ADMIN_KEY,
+                  env_extra={"VLOC_URL": "http://127.0.0.1:9", "VLOC_ADMIN_KEY": "x"})
+    assert isinstance(json.loads(listed.stdout), list)
+    # Without a key anywhere else, the key `vloc serve` stored in the data folder.
+    (tmp_path / "data").mkdir(exist_ok=True)
+    (tmp_path / "data" / "admin_key").write_text(ADMIN_KEY + "\n")
+    vloc("map", "list", env_extra={"VLOC_ADMIN_KEY": ""})
+    other = tmp_path / "elsewhere"
+    other.mkdir()
+    (other / "admin_key").write_text("wrong-key\n")
+    vloc("map", "list", env_extra={"VLOC_ADMIN_KEY": "", "VLOC_DATA_DIR": str(other)},
+         code=1)
