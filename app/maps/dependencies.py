@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import uuid
 from typing import Annotated
 
@@ -34,17 +35,22 @@ def get_map(map_id: str, db: DbSession) -> Map:
 MapDep = Annotated[Map, Depends(get_map)]
 
 
-def get_verifier(ctx: Ctx) -> Verifier:
+async def get_verifier(ctx: Ctx) -> Verifier:
     """Full decoding of uploads, in the workers (never in the API process)."""
     engine, max_pixels = ctx.engine, ctx.settings.max_pixels
 
-    def verify(blobs: list[bytes]) -> list[str | None]:
-        futures = [engine.call("workers.engine.build:inspect_image", blob,
-                               max_pixels=max_pixels) for blob in blobs]
+    async def verify(blobs: list[bytes]) -> list[str | None]:
+        try:
+            futures = [asyncio.wrap_future(engine.call(
+                "workers.engine.build:inspect_image", blob, max_pixels=max_pixels))
+                for blob in blobs]
+        except (WorkerDied, EngineClosed) as exc:
+            raise Problem(503, f"image check unavailable: {exc}",
+                          kind="engine-unavailable") from None
         out: list[str | None] = []
         for fut in futures:
             try:
-                fut.result(timeout=VERIFY_TIMEOUT_S)
+                await asyncio.wait_for(fut, VERIFY_TIMEOUT_S)
                 out.append(None)
             except ValueError as exc:
                 out.append(str(exc))

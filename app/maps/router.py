@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
 from app.deps import Ctx, DbSession, SettingsDep, require_admin
 from app.jobs.service import start_build
 from app.maps import service
-from app.maps.dependencies import ImageVerifier, MapDep
+from app.maps.dependencies import ImageVerifier, MapDep, parse_id
 from app.maps.models import MapImage
 from app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
 from app.problems import Problem
@@ -48,22 +48,24 @@ def list_images(map_: MapDep, db: DbSession) -> list[MapImage]:
 @router.post("/{map_id}/images", status_code=201, response_model=ImageUploadResult,
              responses={413: {"description": "Too large"}, 415: {"description": "Not an image"},
                         422: {"description": "No file accepted"}})
-def add_images(map_: MapDep, db: DbSession, settings: SettingsDep, verify: ImageVerifier,
-               files: list[UploadFile] = File(description="JPEG/PNG map images"),
-               lat: float | None = Form(None, description="Only with a single file"),
-               lon: float | None = Form(None, description="Only with a single file"),
-               alt: float | None = Form(None),
-               captured_at: datetime | None = Form(None)) -> ImageUploadResult:
+async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: ImageVerifier,
+                     files: list[UploadFile] = File(description="JPEG/PNG map images"),
+                     lat: float | None = Form(None, description="Only with a single file"),
+                     lon: float | None = Form(None, description="Only with a single file"),
+                     alt: float | None = Form(None),
+                     captured_at: datetime | None = Form(None)) -> ImageUploadResult:
     """Add geotagged images: GPS from EXIF, or ``lat``/``lon`` fields for one file."""
     if (lat is None) != (lon is None):
         raise Problem(422, "give both lat and lon, or neither", kind="bad-position")
     position = None
     if lat is not None:
         position = service.GivenPosition(lat, lon, alt, _aware(captured_at))
-    uploads = [service.Upload(f.filename or "image", _read_limited(f, settings.max_upload_bytes))
+    # One byte past the limit is enough to know that a file is too large.
+    uploads = [service.Upload(f.filename or "image", await f.read(settings.max_upload_bytes + 1))
                for f in files]
-    return service.add_images(db, map_=map_, uploads=uploads, position=position,
-                              settings=settings, verify=verify)
+    return await service.add_images(db_sessions=ctx.db_sessions,
+                                    map_id=parse_id(map_id, "map"), uploads=uploads,
+                                    position=position, settings=settings, verify=verify)
 
 
 @router.post("/{map_id}/build", status_code=202, response_model=BuildAccepted)
@@ -73,11 +75,6 @@ def build_map(map_: MapDep, db: DbSession, ctx: Ctx, response: Response) -> Buil
     ctx.builds.launch(job.id)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return BuildAccepted(job_id=job.id, status=job.status)
-
-
-def _read_limited(f: UploadFile, limit: int) -> bytes:
-    # One byte past the limit is enough to know the file is too large.
-    return f.file.read(limit + 1)
 
 
 def _aware(t: datetime | None) -> datetime | None:

@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import math
 import os
 import shutil
-from collections.abc import Callable, Sequence
+import uuid
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from app.config import Settings
 from app.imagecheck import ImageHeader, check_image
@@ -27,7 +29,7 @@ from app.maps.schemas import (
     MapRead,
     Origin,
 )
-from app.problems import Problem
+from app.problems import Problem, not_found
 from app.sessions.models import LocalisationSession
 
 
@@ -49,7 +51,7 @@ class GivenPosition:
     captured_at: datetime | None = None
 
 
-Verifier = Callable[[list[bytes]], list[str | None]]
+Verifier = Callable[[list[bytes]], Awaitable[list[str | None]]]
 """Decodes images fully (in the workers): one error message or None per image."""
 
 
@@ -127,14 +129,16 @@ def check_position(lat: float, lon: float, alt: float | None) -> None:
         raise Problem(422, f"alt must be a finite number, got {alt!r}", kind="bad-position")
 
 
-def add_images(db: Session, *, map_: Map, uploads: Sequence[Upload],
-               position: GivenPosition | None, settings: Settings,
-               verify: Verifier) -> ImageUploadResult:
+async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,
+                     uploads: Sequence[Upload], position: GivenPosition | None,
+                     settings: Settings, verify: Verifier) -> ImageUploadResult:
     """Validate, store and register uploaded map images.
 
     Every file is checked on its own (size, header, GPS, duplicate, full decode in the
     workers); the good ones are stored, the others reported with the reason. When no file
-    is good, nothing is stored and a problem is raised with the reasons.
+    is good, nothing is stored and a problem is raised with the reasons. The database work
+    runs in threads, each with its own short session, so that no connection is held while
+    the workers decode.
     """
     if not uploads:
         raise Problem(422, "no files in the upload (form field 'files')", kind="no-files")
@@ -146,10 +150,35 @@ def add_images(db: Session, *, map_: Map, uploads: Sequence[Upload],
             raise Problem(422, "lat/lon form fields apply to a single file; upload several "
                           "files with EXIF GPS instead", kind="position-ambiguous")
         check_position(position.lat, position.lon, position.alt)
+    rejected, candidates = await asyncio.to_thread(
+        _screen, db_sessions, map_id, uploads, position, settings)
+    errors = await verify([c[0].data for c in candidates]) if candidates else []
+    good = []
+    for cand, error in zip(candidates, errors, strict=True):
+        if error is None:
+            good.append(cand)
+        else:
+            rejected.append(ImageRejection(filename=cand[0].filename, status=422,
+                                           reason="bad-image", detail=error))
+    if not good:
+        statuses = {r.status for r in rejected}
+        status = statuses.pop() if len(statuses) == 1 else 422
+        raise Problem(status, "no image was accepted: " + "; ".join(
+            f"{r.filename}: {r.detail}" for r in rejected), kind="no-image-accepted",
+            rejected=[r.model_dump() for r in rejected])
+    accepted = await asyncio.to_thread(_store, db_sessions, map_id, good, settings)
+    return ImageUploadResult(accepted=accepted, rejected=rejected)
 
+
+def _screen(db_sessions: sessionmaker[Session], map_id: uuid.UUID, uploads: Sequence[Upload],
+            position: GivenPosition | None, settings: Settings) -> tuple[list, list]:
+    """Header, GPS and duplicate checks: (rejections, candidates for the full decode)."""
+    with db_sessions() as db:
+        if db.get(Map, map_id) is None:
+            raise not_found("map", map_id)
+        existing = set(db.scalars(select(MapImage.file_hash).where(MapImage.map_id == map_id)))
     rejected: list[ImageRejection] = []
     candidates: list[tuple[Upload, ImageHeader, GivenPosition, str, str]] = []
-    existing = set(db.scalars(select(MapImage.file_hash).where(MapImage.map_id == map_.id)))
     for up in uploads:
         try:
             header, pos = _check_one(up, position, settings)
@@ -166,24 +195,7 @@ def add_images(db: Session, *, map_: Map, uploads: Sequence[Upload],
         existing.add(digest)
         source = "form" if position is not None else "exif"
         candidates.append((up, header, pos, digest, source))
-
-    errors = verify([c[0].data for c in candidates]) if candidates else []
-    good = []
-    for cand, error in zip(candidates, errors, strict=True):
-        if error is None:
-            good.append(cand)
-        else:
-            rejected.append(ImageRejection(filename=cand[0].filename, status=422,
-                                           reason="bad-image", detail=error))
-    if not good:
-        statuses = {r.status for r in rejected}
-        status = statuses.pop() if len(statuses) == 1 else 422
-        raise Problem(status, "no image was accepted: " + "; ".join(
-            f"{r.filename}: {r.detail}" for r in rejected), kind="no-image-accepted",
-            rejected=[r.model_dump() for r in rejected])
-    rows = _store(db, map_=map_, good=good, settings=settings)
-    return ImageUploadResult(accepted=[MapImageRead.model_validate(r) for r in rows],
-                             rejected=rejected)
+    return rejected, candidates
 
 
 def _check_one(up: Upload, position: GivenPosition | None,
@@ -211,35 +223,40 @@ def _check_one(up: Upload, position: GivenPosition | None,
     return header, GivenPosition(tag.lat, tag.lon, tag.alt, captured)
 
 
-def _store(db: Session, *, map_: Map, good: list, settings: Settings) -> list[MapImage]:
-    folder = settings.images_dir(str(map_.id))
+def _store(db_sessions: sessionmaker[Session], map_id: uuid.UUID, good: list,
+           settings: Settings) -> list[MapImageRead]:
+    folder = settings.images_dir(str(map_id))
     folder.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    try:
-        rows = []
-        for up, header, pos, digest, source in good:
-            path = folder / f"{digest}{header.suffix}"
-            if not path.exists():
-                tmp = path.with_suffix(path.suffix + ".part")
-                tmp.write_bytes(up.data)
-                os.replace(tmp, path)
-                written.append(path)
-            row = MapImage(map_id=map_.id, filename=_clean_name(up.filename),
-                           file_hash=digest, content_type=header.content_type,
-                           byte_size=len(up.data), width=header.width, height=header.height,
-                           lat=pos.lat, lon=pos.lon, alt=pos.alt, captured_at=pos.captured_at,
-                           position_source=source)
-            db.add(row)
-            rows.append(row)
-        if map_.status != MapStatus.BUILDING:
-            map_.status = MapStatus.UNBUILT
-        db.commit()
-        return rows
-    except BaseException:
-        db.rollback()
-        for path in written:
-            path.unlink(missing_ok=True)
-        raise
+    with db_sessions() as db:
+        try:
+            map_ = db.get(Map, map_id)
+            if map_ is None:
+                raise not_found("map", map_id)  # deleted while the workers decoded
+            rows = []
+            for up, header, pos, digest, source in good:
+                path = folder / f"{digest}{header.suffix}"
+                if not path.exists():
+                    tmp = path.with_suffix(path.suffix + ".part")
+                    tmp.write_bytes(up.data)
+                    os.replace(tmp, path)
+                    written.append(path)
+                row = MapImage(map_id=map_id, filename=_clean_name(up.filename),
+                               file_hash=digest, content_type=header.content_type,
+                               byte_size=len(up.data), width=header.width,
+                               height=header.height, lat=pos.lat, lon=pos.lon, alt=pos.alt,
+                               captured_at=pos.captured_at, position_source=source)
+                db.add(row)
+                rows.append(row)
+            if map_.status != MapStatus.BUILDING:
+                map_.status = MapStatus.UNBUILT
+            db.commit()
+            return [MapImageRead.model_validate(r) for r in rows]
+        except BaseException:
+            db.rollback()
+            for path in written:
+                path.unlink(missing_ok=True)
+            raise
 
 
 def _clean_name(filename: str | None) -> str:

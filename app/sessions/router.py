@@ -33,12 +33,11 @@ FAILED_FRAME_STATUS = {"bad_image": 422, "worker_died": 503, "not_open": 503, "e
 
 @router.post("", status_code=201, response_model=SessionCreated,
              dependencies=[Depends(require_admin)])
-def create_session(body: SessionCreate, db: DbSession, ctx: Ctx,
-                   response: Response) -> SessionCreated:
+async def create_session(body: SessionCreate, ctx: Ctx, response: Response) -> SessionCreated:
     """Open a localisation session on a built map; the token is shown only here."""
-    row, token = service.create_session(db, body=body, runtime=ctx.runtime)
-    response.headers["Location"] = f"/v1/sessions/{row.id}"
-    read = service.read_session(db, row=row, runtime=ctx.runtime)
+    read, token = await service.create_session(db_sessions=ctx.db_sessions, body=body,
+                                               runtime=ctx.runtime)
+    response.headers["Location"] = f"/v1/sessions/{read.id}"
     return SessionCreated(**read.model_dump(), token=token)
 
 

@@ -121,11 +121,12 @@ class SessionRuntime:
 
     # -- sessions ---------------------------------------------------------------------------
 
-    def open_new(self, row: LocalisationSession) -> LiveSession:
-        """Create a new session's localiser in the engine (blocking; request threads)."""
+    async def open_new(self, row: LocalisationSession) -> LiveSession:
+        """Create a new session's localiser in the engine."""
         spec = spec_for(row, self.settings)
         try:
-            self.engine.open_session(spec).result(OPEN_TIMEOUT_S)
+            await asyncio.wait_for(asyncio.wrap_future(self.engine.open_session(spec)),
+                                   OPEN_TIMEOUT_S)
         except BaseException:
             self.engine.close_session(spec.session_id)
             raise

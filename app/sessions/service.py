@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
 import secrets
 
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from app.db import new_id
 from app.maps.models import Map
@@ -30,33 +31,16 @@ def resolve_seed(body: SessionCreate) -> int:
     return secrets.randbits(63) if seed is None else int(seed)
 
 
-def create_session(db: Session, *, body: SessionCreate,
-                   runtime: SessionRuntime) -> tuple[LocalisationSession, str]:
-    """Validate, create the localiser in the engine, store; returns the row and its token."""
-    from workers.core.localisers import validate_params
+async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCreate,
+                         runtime: SessionRuntime) -> tuple[SessionRead, str]:
+    """Validate, create the localiser in the engine, store; the session and its token.
 
-    map_ = db.get(Map, body.map_id)
-    if map_ is None:
-        raise not_found("map", body.map_id)
-    if map_.revision == 0:
-        raise Problem(409, "the map has not been built yet; POST /v1/maps/{id}/build",
-                      kind="map-not-built")
+    The engine may take a while (the worker loads the map, it may be busy with frames);
+    nothing holds a database connection or a request thread while it does.
+    """
+    row, token = await asyncio.to_thread(_plan, db_sessions, body)
     try:
-        params = validate_params(body.mode, body.params)
-    except ValueError as exc:
-        raise Problem(422, str(exc), kind="bad-params") from None
-    seed = resolve_seed(body)
-    params.pop("seed", None)  # the seed travels as its own argument
-    token = new_token()
-    row = LocalisationSession(id=new_id(), map_id=map_.id, map_revision=map_.revision,
-                              mode=body.mode, params=params, seed=seed,
-                              token_hash=hash_secret(token), frames_processed=0,
-                              frames_failed=0, last_seq=None)
-    # End the read transaction before waiting for the engine: on SQLite an open transaction
-    # would hold up the writers (the pose writer among them) for as long as the wait lasts.
-    db.rollback()
-    try:
-        runtime.open_new(row)
+        await runtime.open_new(row)
     except ValueError as exc:
         raise Problem(422, f"the localiser refused the session: {exc}",
                       kind="bad-params") from None
@@ -64,12 +48,45 @@ def create_session(db: Session, *, body: SessionCreate,
         raise Problem(503, f"the engine could not open the session: {exc}",
                       kind="engine-unavailable") from None
     try:
-        db.add(row)
-        db.commit()
+        read = await asyncio.to_thread(_save, db_sessions, row, runtime)
     except BaseException:
         runtime.forget(row.id)
         raise
+    return read, token
+
+
+def _plan(db_sessions: sessionmaker[Session],
+          body: SessionCreate) -> tuple[LocalisationSession, str]:
+    from workers.core.localisers import validate_params
+
+    with db_sessions() as db:
+        map_ = db.get(Map, body.map_id)
+        if map_ is None:
+            raise not_found("map", body.map_id)
+        if map_.revision == 0:
+            raise Problem(409, "the map has not been built yet; POST /v1/maps/{id}/build",
+                          kind="map-not-built")
+        map_id, revision = map_.id, map_.revision
+    try:
+        params = validate_params(body.mode, body.params)
+    except ValueError as exc:
+        raise Problem(422, str(exc), kind="bad-params") from None
+    seed = resolve_seed(body)
+    params.pop("seed", None)  # the seed travels as its own argument
+    token = new_token()
+    row = LocalisationSession(id=new_id(), map_id=map_id, map_revision=revision,
+                              mode=body.mode, params=params, seed=seed,
+                              token_hash=hash_secret(token), frames_processed=0,
+                              frames_failed=0, last_seq=None)
     return row, token
+
+
+def _save(db_sessions: sessionmaker[Session], row: LocalisationSession,
+          runtime: SessionRuntime) -> SessionRead:
+    with db_sessions() as db:
+        db.add(row)
+        db.commit()
+        return read_session(db, row=row, runtime=runtime)
 
 
 def list_sessions(db: Session, *, runtime: SessionRuntime) -> list[SessionRead]:
