@@ -5,9 +5,11 @@ Threads and the loop:
 - the event loop accepts frames (no awaits between the sequence check and the submission,
   so two requests of one session cannot take the same number) and publishes messages;
 - the engine's reader thread hands each outcome to :meth:`SessionRuntime.on_outcome`, which
-  only queues it;
-- one writer thread stores outcomes in batches (poses, counters, checkpoints) and then asks
-  the loop to publish them, so a client that sees a pose can also read it back.
+  turns it into its stream message, has the loop publish it at once and queues it for
+  storage: the stream never waits for the database;
+- one writer thread stores outcomes in batches (poses, counters, checkpoints) and then has
+  the loop settle them: a ``?wait=true`` request is answered only once its pose is stored,
+  so what it returns can be read back.
 """
 
 from __future__ import annotations
@@ -242,8 +244,11 @@ class SessionRuntime:
     # -- outcomes ---------------------------------------------------------------------------
 
     def on_outcome(self, outcome: Outcome) -> None:
-        """Engine reader thread: just queue it, stamped with its arrival time."""
-        self._outcomes.put((outcome, time.perf_counter()))
+        """Engine reader thread: publish the message now, store it later."""
+        msg = self._message(outcome, time.perf_counter())
+        if msg is not None and self.loop is not None and not self.loop.is_closed():
+            self.loop.call_soon_threadsafe(self.hub.publish, msg[0], msg[2])
+        self._outcomes.put((outcome, msg))
 
     def _write_loop(self) -> None:
         while True:
@@ -261,12 +266,12 @@ class SessionRuntime:
                 batch.append(nxt)
             if batch:
                 try:
-                    messages = self._store(batch)
+                    self._store(batch)
                 except Exception:  # noqa: BLE001 - keep writing later outcomes
                     log.exception("storing %d outcomes failed", len(batch))
-                    messages = [m for m in (self._message(o, t) for o, t in batch) if m]
+                messages = [m for _, m in batch if m is not None]
                 if self.loop is not None and not self.loop.is_closed():
-                    self.loop.call_soon_threadsafe(self._publish, messages)
+                    self.loop.call_soon_threadsafe(self._settle, messages)
             if stop:
                 return
 
@@ -295,29 +300,25 @@ class SessionRuntime:
                              latency_ms=latency_ms)
         return outcome.session_id, outcome.seq, msg.model_dump(mode="json")
 
-    def _store(self, batch: list[tuple[Outcome, float]]) -> list[tuple[str, int, dict]]:
-        by_session: dict[str, list[tuple[Outcome, float]]] = defaultdict(list)
-        for outcome, t_back in batch:
-            by_session[outcome.session_id].append((outcome, t_back))
-        messages = []
+    def _store(self, batch: list[tuple[Outcome, tuple | None]]) -> None:
+        by_session: dict[str, list[tuple[Outcome, tuple | None]]] = defaultdict(list)
+        for outcome, msg in batch:
+            by_session[outcome.session_id].append((outcome, msg))
         with self.db_sessions() as db:
             for session_id, items in by_session.items():
                 row = db.get(LocalisationSession, uuid.UUID(session_id))
-                for outcome, t_back in items:
-                    msg = self._message(outcome, t_back)
-                    if msg is not None:
-                        messages.append(msg)
-                    if row is not None:
-                        self._apply(db, row, outcome, msg[2] if msg else None)
+                if row is None:
+                    continue  # deleted meanwhile
+                for outcome, msg in items:
+                    self._apply(db, row, outcome, msg[2] if msg else None)
             db.commit()
-        for _, _, m in messages:
+        for _, _, m in (msg for _, msg in batch if msg is not None):
             if m["type"] == "pose":
                 self.metrics.frames_processed.labels(m["feature"]).inc()
                 self.metrics.step_seconds.labels(m["feature"]).observe(m["processing_ms"] / 1e3)
                 self.metrics.frame_latency.observe(m["latency_ms"] / 1e3)
             else:
                 self.metrics.frames_failed.labels(m["kind"]).inc()
-        return messages
 
     @staticmethod
     def _apply(db: Session, row: LocalisationSession, outcome: Outcome, msg: dict | None) -> None:
@@ -344,10 +345,9 @@ class SessionRuntime:
                     decode_ms=msg["decode_ms"], processing_ms=msg["processing_ms"],
                     latency_ms=msg["latency_ms"]))
 
-    def _publish(self, messages: list[tuple[str, int, dict]]) -> None:
-        """Event loop: fan the stored messages out and wake their waiters."""
+    def _settle(self, messages: list[tuple[str, int, dict]]) -> None:
+        """Event loop: the frames are stored; wake their waiters, forget their arrivals."""
         for session_id, seq, msg in messages:
-            self.hub.publish(session_id, msg)
             live = self._live.get(session_id)
             if live is not None:
                 live.arrivals.pop(seq, None)

@@ -60,7 +60,12 @@ def test_map_build_and_a_streamed_sequence(server):
                 await ws.send(queries[0].jpeg)
                 got = [json.loads(await asyncio.wait_for(ws.recv(), 120))
                        for _ in range(len(frames) + 1)]
-            session = (await http.get(f"/v1/sessions/{sid}")).json()
+            # The stream runs ahead of the database by a few milliseconds at most.
+            for _ in range(100):
+                session = (await http.get(f"/v1/sessions/{sid}")).json()
+                if session["frames_pending"] == 0:
+                    break
+                await asyncio.sleep(0.05)
         return seqs, got, session
 
     seqs, got, session = asyncio.run(scenario())
