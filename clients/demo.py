@@ -176,7 +176,7 @@ def run_demo(opts: DemoOptions, say: Callable[[str], None] = print) -> dict:
     finally:
         if not opts.keep:
             shutil.rmtree(data_dir, ignore_errors=True)
-    results["timings_s"] = {"world": t_world, "total": time.perf_counter() - t0}
+    results["timings_s"].update(world=t_world, total=time.perf_counter() - t0)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
     return results
 
@@ -190,7 +190,7 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
 
     from clients._replay_data import load_replay_data
     from clients._replay_report import mode_table, plot_replay, summarise
-    from clients.commands.map import _build
+    from clients.commands._common import build_with_bar
     from clients.mapping import import_images
     from clients.replay import replay_async
     from clients.sdk import AsyncClient, Client
@@ -207,7 +207,7 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
             raise DemoError(f"the server refused {len(summary.rejected)} map images: "
                             f"{summary.rejected[:3]}")
         t = time.perf_counter()
-        _build(vloc, m.id, quiet=opts.quiet)
+        build_with_bar(vloc, m.id, quiet=opts.quiet)
         t_build = time.perf_counter() - t
         m = vloc.get_map(m.id)
         map_xy = np.array([(i.east, i.north) for i in vloc.list_images(m.id)])

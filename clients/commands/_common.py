@@ -103,3 +103,20 @@ def model_json(model) -> Any:
     if isinstance(model, list):
         return [m.model_dump(mode="json") for m in model]
     return model.model_dump(mode="json")
+
+
+def build_with_bar(vloc, map_id: str, *, quiet: bool = False, timeout: float = 3600.0):
+    """Build a map and wait for it behind a progress bar; returns the finished job."""
+    from tqdm import tqdm
+
+    from clients.mapping import build_and_wait
+
+    with tqdm(total=100, unit="%", desc="build", disable=quiet,
+              bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}") as bar:
+        def progress(job) -> None:
+            bar.update(round(100 * job.progress) - bar.n)
+
+        job = build_and_wait(vloc, map_id, timeout=timeout, on_progress=progress)
+    click.echo(f"map {map_id} built: revision {job.revision}, {job.n_extracted} images "
+               "extracted", err=True)
+    return job

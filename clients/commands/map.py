@@ -8,6 +8,7 @@ import click
 
 from clients.commands._common import (
     CommandError,
+    build_with_bar,
     make_client,
     model_json,
     print_json,
@@ -142,7 +143,7 @@ def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | 
         if summary.accepted == 0:
             raise CommandError("no image was accepted")
         if build:
-            _build(vloc, map_id, quiet=quiet)
+            build_with_bar(vloc, map_id, quiet=quiet)
     click.echo(map_id)
 
 
@@ -162,19 +163,4 @@ def build_cmd(map_id: str, wait: bool, timeout: float, quiet: bool, server: str,
         if not wait:
             click.echo(vloc.build_map(map_id).id)
             return
-        _build(vloc, map_id, quiet=quiet, timeout=timeout)
-
-
-def _build(vloc, map_id: str, *, quiet: bool, timeout: float = 3600.0) -> None:
-    from tqdm import tqdm
-
-    from clients.mapping import build_and_wait
-
-    with tqdm(total=100, unit="%", desc="build", disable=quiet,
-              bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}") as bar:
-        def progress(job) -> None:
-            bar.update(round(100 * job.progress) - bar.n)
-
-        job = build_and_wait(vloc, map_id, timeout=timeout, on_progress=progress)
-    click.echo(f"map {map_id} built: revision {job.revision}, {job.n_extracted} images "
-               "extracted", err=True)
+        build_with_bar(vloc, map_id, quiet=quiet, timeout=timeout)

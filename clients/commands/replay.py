@@ -9,6 +9,7 @@ import click
 
 from clients.commands._common import (
     CommandError,
+    build_with_bar,
     make_async_client,
     make_client,
     parse_params,
@@ -111,7 +112,6 @@ def _prepare_map(server, admin_key, map_id, data, *, quiet: bool):
     """The map to localise on (built here with --build-map), its origin and image positions."""
     import numpy as np
 
-    from clients.commands.map import _build
     from clients.mapping import import_images
     from workers.core.geo import GeoOrigin
 
@@ -130,7 +130,7 @@ def _prepare_map(server, admin_key, map_id, data, *, quiet: bool):
                                         on_progress=lambda n, s: bar.update(n))
             if summary.accepted == 0:
                 raise CommandError("the server accepted none of the map images")
-            _build(vloc, map_id, quiet=quiet)
+            build_with_bar(vloc, map_id, quiet=quiet)
         m = vloc.get_map(map_id)
         if m.status != "ready" or m.origin is None:
             raise CommandError(f"map {map_id} is {m.status}, not built; "
@@ -146,13 +146,14 @@ def _run(server, admin_key, map_id, frames, origin, *, modes, devices, quiet, **
     from tqdm import tqdm
 
     from clients.replay import replay_async, truth_in_map_frame
+    from clients.sdk import Pose
 
     truth = truth_in_map_frame(frames, origin)
     total = len(frames) * devices * len(modes)
     with tqdm(total=total, unit="frame", desc="replay", disable=quiet) as bar:
         def on_answer(run, msg) -> None:
             bar.update(1)
-            if hasattr(msg, "x"):
+            if isinstance(msg, Pose):
                 err = math.hypot(msg.x - truth[msg.seq, 0], msg.y - truth[msg.seq, 1])
                 bar.set_postfix_str(f"{run.mode} dev {run.device}: seq {msg.seq} "
                                     f"{msg.feature} err {err:.1f} m", refresh=False)
