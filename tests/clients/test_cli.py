@@ -134,11 +134,13 @@ def test_session_commands(vloc, sdk, shots, dataset_dir, tmp_path):
     watched = vloc("session", "watch", session_id, "--count", "1", "--token", token)
     sender.join()
     assert json.loads(watched.stdout)["seq"] == 10
+    # Answered once stored, after the frames before it: `show` sees all six.
+    sdk.send_frame(session_id, queries[5].jpeg, seq=11, wait=True, token=token)
 
     shown = vloc("session", "show", session_id, "--token", token).stdout
-    assert "mode hybrid" in shown and "last pose: seq 10" in shown
+    assert "mode hybrid" in shown and "last pose: seq 11" in shown
     stats = json.loads(vloc("session", "show", session_id, "--json").stdout)
-    assert stats["frames_processed"] == 5 and stats["seed"] == 4
+    assert stats["frames_processed"] == 6 and stats["seed"] == 4
     vloc("session", "reset", session_id)
     vloc("session", "initial-pose", session_id, "--lat", str(maps[0].lat), "--lon",
          str(maps[0].lon), "--sigma", "3")
