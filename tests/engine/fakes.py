@@ -71,3 +71,11 @@ def make_counting(mode: str, map_data, params: dict, *, seed: int) -> CountingLo
     if mode != "count":
         raise ValueError(f"unknown mode {mode!r}")
     return CountingLocaliser(offset=float(params.get("offset", 0.0)))
+
+
+def make_recording(mode: str, map_data, params: dict, *, seed: int) -> CountingLocaliser:
+    """A counting localiser that keeps the map it was given, for the tests to inspect."""
+    loc = CountingLocaliser()
+    loc.map_data = map_data
+    loc.seed = seed
+    return loc
