@@ -16,12 +16,10 @@ import itertools
 import logging
 import multiprocessing as mp
 import os
-import sys
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field
-from multiprocessing.connection import Connection, wait
+from multiprocessing.connection import wait
 
 from .messages import (
     CallDone,
@@ -38,6 +36,7 @@ from .messages import (
     SessionSpec,
     Stop,
 )
+from .slots import EngineClosed, Slot, WorkerDied, remote_error
 from .worker import THREAD_ENV, worker_main
 
 log = logging.getLogger(__name__)
@@ -46,32 +45,6 @@ RESPAWN_RETRY_S = 1.0
 """How soon a worker that could not be replaced is tried again."""
 
 PRELOAD = ["workers.engine.worker", "workers.core.localisers", "workers.core.mapbuild"]
-
-
-class WorkerDied(RuntimeError):
-    """The worker process running a call or holding a frame exited."""
-
-
-class EngineClosed(RuntimeError):
-    """The engine is not running."""
-
-
-@dataclass(eq=False)
-class _Slot:
-    index: int
-    process: mp.process.BaseProcess
-    tasks: object
-    conn: Connection
-    ready: threading.Event = field(default_factory=threading.Event)
-    broken: bool = False
-    """Dead and not yet replaced: nothing may be queued on it."""
-    sessions: set[str] = field(default_factory=set)
-    frames: dict[tuple[str, int], None] = field(default_factory=dict)
-    calls: dict[int, Future] = field(default_factory=dict)
-
-    @property
-    def load(self) -> int:
-        return len(self.frames) + len(self.calls)
 
 
 class LocalEngine:
@@ -111,7 +84,7 @@ class LocalEngine:
         if start_method == "forkserver":
             self._ctx.set_forkserver_preload(PRELOAD)
         self._lock = threading.RLock()
-        self._slots: list[_Slot] = []
+        self._slots: list[Slot] = []
         self._specs: dict[str, SessionSpec] = {}
         self._pinned: dict[str, int] = {}
         self._states: dict[str, bytes] = {}
@@ -278,7 +251,7 @@ class LocalEngine:
             raise EngineClosed("the engine is not running")
 
     @staticmethod
-    def _usable(slot: _Slot) -> _Slot:
+    def _usable(slot: Slot) -> Slot:
         if slot.broken:
             raise WorkerDied(f"worker {slot.index} died and is being replaced; retry")
         return slot
@@ -292,7 +265,7 @@ class LocalEngine:
             self._states.pop(session_id, None)
             self._counts.pop(session_id, None)
 
-    def _spawn(self, index: int) -> _Slot:
+    def _spawn(self, index: int) -> Slot:
         tasks = self._ctx.Queue()
         reader, writer = self._ctx.Pipe(duplex=False)
         process = self._ctx.Process(target=worker_main, name=f"vloc-worker-{index}",
@@ -300,7 +273,7 @@ class LocalEngine:
         process.start()
         # Our copy of the write end must go, or the pipe never reports EOF when the worker dies.
         writer.close()
-        return _Slot(index, process, tasks, reader)
+        return Slot(index, process, tasks, reader)
 
     def _read_loop(self) -> None:
         while True:
@@ -313,7 +286,7 @@ class LocalEngine:
             by_sentinel = {s.process.sentinel: s for s in live}
             ready = wait([*by_conn, *by_sentinel, self._wakeup_r],
                          timeout=RESPAWN_RETRY_S if broken else None)
-            dead: list[_Slot] = []
+            dead: list[Slot] = []
             for obj in ready:
                 if obj is self._wakeup_r:
                     continue
@@ -334,7 +307,7 @@ class LocalEngine:
             for slot in broken:
                 self._revive(slot)
 
-    def _dispatch(self, slot: _Slot, msg) -> None:
+    def _dispatch(self, slot: Slot, msg) -> None:
         if isinstance(msg, Ready):
             slot.ready.set()
             return
@@ -359,7 +332,7 @@ class LocalEngine:
             if msg.ok:
                 fut.set_result(msg.value)
             else:
-                fut.set_exception(_remote_error(msg.error_type, msg.error))
+                fut.set_exception(remote_error(msg.error_type, msg.error))
             return
         log.warning("engine: unexpected message %r", type(msg).__name__)
 
@@ -371,7 +344,7 @@ class LocalEngine:
         except Exception:  # noqa: BLE001 - a broken consumer must not kill the reader
             log.exception("engine: frame consumer failed")
 
-    def _drain(self, slot: _Slot) -> None:
+    def _drain(self, slot: Slot) -> None:
         """Dispatch the whole messages a (dead or stopped) worker left in its pipe."""
         try:
             while slot.conn.poll():
@@ -379,7 +352,7 @@ class LocalEngine:
         except (EOFError, OSError, ValueError):
             pass  # the rest is a message the worker did not finish writing
 
-    def _fail_slot(self, slot: _Slot, reason: str) -> None:
+    def _fail_slot(self, slot: Slot, reason: str) -> None:
         with self._lock:
             frames, slot.frames = list(slot.frames), {}
             calls, slot.calls = list(slot.calls.values()), {}
@@ -389,7 +362,7 @@ class LocalEngine:
         for session_id, seq in frames:
             self._emit(FrameFailed(session_id, seq, "worker_died", reason))
 
-    def _replace(self, slot: _Slot) -> None:
+    def _replace(self, slot: Slot) -> None:
         """A worker died: report what it held, then start another in its place."""
         self._drain(slot)
         slot.process.join(1.0)
@@ -411,7 +384,7 @@ class LocalEngine:
         # already send the session its next frame.
         self._fail_slot(slot, reason)
 
-    def _revive(self, slot: _Slot) -> None:
+    def _revive(self, slot: Slot) -> None:
         """Start a worker in a dead worker's place and reopen its sessions from their last
         checkpoints, before anything else reaches the new worker."""
         with self._lock:
@@ -429,14 +402,3 @@ class LocalEngine:
                                             self._states.get(session_id)))
             self._slots[slot.index] = fresh
             self.restarts += 1
-
-
-def _remote_error(error_type: str, message: str) -> Exception:
-    """Rebuild a worker's exception as the same builtin type where there is one."""
-    cls = getattr(sys.modules["builtins"], error_type, None)
-    if isinstance(cls, type) and issubclass(cls, Exception):
-        try:
-            return cls(message)
-        except TypeError:
-            pass
-    return RuntimeError(f"{error_type}: {message}")
