@@ -34,7 +34,6 @@ def readyz(ctx: Ctx) -> dict:
 @router.get("/metrics", include_in_schema=False)
 def metrics(ctx: Ctx) -> Response:
     m = ctx.metrics
-    m.workers_alive.set(sum(1 for _ in ctx.engine.worker_pids()) if ctx.engine.alive()
-                        else 0)
+    m.workers_alive.set(ctx.engine.alive_count())
     m.worker_restarts.set(ctx.engine.restarts)
     return Response(generate_latest(m.registry), media_type=CONTENT_TYPE_LATEST)

@@ -149,6 +149,13 @@ class LocalEngine:
         with self._lock:
             return [slot.process.pid for slot in self._slots]
 
+    def alive_count(self) -> int:
+        """Worker processes running now."""
+        with self._lock:
+            if not self._running:
+                return 0
+            return sum(1 for s in self._slots if not s.broken and s.process.is_alive())
+
     def alive(self) -> bool:
         with self._lock:
             return self._running and all(not s.broken and s.process.is_alive()
