@@ -42,7 +42,7 @@ class DemoOptions:
     """Sizes and choices of one demo run (see ``vloc demo --help``)."""
 
     out: Path = Path("demo-output")
-    frames: int = 120
+    frames: int = 200
     seed: int = 0
     query_light: str = "cloudy"
     config: str = "default"
@@ -125,6 +125,19 @@ def _tail(path: Path, lines: int = 25) -> str:
         return "(no server log)"
 
 
+FRAME_SPACING_M = 1.3
+"""Metres between frames: 200 frames go once round the generator's default 260 m block;
+fewer frames go round a smaller block at the same spacing, so a reduced demo keeps the
+density of views the localisers see."""
+
+MIN_ROUTE_M = 60.0
+
+
+def route_length(frames: int) -> float:
+    """The loop's length for ``frames`` frames per pass."""
+    return max(MIN_ROUTE_M, frames * FRAME_SPACING_M)
+
+
 def make_world(folder: Path, opts: DemoOptions, say: Callable[[str], None]) -> Path:
     """The synthetic world, reused when ``folder`` already holds one of the same recipe."""
     from tqdm import tqdm
@@ -132,7 +145,7 @@ def make_world(folder: Path, opts: DemoOptions, say: Callable[[str], None]) -> P
     from clients.world import generate_world
 
     recipe = {"kind": "robot", "seed": opts.seed, "passes": ["sunny", opts.query_light],
-              "frames": opts.frames}
+              "frames": opts.frames, "route_length": route_length(opts.frames)}
     stamp = folder / "demo-recipe.json"
     if stamp.exists() and json.loads(stamp.read_text()) == recipe:
         say(f"world: reusing {folder}")
@@ -140,16 +153,12 @@ def make_world(folder: Path, opts: DemoOptions, say: Callable[[str], None]) -> P
     with tqdm(total=2 * opts.frames, unit="img", desc="world", disable=opts.quiet) as bar:
         info = generate_world(folder, kind="robot", seed=opts.seed,
                               passes=recipe["passes"], frames=opts.frames,
-                              route_length=ROUTE_LENGTH_M, overwrite=True,
+                              route_length=recipe["route_length"], overwrite=True,
                               progress=lambda done, total: bar.update(done - bar.n))
     stamp.write_text(json.dumps(recipe))
     say(f"world: {info.images} images, {info.route_length_m:.0f} m loop, "
         f"{info.frame_spacing_m:.1f} m between frames, passes {', '.join(info.passes)}")
     return folder
-
-
-ROUTE_LENGTH_M = 260.0
-"""The robot's loop round the block (the generator's default)."""
 
 
 def run_demo(opts: DemoOptions, say: Callable[[str], None] = print) -> dict:

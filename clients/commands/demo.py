@@ -11,8 +11,9 @@ import click
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path),
               default=Path("demo-output"), show_default=True,
               help="Folder for the world, tracks.png, results.json and the server log.")
-@click.option("--frames", type=click.IntRange(10, 2000), default=120, show_default=True,
-              help="Frames per pass (the loop is 260 m; fewer frames, longer strides).")
+@click.option("--frames", type=click.IntRange(10, 2000), default=200, show_default=True,
+              help="Frames per pass, 1.3 m apart: 200 go once round a 260 m block, fewer "
+                   "round a smaller one (faster).")
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True,
               help="Seeds the world and the sessions.")
 @click.option("--query-light", type=click.Choice(["cloudy", "dusk"]), default="cloudy",

@@ -1,0 +1,77 @@
+"""``vloc demo`` as a newcomer runs it: a child process, nothing prepared, a reduced size.
+
+The demo starts its own ``vloc serve`` (another process) on the embedded defaults, so this
+test covers the whole product path: world generation, server start-up and readiness, map
+upload and build over HTTP, device replay over HTTP and WebSocket, the table, the plot,
+and the server's shutdown.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+FRAMES = 60
+"""Frames per pass: a 78 m block at the demo's spacing, small enough for CI."""
+
+ERROR_MARGIN_M = 1.0
+"""Absolute slack on "hybrid within 10 % of SIFT-only": a few frames decide a small run."""
+
+ROW = re.compile(r"^\| (hybrid|global|sift) \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) % \| "
+                 r"([\d.]+) \| ([\d.]+) \|$", re.M)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("VLOC_")}
+    proc = subprocess.run(
+        [sys.executable, "-m", "clients.cli", "demo", "--frames", str(FRAMES), "--out",
+         str(out), "--quiet"],
+        cwd=out, env=env, capture_output=True, text=True, timeout=900)
+    return proc, out
+
+
+def test_demo_exits_0_and_prints_the_table(demo):
+    proc, out = demo
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    rows = {m.group(1): m.groups()[1:] for m in ROW.finditer(proc.stdout)}
+    assert set(rows) == {"hybrid", "global", "sift"}, proc.stdout
+    results = json.loads((out / "results.json").read_text())
+    # The printed table is the results' figures.
+    for mode, (mean, median, share, ms, _) in rows.items():
+        r = results["modes"][mode]
+        assert float(mean) == pytest.approx(r["mean_error_m"], abs=0.051)
+        assert float(median) == pytest.approx(r["median_error_m"], abs=0.051)
+        assert float(share) == pytest.approx(100 * r["sift_step_share"], abs=0.051)
+        assert float(ms) == pytest.approx(r["ms_per_frame"], abs=0.051)
+    assert float(rows["sift"][2]) == 100.0 and float(rows["global"][2]) == 0.0
+    assert results["frames"] == FRAMES
+    assert "hybrid vs sift-only" in proc.stdout and "server: stopped" in proc.stdout
+
+
+def test_hybrid_error_close_to_sift_with_fewer_sift_steps(demo):
+    proc, out = demo
+    assert proc.returncode == 0
+    modes = json.loads((out / "results.json").read_text())["modes"]
+    hybrid, sift = modes["hybrid"], modes["sift"]
+    assert hybrid["mean_error_m"] <= 1.1 * sift["mean_error_m"] + ERROR_MARGIN_M, modes
+    # "At a fraction of the time": the time hybrid saves is the SIFT steps it skips.
+    assert hybrid["sift_step_share"] < 1.0
+    assert hybrid["frames_answered"] == sift["frames_answered"] == FRAMES
+
+
+def test_demo_writes_the_plot_and_cleans_up(demo):
+    proc, out = demo
+    assert proc.returncode == 0
+    png = (out / "tracks.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    # The server's temporary data folder is gone; the world is kept for the next run.
+    assert not list(out.glob("vloc-demo-*"))
+    assert (out / "world" / "ground_truth.csv").is_file()
+    assert (out / "server.log").is_file()
