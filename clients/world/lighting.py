@@ -57,6 +57,10 @@ class Illumination:
         Cloud cover, 0 to 1.
     cloud_colour : (3,) tuple of int
         BGR.
+    exposure_target : float
+        Mean grey level the camera's auto exposure aims at.
+    max_gain : float
+        Largest gain the auto exposure may apply (dark scenes stay dark beyond it).
     time : str
         Local time of day of the first frame, HH:MM:SS.
     day_offset : int
@@ -77,6 +81,8 @@ class Illumination:
     zenith: tuple[int, int, int]
     clouds: float
     cloud_colour: tuple[int, int, int]
+    exposure_target: float
+    max_gain: float
     time: str
     day_offset: int = 0
 
@@ -98,21 +104,24 @@ ILLUMINATIONS: dict[str, Illumination] = {
     "sunny": Illumination(
         name="sunny", sun_azimuth_deg=205.0, sun_elevation_deg=48.0,
         sun=(0.80, 0.84, 0.86), sky=(0.36, 0.30, 0.26), penumbra_m=0.04,
-        contrast=1.18, gamma=1.0, noise=1.0,
+        contrast=1.05, gamma=1.0, noise=1.0,
         horizon=(235, 214, 190), zenith=(205, 140, 80), clouds=0.25,
-        cloud_colour=(250, 250, 250), time="13:37:29", day_offset=0),
+        cloud_colour=(250, 250, 250), exposure_target=118.0, max_gain=2.5,
+        time="13:37:29", day_offset=0),
     "cloudy": Illumination(
         name="cloudy", sun_azimuth_deg=205.0, sun_elevation_deg=48.0,
         sun=(0.0, 0.0, 0.0), sky=(0.82, 0.82, 0.80), penumbra_m=0.5,
-        contrast=0.72, gamma=1.05, noise=1.5,
+        contrast=0.85, gamma=1.05, noise=1.5,
         horizon=(212, 212, 210), zenith=(190, 188, 186), clouds=1.0,
-        cloud_colour=(168, 168, 170), time="11:12:40", day_offset=42),
+        cloud_colour=(168, 168, 170), exposure_target=118.0, max_gain=2.0,
+        time="11:12:40", day_offset=42),
     "dusk": Illumination(
         name="dusk", sun_azimuth_deg=298.0, sun_elevation_deg=4.0,
         sun=(0.15, 0.33, 0.55), sky=(0.80, 0.64, 0.54), penumbra_m=0.15,
         contrast=1.0, gamma=1.15, noise=2.5,
         horizon=(110, 150, 225), zenith=(95, 55, 35), clouds=0.45,
-        cloud_colour=(120, 110, 150), time="21:04:10", day_offset=1),
+        cloud_colour=(120, 110, 150), exposure_target=72.0, max_gain=2.0,
+        time="21:04:10", day_offset=1),
 }
 """The named illuminations a pass can be rendered under."""
 
@@ -257,22 +266,46 @@ def _clip_solid(solid: Solid, origin: np.ndarray, n: np.ndarray, ns: float) -> n
     return np.array(kept) if kept else np.zeros((0, 3))
 
 
-def camera_response(image: np.ndarray, illum: Illumination,
-                    rng: np.random.Generator) -> np.ndarray:
-    """Tone curve and sensor noise of the camera for one frame.
+class AutoExposure:
+    """The camera's automatic exposure: a gain that brings the mean grey level towards
+    the illumination's target, following changes of the scene within a few frames (a
+    shaded street is exposed brighter, and its sky burns out, as with a real camera)."""
+
+    def __init__(self, illum: Illumination) -> None:
+        self.target = illum.exposure_target
+        self.max_gain = illum.max_gain
+        self.gain: float | None = None
+
+    def __call__(self, image: np.ndarray) -> float:
+        """Gain for this frame, (H, W, 3) uint8 radiance in."""
+        mean = float(np.mean(cv2.mean(image)[:3]))
+        want = float(np.clip(self.target / max(mean, 1.0), 0.5, self.max_gain))
+        # Half way each frame: exposure control lags behind the scene.
+        self.gain = want if self.gain is None else self.gain * math.sqrt(want / self.gain)
+        return self.gain
+
+
+def camera_response(image: np.ndarray, illum: Illumination, rng: np.random.Generator,
+                    gain: float = 1.0) -> np.ndarray:
+    """Exposure gain, tone curve and sensor noise of the camera for one frame.
 
     Parameters
     ----------
     image : (H, W, 3) uint8 ndarray
         Rendered radiance, BGR.
+    gain : float
+        Exposure gain (see :class:`AutoExposure`); the sensor noise grows with it.
 
     Returns
     -------
     (H, W, 3) uint8 ndarray
     """
+    if gain != 1.0:
+        image = cv2.multiply(image, (gain, gain, gain, 0.0))
     out = cv2.LUT(image, _tone_curve(illum.contrast, illum.gamma))
     if illum.noise > 0:
-        noise = rng.normal(0.0, illum.noise, image.shape[:2]).astype(np.float32)
+        sigma = illum.noise * max(1.0, gain)
+        noise = rng.normal(0.0, sigma, image.shape[:2]).astype(np.float32)
         # Mostly luminance noise, as after a camera's demosaicing and denoising.
         out = np.clip(out.astype(np.float32) + noise[..., None], 0, 255).astype(np.uint8)
     return out
@@ -287,11 +320,13 @@ def _tone_curve(contrast: float, gamma: float) -> np.ndarray:
 
 SKY_SIZE = (1024, 256)
 """Sky panorama (width, height): compass bearings 0..360 degrees across, elevations from
-90 degrees down to :data:`clients.world.render.SKY_BOTTOM_DEG`."""
+90 degrees down to :data:`SKY_BOTTOM_DEG`."""
+
+SKY_BOTTOM_DEG = -10.0
+"""Lowest elevation the sky panorama covers (below the horizon it shows haze)."""
 
 
-def sky_panorama(illum: Illumination, rng: np.random.Generator,
-                 bottom_deg: float = -10.0) -> np.ndarray:
+def sky_panorama(illum: Illumination, rng: np.random.Generator) -> np.ndarray:
     """Sky colours by bearing and elevation: a gradient from horizon to zenith, clouds as
     thresholded fractal noise flattened towards the horizon, and a glow round the sun.
 
@@ -300,7 +335,7 @@ def sky_panorama(illum: Illumination, rng: np.random.Generator,
     (256, 1024, 3) uint8 ndarray, BGR
     """
     ws, hs = SKY_SIZE
-    elevation = np.linspace(90.0, bottom_deg, hs)[:, None]
+    elevation = np.linspace(90.0, SKY_BOTTOM_DEG, hs)[:, None]
     bearing = np.linspace(0.0, 360.0, ws, endpoint=False)[None, :]
     t = np.sqrt(np.clip(elevation / 90.0, 0.0, 1.0))[..., None]
     sky = np.asarray(illum.horizon, np.float32) * (1 - t) + np.asarray(illum.zenith, np.float32) * t

@@ -89,8 +89,7 @@ def add_car(scene: Scene, rng: np.random.Generator, centre: np.ndarray, yaw: flo
     for k, (top_left, right, w, h) in enumerate(box_side_frames(body)):
         cols = max(4, int(round(w / texel)))
         if k % 2 == 0:          # the long sides
-            wheels = (0.2, 0.8) if k == 0 else (0.2, 0.8)
-            tex, alpha = car_body_side(rng, colour, cols, rows, texel, wheels, clearance)
+            tex, alpha = car_body_side(rng, colour, cols, rows, texel, (0.2, 0.8), clearance)
         else:                   # front (+along) and back
             tex, alpha = car_end(rng, colour, cols, rows, k == 1,
                                  max(1, int(round(clearance / texel))))

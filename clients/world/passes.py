@@ -14,6 +14,7 @@ import numpy as np
 
 from clients.world.camera import Camera, Pose
 from clients.world.lighting import (
+    AutoExposure,
     Illumination,
     camera_response,
     shade,
@@ -56,9 +57,12 @@ def prepare_pass(scene: Scene, illum: Illumination, camera: Camera, rng: np.rand
 
 def render_frames(renderer: Renderer, poses: list[Pose], illum: Illumination,
                   rng: np.random.Generator) -> Iterator[np.ndarray]:
-    """Frames of a pass after the camera response: (H, W, 3) uint8 BGR each."""
+    """Frames of a pass after auto exposure and the camera response: (H, W, 3) uint8 BGR
+    each."""
+    exposure = AutoExposure(illum)
     for pose in poses:
-        yield camera_response(renderer.render(pose), illum, rng)
+        radiance = renderer.render(pose)
+        yield camera_response(radiance, illum, rng, exposure(radiance))
 
 
 def _shadow_reach(illum: Illumination, solids: list[Solid]) -> float:

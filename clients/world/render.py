@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from clients.world.camera import Camera, Pose
+from clients.world.lighting import SKY_BOTTOM_DEG
 from clients.world.scene import Plane
 
 NEAR = 0.05
@@ -44,7 +45,7 @@ class Renderer:
         Each quad's shaded texture (see :func:`clients.world.lighting.shade`).
     sky : (hs, ws, 3) uint8 ndarray
         Sky panorama: columns are compass bearings 0..360 degrees, rows elevations from
-        90 degrees down to ``SKY_BOTTOM_DEG``.
+        90 degrees down to :data:`~clients.world.lighting.SKY_BOTTOM_DEG`.
     supersample : int
         Render at this multiple of the output resolution.
     """
@@ -211,10 +212,6 @@ class Renderer:
         small = cv2.remap(self.sky, map_x, map_y.astype(np.float32), cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_WRAP)
         return cv2.resize(small, size, interpolation=cv2.INTER_LINEAR)
-
-
-SKY_BOTTOM_DEG = -10.0
-"""Lowest elevation the sky panorama covers (below the horizon it shows haze)."""
 
 
 def _pixel_rays(camera: Camera, step: int) -> np.ndarray:

@@ -155,7 +155,8 @@ def follow(route: Route, rng: np.random.Generator, *, frames: int, spacing: floa
     frames : int
         Number of frames.
     spacing : float
-        Mean distance between frames along the route (metres).
+        Mean distance between frames along the route (metres). On an open route the
+        frames are then stretched to cover it from end to end.
     lateral_m : float
         Largest sideways deviation from the route (positive to the right of travel).
     lateral_wavelength : float

@@ -77,8 +77,7 @@ def street_ground(rng: np.random.Generator, block: Block, extent: np.ndarray,
     walks = _sidewalk_mask(block, x, y) & ~roads
     # Outer blocks: pavement near the street, lawns and yards behind.
     _slabs(img, rng, extent, texel, walks, 0.8, 0.4, (150, 158, 165), grain)
-    path = in_rect & (d > -1.4)
-    _slabs(img, rng, extent, texel, path, 0.45, 0.3, (135, 150, 170), grain)
+    _paving(img, rng, extent, texel, in_rect & (d > -1.4), x, y, grain)
     asphalt = np.float32(92) * (1.0 + 0.10 * blotch + 0.09 * grain)
     for c, k in enumerate((1.02, 1.0, 0.98)):
         np.multiply(asphalt, np.float32(k), out=img[c], where=roads)
@@ -88,6 +87,7 @@ def street_ground(rng: np.random.Generator, block: Block, extent: np.ndarray,
     _curbs(out, block, extent, texel)
     _markings(out, rng, block, extent, texel)
     _road_details(out, rng, block, extent, texel)
+    _path_details(out, rng, block, extent, texel)
     _litter(out, rng, texel)
     return out
 
@@ -111,34 +111,98 @@ def _sidewalk_mask(block: Block, x, y) -> np.ndarray:
     return walks
 
 
+PAVINGS = (
+    # (slab size m, running-bond offset, BGR colour)
+    (0.45, 0.3, (135, 150, 170)),     # beige slabs
+    (0.30, 0.5, (118, 120, 126)),     # small grey slabs
+    (0.60, 0.0, (150, 155, 160)),     # large square slabs
+    (0.20, 0.5, (75, 85, 150)),       # red brick pavers
+    (0.12, 0.5, (105, 112, 120)),     # cobbles
+    (1.00, 0.0, (160, 165, 165)),     # concrete
+)
+"""Sidewalk materials; a street changes its paving every few tens of metres."""
+
+PAVING_CELL = 14.0
+"""Side of the squares (m) within which the path keeps one paving."""
+
+
+def _paving(img, rng, extent, texel, path, x, y, grain) -> None:
+    """The path round the block, paved in a material that changes from place to place."""
+    cx = np.floor(x[0] / PAVING_CELL).astype(np.int64)
+    cy = np.floor(y[:, 0] / PAVING_CELL).astype(np.int64)
+    table = rng.integers(0, len(PAVINGS), (cy.max() - cy.min() + 1, cx.max() - cx.min() + 1))
+    style = table[(cy - cy.min())[:, None], (cx - cx.min())[None, :]]
+    for k, (size, offset, bgr) in enumerate(PAVINGS):
+        where = path & (style == k)
+        if where.any():
+            colour = np.clip(np.asarray(bgr) * rng.uniform(0.9, 1.1), 0, 255)
+            _slabs(img, rng, extent, texel, where, size, offset, colour, grain)
+
+
 def _slabs(img, rng, extent, texel, where, size, row_offset, bgr, grain) -> None:
     """Paving slabs in running bond, each with its own brightness, and dark joints.
 
     Built one row of slabs at a time: a slab row is a strip of texture rows sharing one
     brightness per slab, so the per-texel work is a broadcast, not a per-texel hash.
+    Only the rows that hold some of ``where`` are built.
     """
-    h, w = img.shape[1:]
+    rows = np.flatnonzero(where.any(axis=1))
+    if len(rows) == 0:
+        return
+    top, bottom = int(rows[0]), int(rows[-1]) + 1
+    w = img.shape[2]
     xmin, ymax = float(extent[0]), float(extent[3])
     x = xmin + (np.arange(w) + 0.5) * texel
     joint = max(1, int(round(0.02 / texel)))
-    tone = np.empty((h, w), np.float32)
-    r = 0
-    while r < h:
+    tone = np.empty((bottom - top, w), np.float32)
+    r = top
+    while r < bottom:
         y_centre = ymax - (r + 0.5) * texel
         iy = math.floor(y_centre / size)
-        r_end = min(h, r + int((y_centre - iy * size) / texel) + 1)
+        r_end = min(bottom, r + int((y_centre - iy * size) / texel) + 1)
         shift = (iy % 2) * row_offset * size
         ix = np.floor((x + shift) / size).astype(np.int64)
         ix -= ix.min()
         per_slab = rng.uniform(0.82, 1.12, int(ix.max()) + 1).astype(np.float32)
         line = per_slab[ix]
         line[np.flatnonzero(np.diff(ix)) + 1] *= 0.6        # joints between slabs
-        tone[r:r_end] = line
-        tone[max(r_end - joint, r):r_end] *= 0.6             # joint below the row
+        tone[r - top:r_end - top] = line
+        tone[max(r_end - joint, r) - top:r_end - top] *= 0.6  # joint below the row
         r = r_end
-    tone *= 1.0 + 0.06 * grain
+    tone *= 1.0 + 0.06 * grain[top:bottom]
     for c in range(3):
-        np.multiply(tone, np.float32(bgr[c]), out=img[c], where=where)
+        np.multiply(tone, np.float32(bgr[c]), out=img[c, top:bottom], where=where[top:bottom])
+
+
+def _path_details(img, rng, block: Block, extent, texel) -> None:
+    """Covers, grates and painted signs on the path, one every few metres."""
+    route_len = 4 * (block.half_x + block.half_y)
+    for _ in range(int(route_len / 4.0)):
+        side = rng.integers(0, 4)
+        along = rng.uniform(-1, 1)
+        off = rng.uniform(-1.2, 1.2)
+        if side < 2:
+            p = (along * (block.half_x - block.radius), (1 if side else -1) * (block.half_y + off))
+        else:
+            p = ((1 if side == 3 else -1) * (block.half_x + off), along * (block.half_y - block.radius))
+        c = _to_px(extent, texel, *p)
+        kind = rng.random()
+        s = max(2, int(round(rng.uniform(0.25, 0.45) / texel)))
+        if kind < 0.3:                                   # round manhole cover
+            cv2.circle(img, c, s, (80, 84, 88), -1, cv2.LINE_AA)
+            for r in range(s // 3, s, max(2, s // 4)):
+                cv2.circle(img, c, r, (60, 62, 66), 1, cv2.LINE_AA)
+        elif kind < 0.55:                                # square utility cover
+            cv2.rectangle(img, (c[0] - s, c[1] - s), (c[0] + s, c[1] + s), (95, 100, 105), -1)
+            cv2.rectangle(img, (c[0] - s, c[1] - s), (c[0] + s, c[1] + s), (55, 55, 60), max(1, s // 8))
+            cv2.line(img, (c[0] - s, c[1]), (c[0] + s, c[1]), (55, 55, 60), 1)
+        elif kind < 0.75:                                # drain grate
+            for k in range(-s, s + 1, max(2, s // 4)):
+                cv2.line(img, (c[0] + k, c[1] - s // 2), (c[0] + k, c[1] + s // 2), (35, 35, 38), 1)
+        else:                                            # painted symbol
+            colour = [(255, 255, 255), (0, 200, 255), (60, 60, 220), (200, 120, 40)][int(rng.integers(4))]
+            pts = (rng.uniform(-s * 2, s * 2, (int(rng.integers(3, 6)), 2)) + c).astype(np.int32)
+            cv2.polylines(img, [pts], True, colour, max(1, s // 5), cv2.LINE_AA)
 
 
 def _to_px(extent, texel, x, y) -> tuple[int, int]:
