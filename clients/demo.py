@@ -59,8 +59,10 @@ def free_port() -> int:
 
 @contextlib.contextmanager
 def server_process(data_dir: Path, *, log_path: Path, admin_key: str,
-                   workers: int | None = None, ready_timeout: float = 180.0) -> Iterator[str]:
-    """Run ``vloc serve`` on the embedded defaults in ``data_dir``; yields its base URL.
+                   workers: int | None = None,
+                   ready_timeout: float = 180.0) -> Iterator[tuple[str, int]]:
+    """Run ``vloc serve`` on the embedded defaults in ``data_dir``; yields its base URL and
+    process id.
 
     Raises
     ------
@@ -99,7 +101,7 @@ def server_process(data_dir: Path, *, log_path: Path, admin_key: str,
                             raise DemoError(f"the server was not ready within "
                                             f"{ready_timeout:g} s:\n" + _tail(log_path)
                                             ) from exc
-            yield url
+            yield url, proc.pid
         finally:
             stop_process(proc)
 
@@ -178,8 +180,8 @@ def run_demo(opts: DemoOptions, say: Callable[[str], None] = print) -> dict:
     try:
         say("server: starting `vloc serve` on the embedded defaults (SQLite, local workers)")
         with server_process(data_dir, log_path=out / "server.log", admin_key=admin_key,
-                            workers=opts.workers) as url:
-            say(f"server: ready at {url}")
+                            workers=opts.workers) as (url, pid):
+            say(f"server: ready at {url} (pid {pid})")
             results = _against_server(url, admin_key, world, opts, say)
         say("server: stopped")
     finally:

@@ -302,7 +302,7 @@ def test_seneca_replay_matches_eval(seneca_dir, tmp_path):
 
     key = "seneca-test-admin-key-0123456789"
     with server_process(tmp_path / "data", log_path=tmp_path / "server.log",
-                        admin_key=key) as url:
+                        admin_key=key) as (url, _):
         got = replay_json(url, seneca_dir, "--build-map", "--map-pass", "1", "--query-pass", "2",
                           "--mode", "hybrid", "--seed", "0", "--skip", "10", key=key)
     offline = eval_json(seneca_dir, "--map-pass", "1", "--query-pass", "2", "--modes",

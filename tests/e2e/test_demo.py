@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 
@@ -26,14 +27,21 @@ ROW = re.compile(r"^\| (hybrid|global|sift) \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) 
                  r"([\d.]+) \| ([\d.]+) \|$", re.M)
 
 
+def demo_command(out) -> list[str]:
+    return [sys.executable, "-m", "clients.cli", "demo", "--frames", str(FRAMES), "--out",
+            str(out), "--quiet"]
+
+
+def clean_env() -> dict:
+    """The environment of a newcomer: no VLOC_* settings."""
+    return {k: v for k, v in os.environ.items() if not k.startswith("VLOC_")}
+
+
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("VLOC_")}
-    proc = subprocess.run(
-        [sys.executable, "-m", "clients.cli", "demo", "--frames", str(FRAMES), "--out",
-         str(out), "--quiet"],
-        cwd=out, env=env, capture_output=True, text=True, timeout=900)
+    proc = subprocess.run(demo_command(out), cwd=out, env=clean_env(), capture_output=True,
+                          text=True, timeout=900)
     return proc, out
 
 
@@ -75,3 +83,35 @@ def test_demo_writes_the_plot_and_cleans_up(demo):
     assert not list(out.glob("vloc-demo-*"))
     assert (out / "world" / "ground_truth.csv").is_file()
     assert (out / "server.log").is_file()
+
+
+def test_ctrl_c_stops_the_server(demo):
+    """Interrupted once its server is up (the world is reused from the first run), the demo
+    exits 130 and leaves no server process behind."""
+    _, out = demo
+    proc = subprocess.Popen(demo_command(out), cwd=out, env=clean_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        pid = None
+        for line in proc.stdout:
+            ready = re.search(r"server: ready at \S+ \(pid (\d+)\)", line)
+            if ready:
+                pid = int(ready.group(1))
+                break
+        assert pid is not None and _alive(pid)
+        proc.send_signal(signal.SIGINT)
+        rest = proc.communicate(timeout=120)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, rest
+    assert "interrupted; the server was stopped" in rest
+    assert not _alive(pid)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
