@@ -5,9 +5,9 @@ Every quad is drawn with one homography from its texture plane to the image,
 perspective and parallax are exact. The quad is first clipped to the viewing frustum
 (near plane and image borders) in the camera frame, which keeps the homography away from
 points behind the camera; its projected polygon masks the warp. Visibility is resolved
-with a per-pixel inverse-depth buffer: for a plane ``n . X = d`` in the camera frame,
-``1 / z = (K^-T n) . (x, y, 1) / d`` is affine in the pixel, so the depth of a whole quad
-costs three array operations. Textures are sampled from a mip-map pyramid at the level
+with a per-pixel inverse-depth buffer: ``H^-1 (x, y, 1) = (c, r, 1) / z``, so the third
+row of the inverse homography gives ``1 / z``, affine in the pixel, and the depth of a
+whole quad costs three array operations. Textures are sampled from a mip-map pyramid at the level
 whose texel footprint matches the pixel (the Jacobian determinant of the inverse
 homography, ``det(H^-1) / w^3``), and frames are rendered at a multiple of the output
 resolution and averaged down, which removes the aliasing that would otherwise create
