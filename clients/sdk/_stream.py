@@ -308,7 +308,7 @@ class _WebsocketsConnection:
             raise _closed(exc) from None
 
     def close(self) -> None:
-        self._ws.close()
+        self._ws.__exit__(None, None, None)
 
 
 class _AsyncWebsocketsConnection:
@@ -360,8 +360,10 @@ def websockets_connect(*, open_timeout: float = 10.0) -> Connect:
         from websockets.sync.client import connect as ws_connect
 
         try:
+            # Entered as a context manager (left in close()): the form every websockets
+            # release since 12 accepts without a deprecation warning.
             ws = ws_connect(url, additional_headers=headers, open_timeout=open_timeout,
-                            max_size=2**24)
+                            max_size=2**24).__enter__()
         except Exception as exc:  # refused, timed out, or a non-101 answer
             raise _handshake_error(exc) from exc
         return _WebsocketsConnection(ws)
