@@ -92,6 +92,25 @@ def test_map_import_into_a_new_map_and_build_later(vloc, sdk, dataset_dir):
                                          code=1).stderr
 
 
+def test_map_import_positions_from_a_csv(vloc, sdk, tmp_path):
+    """Images without EXIF GPS go up one at a time, placed by the folder's CSV."""
+    from tests.app.imagery import plain_jpeg
+
+    folder = tmp_path / "csv-only"
+    folder.mkdir()
+    rows = ["filename,lat,lon,alt_m"]
+    for i in range(3):
+        (folder / f"img{i}.jpg").write_bytes(plain_jpeg(level=60 + 40 * i))
+        rows.append(f"img{i}.jpg,{41.0 + i * 1e-4},{-83.0},{200 + i}")
+    (folder / "unplaced.jpg").write_bytes(plain_jpeg(level=250))
+    (folder / "positions.csv").write_text("\n".join(rows) + "\n")
+    out = vloc("map", "import", str(folder), "--quiet")
+    assert "3 of 3 images added" in out.stderr and "skipped unplaced.jpg" in out.stderr
+    images = sdk.list_images(out.stdout.strip())
+    assert [(i.filename, i.position_source, i.lat, i.alt) for i in images] == \
+        [(f"img{k}.jpg", "form", 41.0 + k * 1e-4, 200.0 + k) for k in range(3)]
+
+
 def _subscribed(sdk: Client, n: int) -> bool:
     metrics = sdk.request("GET", "/metrics").text
     found = re.search(r"^vloc_stream_subscribers\S* (\S+)$", metrics, re.M)
