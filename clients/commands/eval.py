@@ -8,20 +8,9 @@ from pathlib import Path
 
 import click
 
+from ._common import parse_params
+
 MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
-
-
-def _parse_params(items: tuple[str, ...]) -> dict:
-    params = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise click.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint="--param")
-        try:
-            params[key] = json.loads(value)
-        except json.JSONDecodeError:
-            params[key] = value
-    return params
 
 
 def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
@@ -75,7 +64,7 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
     config_list = _csv(configs, tuple(CONFIGS), "config")
     if photometric not in VARIANTS:
         raise click.BadParameter(f"valid: {', '.join(VARIANTS)}", param_hint="--photometric")
-    params = _parse_params(param_items)
+    params = parse_params(param_items)
     say = (lambda *a, **k: None) if as_json else click.echo
     try:
         exp = load_experiment(dataset, rule=rule, map_pass=map_pass, query_pass=query_pass,

@@ -54,7 +54,12 @@ def _header_size(data: bytes) -> tuple[int, int] | None:
         return None
 
 
-def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS) -> np.ndarray:
+_REDUCED = ((8, cv2.IMREAD_REDUCED_COLOR_8), (4, cv2.IMREAD_REDUCED_COLOR_4),
+            (2, cv2.IMREAD_REDUCED_COLOR_2))
+
+
+def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
+                 min_size: tuple[int, int] | None = None) -> np.ndarray:
     """Decode JPEG/PNG bytes into a BGR image.
 
     Parameters
@@ -64,6 +69,10 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS) -> np.ndarray:
     max_pixels : int
         Refuse images whose header declares more pixels than this (decompression bombs)
         before any pixel is decoded.
+    min_size : (width, height) or None
+        The image will be shrunk to this size: a JPEG may then be decoded at 1/2, 1/4 or
+        1/8 scale straight from its DCT coefficients (much faster), as long as the
+        result stays at least this large.
 
     Returns
     -------
@@ -86,8 +95,14 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS) -> np.ndarray:
         raise ImageError(
             f"image of {width}x{height} pixels exceeds the limit of {max_pixels} pixels"
         )
+    flag = cv2.IMREAD_COLOR
+    if min_size is not None and data[:2] == b"\xff\xd8":
+        for factor, reduced in _REDUCED:
+            if width // factor >= min_size[0] and height // factor >= min_size[1]:
+                flag = reduced
+                break
     buf = np.frombuffer(data, dtype=np.uint8)
-    image = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    image = cv2.imdecode(buf, flag)
     if image is None:
         raise ImageError("corrupt or truncated image")
     if _looks_truncated(data):
@@ -135,4 +150,4 @@ def prepare(image: np.ndarray, size: tuple[int, int] = WORK_SIZE) -> Frame:
 def load_frame(data: bytes, *, size: tuple[int, int] = WORK_SIZE,
                max_pixels: int = MAX_PIXELS) -> Frame:
     """Decode and prepare in one call."""
-    return prepare(decode_image(data, max_pixels=max_pixels), size)
+    return prepare(decode_image(data, max_pixels=max_pixels, min_size=size), size)

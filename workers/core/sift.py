@@ -21,6 +21,9 @@ from scipy.spatial import cKDTree
 RATIO: float = 0.8
 """Lowe's ratio-test threshold on distances (Lowe 2004 uses 0.8)."""
 
+MAX_KEYPOINTS: int = 300
+"""Keypoints kept per image (strongest first): matching cost grows with the square."""
+
 
 @dataclass(frozen=True, slots=True)
 class SiftFeatures:
@@ -48,19 +51,17 @@ class SiftFeatures:
         return cls(np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8))
 
 
-_SIFT = None
+_DETECTORS: dict[int, cv2.SIFT] = {}
 
 
 def _detector(n_features: int):
-    global _SIFT
-    if n_features:
-        return cv2.SIFT_create(nfeatures=n_features)
-    if _SIFT is None:
-        _SIFT = cv2.SIFT_create()
-    return _SIFT
+    if n_features not in _DETECTORS:
+        _DETECTORS[n_features] = cv2.SIFT_create(nfeatures=n_features)
+    return _DETECTORS[n_features]
 
 
-def extract_sift(grey: np.ndarray, *, n_features: int = 0) -> SiftFeatures:
+def extract_sift(grey: np.ndarray, *, n_features: int = MAX_KEYPOINTS,
+                 equalize: bool = True) -> SiftFeatures:
     """Detect SIFT keypoints and compute their descriptors.
 
     Parameters
@@ -68,11 +69,19 @@ def extract_sift(grey: np.ndarray, *, n_features: int = 0) -> SiftFeatures:
     grey : (H, W) uint8 ndarray
     n_features : int
         Keep the best ``n_features`` keypoints by response; 0 keeps all.
+    equalize : bool
+        Equalise the grey histogram first. SIFT's contrast threshold is absolute, so a
+        dark, low-contrast frame (dusk) yields almost no keypoints; after equalisation map
+        and frame are detected at comparable contrast. On seneca-uav under the ``dusk``
+        variant this takes single-frame SIFT retrieval from 0 keypoints and 197 m mean
+        error to 28 m (and to 23 m without relighting, from 50 m).
 
     Returns
     -------
     SiftFeatures
     """
+    if equalize:
+        grey = cv2.equalizeHist(grey)
     kps, desc = _detector(n_features).detectAndCompute(grey, None)
     if desc is None or not kps:
         return SiftFeatures.empty()

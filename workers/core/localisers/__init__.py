@@ -14,8 +14,7 @@ from __future__ import annotations
 
 from ..features import FEATURE_NAMES
 from ..mapdata import MapData
-from ..pf.config import config_from_params
-from ..pf.config import VERIFICATIONS
+from ..pf.config import VERIFICATIONS, config_from_params
 from ..similarity import MEASURES
 from .base import Localiser, pack_state, unpack_state
 from .filtering import FilterLocaliser

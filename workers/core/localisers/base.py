@@ -101,14 +101,34 @@ class Localiser(ABC):
     def _step(self, query: QueryFrame, t0: float) -> Estimate:
         """Localise one frame; ``t0`` is when the step started (perf_counter)."""
 
+    @abstractmethod
+    def _state(self) -> tuple[dict[str, np.ndarray], dict]:
+        """Subclass state as arrays and JSON-able metadata."""
+
+    @abstractmethod
+    def _load(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
+        """Restore subclass state; the base restores rng and stats."""
+
+    @abstractmethod
+    def reset(self) -> None:
+        """Forget everything learnt from earlier frames (global re-initialisation)."""
+
+    @abstractmethod
+    def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:
+        """Start from a known pose (east/north metres in the map frame)."""
+
+
+class StatelessLocaliser(Localiser, ABC):
+    """A localiser that keeps no belief between frames: each frame stands alone."""
+
     def _state(self) -> tuple[dict[str, np.ndarray], dict]:
         return {}, {}
 
     def _load(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
-        """Restore subclass state; the base restores rng and stats."""
+        return None  # nothing beyond the base's rng and statistics
 
     def reset(self) -> None:
-        """Forget everything learnt from earlier frames (global re-initialisation)."""
+        return None  # no belief to forget
 
     def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:
-        """Start from a known pose (east/north metres in the map frame)."""
+        return None  # each frame is localised on its own; a prior pose is not used

@@ -16,6 +16,14 @@ from ..sift import SiftFeatures
 from .base import Localiser
 from .similarity_models import global_similarity, sift_similarity
 
+TRUST_RATE = 0.3
+"""Weight of the newest SIFT step in the running agreement of global features with SIFT."""
+
+TRUST_NEEDED = 0.75
+"""Running agreement needed before global steps are allowed: from no trust, four SIFT steps
+in a row must agree. Global features that are right only half the time still mislead the
+filter more than they save (measured on seneca-uav)."""
+
 MIN_REDUCED_KEYPOINTS = 20
 """Below this many keypoints surviving the match with the previous frame, the frame is kept
 whole: the platform moved too far for the frames to overlap usefully."""
@@ -52,6 +60,8 @@ class FilterLocaliser(Localiser):
         self.prev_sift: SiftFeatures | None = None
         self.prev_key = None
         self.last_time: float | None = None
+        self.trust = 0.0
+        self._agree_radius = max(cfg.d_global, map_data.median_spacing())
 
     def _pin(self) -> None:
         if self._fixed is not None:
@@ -95,6 +105,8 @@ class FilterLocaliser(Localiser):
         stats, used, scored, sims = self.pf.step(similarity, dt, all_similarities=every,
                                                  candidates=candidates)
         self._pin()
+        if self.mode == "hybrid" and cfg.global_trust:
+            feat_ms += self._judge_global(query, used, stats.mean)
         filter_ms = (time.perf_counter() - t_filter) * 1e3
         if used == SIFT:
             self.prev_sift, self.prev_key = query.sift()[0], query.key
@@ -115,6 +127,27 @@ class FilterLocaliser(Localiser):
                               n_particles=len(self.pf.w), status=status,
                               processing_ms=feat_ms + filter_ms, best_image=best)
 
+    def _judge_global(self, query: QueryFrame, used: str, estimate: np.ndarray) -> float:
+        """Update the trust in global features on SIFT steps; veto global while it is low.
+
+        Returns the milliseconds spent extracting global features for the check.
+        """
+        cfg = self.config
+        ms = 0.0
+        if used == SIFT:
+            qg, ms = query.global_features(cfg.global_features)
+            g = global_similarity(qg, self.map, np.arange(len(self.map)),
+                                  features=cfg.global_features, measure=cfg.global_measure)
+            top = np.argsort(-g, kind="stable")[: cfg.global_trust]
+            gap = np.min(np.linalg.norm(np.asarray(self.map.positions)[top] - estimate, axis=1))
+            # Agreement within one map spacing (or d_global, if larger): the scaled
+            # thresholds grow with the motion noise and would let chance agree.
+            agree = float(gap <= self._agree_radius)
+            self.trust = (1.0 - TRUST_RATE) * self.trust + TRUST_RATE * agree
+        if self.trust < TRUST_NEEDED:
+            self.pf.mode = SIFT
+        return ms
+
     # -- state ---------------------------------------------------------------------------
 
     def _state(self) -> tuple[dict[str, np.ndarray], dict]:
@@ -123,13 +156,12 @@ class FilterLocaliser(Localiser):
         if self.prev_sift is not None:
             arrays["prev_kp"] = self.prev_sift.keypoints
             arrays["prev_desc"] = self.prev_sift.descriptors
-        return arrays, {"pf": meta, "last_time": self.last_time}
+        return arrays, {"pf": meta, "last_time": self.last_time, "trust": self.trust}
 
     def _load(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
         self.pf.load({k[3:]: v for k, v in arrays.items() if k.startswith("pf_")}, meta["pf"])
-        # The filter and the localiser share one generator; the filter's copy of its state
-        # is the same object, restored last wins, and both are equal.
         self.last_time = meta["last_time"]
+        self.trust = float(meta["trust"])
         if "prev_desc" in arrays:
             self.prev_sift = SiftFeatures(arrays["prev_kp"], arrays["prev_desc"])
         else:
@@ -140,6 +172,7 @@ class FilterLocaliser(Localiser):
         self.pf.initialise()
         self._pin()
         self.prev_sift, self.prev_key, self.last_time = None, None, None
+        self.trust = 0.0
         self.stats.pop("ever_tracked", None)
 
     def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:

@@ -15,7 +15,7 @@ from ..estimate import Estimate, Status
 from ..mapdata import MapData
 from ..query import QueryFrame
 from ..similarity import distances, similarities
-from .base import Localiser
+from .base import StatelessLocaliser
 from .similarity_models import sift_similarity
 
 SPREAD_CANDIDATES = 5
@@ -32,7 +32,7 @@ def _spread(map_xy: np.ndarray, idx: np.ndarray, score: np.ndarray) -> np.ndarra
     return (d * w[:, None]).T @ d
 
 
-class RetrievalLocaliser(Localiser):
+class RetrievalLocaliser(StatelessLocaliser):
     """Flyphone 4.2: the nearest map image under one global feature and measure.
 
     Parameters (``params``)
@@ -63,7 +63,7 @@ class RetrievalLocaliser(Localiser):
                               best_image=int(top[0]))
 
 
-class HierarchicalLocaliser(Localiser):
+class HierarchicalLocaliser(StatelessLocaliser):
     """Li et al.: hue-histogram candidates (Euclidean distance), then SIFT decides.
 
     Parameters (``params``)

@@ -80,6 +80,12 @@ class FilterConfig:
         most similar to the frame (over the whole map) lies within d_global of the
         estimate: the global features disagreeing with the cloud is a sign of trouble
         that the cloud's own spread cannot show. 0 disables the check (the paper).
+    global_trust : int
+        Hybrid only: on each SIFT step, check whether one of the ``global_trust`` map
+        images the global features rank highest lies within d_global of the SIFT-based
+        estimate, and keep a running share of agreement; switch to global features only
+        while that share is at least three quarters. Global features that fail under the
+        current light (dusk, colour casts) are then left alone. 0 disables (the paper).
     velocity : bool
         Particles carry a velocity (constant-velocity motion model).
     resampler : {"multinomial", "systematic"}
@@ -104,6 +110,7 @@ class FilterConfig:
     sift_power: float = 1.0
     global_check: int = 0
     sift_candidates: int = 0
+    global_trust: int = 0
     velocity: bool = False
     resampler: str = "multinomial"
 
@@ -126,7 +133,7 @@ def _check(c: FilterConfig) -> None:
     for name in ("motion_sigma", "global_power", "d_global", "d_sift", "sift_ratio",
                  "sift_power"):
         positive(name, getattr(c, name))
-    for name in ("global_check", "sift_candidates"):
+    for name in ("global_check", "sift_candidates", "global_trust"):
         value = getattr(c, name)
         if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= 1000:
             raise ValueError(f"{name} must be an integer in 0..1000, got {value!r}")
@@ -159,7 +166,8 @@ def _check(c: FilterConfig) -> None:
 
 CONFIGS: dict[str, FilterConfig] = {
     "weiss2008": FilterConfig(),
-    "default": FilterConfig(replacement="retrieval", sift_verify="homography", velocity=True),
+    "default": FilterConfig(replacement="retrieval", sift_verify="homography", sift_reduce="none",
+                            sift_power=3.0, global_trust=3),
 }
 
 
