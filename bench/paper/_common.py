@@ -61,29 +61,39 @@ def log(message: str) -> None:
 
 # -- command line -------------------------------------------------------------------------
 
-def size_arguments(parser: argparse.ArgumentParser, *, starts: int = 3) -> None:
-    """Add the options every script shares (sizes, seed, output and cache folders)."""
+def size_arguments(parser: argparse.ArgumentParser, *, frames: int = FRAMES,
+                   route_length: float = ROUTE_M, starts: int | None = 3,
+                   quick: dict | None = None) -> None:
+    """Add the options every script shares (sizes, seed, output and cache folders).
+
+    ``starts=None`` leaves out ``--starts`` (scripts without a filter). ``quick`` holds the
+    sizes ``--quick`` stands for (default :data:`QUICK`).
+    """
+    quick = QUICK if quick is None else quick
     parser.add_argument("--frames", type=int, default=None,
-                        help=f"frames per pass (default {FRAMES}; --quick {QUICK['frames']})")
+                        help=f"frames per pass (default {frames}; --quick {quick['frames']})")
     parser.add_argument("--route-length", type=float, default=None,
-                        help=f"metres of the round (default {ROUTE_M:g})")
-    parser.add_argument("--starts", type=int, default=None,
-                        help=f"starting frames per experiment (default {starts})")
-    parser.add_argument("--quick", action="store_true", help="a small world and two starts")
+                        help=f"metres of the route (default {route_length:g})")
+    if starts is not None:
+        parser.add_argument("--starts", type=int, default=None,
+                            help=f"starting frames per experiment (default {starts})")
+    parser.add_argument("--quick", action="store_true", help="a small world, fewer starts")
     parser.add_argument("--seed", type=int, default=0, help="seed of the filters' generators")
     parser.add_argument("--skip", type=int, default=10,
                         help="frames at the start of each run left out of the errors")
     parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="results folder")
     parser.add_argument("--cache", type=Path, default=CACHE_DIR, help="cached worlds")
-    parser.set_defaults(default_starts=starts)
+    full = {"frames": frames, "route_length": route_length}
+    if starts is not None:
+        full["starts"] = starts
+    parser.set_defaults(sizes_full=full, sizes_quick=quick)
 
 
 def resolve_sizes(args: argparse.Namespace) -> argparse.Namespace:
-    """Fill ``frames``, ``route_length`` and ``starts`` from ``--quick`` or the defaults."""
-    base = QUICK if args.quick else {"frames": FRAMES, "route_length": ROUTE_M,
-                                     "starts": args.default_starts}
+    """Fill the sizes left unset from ``--quick`` or the script's defaults."""
+    base = args.sizes_quick if args.quick else args.sizes_full
     for name, value in base.items():
-        if getattr(args, name) is None:
+        if getattr(args, name, None) is None:
             setattr(args, name, value)
     return args
 
