@@ -157,11 +157,14 @@ def progress_printer(label: str):
 # -- runs and pooled figures --------------------------------------------------------------
 
 def run_record(run: Run) -> dict:
-    """One run as plain lists: errors (m), times (ms) and step kinds ("S" SIFT, "G" global)."""
+    """One run as plain lists: errors (m), times (ms), step kinds ("S" SIFT, "G" global)
+    and the spread of the particle cloud after each step, max(sigma_x, sigma_y) (m), which
+    the hybrid compares with its thresholds (Weiss IV-B)."""
     return {"start": int(run.start),
             "errors": [round(float(e), 3) for e in run.errors],
             "ms": [round(float(m), 3) for m in run.ms],
-            "steps": "".join("S" if f == "sift" else "G" for f in run.feature)}
+            "steps": "".join("S" if f == "sift" else "G" for f in run.feature),
+            "spread": [round(float(v), 2) for v in np.max(run.sigma, axis=1)]}
 
 
 def records(results: dict, config: str) -> dict[str, list[dict]]:

@@ -5,16 +5,17 @@ sunny, cloudy, sunny, cloudy) and dataset 2 (another block; passes sunny, dusk, 
 dusk: the paper's second "cloudy" condition was an evening, dark and overcast). Each table
 row is a train/test pair of illuminations; a same-illumination row maps one pass and
 localises the other pass under the same light. Every experiment runs the particle filter
-of the paper (config ``weiss2008``: 300 particles, d_global = 5.5 m, d_SIFT = 7.0 m) in the
-modes ``global`` (WGII x WGOH), ``sift`` and ``hybrid``, from several starting frames,
-and reports the mean error ± the standard deviation over runs.
+of the paper (config ``weiss2008``: 300 particles, d_global = 5.5 m, d_SIFT = 7.0 m; another
+with ``--config``) in the modes ``global`` (WGII x WGOH), ``sift`` and ``hybrid``, from
+several starting frames, and reports the mean error ± the standard deviation over runs.
 
 The raw runs go to ``weiss_table1.json``; ``weiss_table2.py`` reads them for Table II.
 
 Usage::
 
     .venv/bin/python bench/paper/weiss_table1.py [--frames 250] [--route-length 260]
-        [--starts 3] [--pairs 1] [--datasets 1,2] [--quick] [--out bench/results/paper]
+        [--starts 3] [--pairs 1] [--datasets 1,2] [--config weiss2008] [--quick]
+        [--out bench/results/paper]
 """
 
 from __future__ import annotations
@@ -34,11 +35,13 @@ import numpy as np  # noqa: E402
 
 from bench.paper import _common as c  # noqa: E402
 from workers.core.evaluate import evaluate  # noqa: E402
+from workers.core.pf.config import CONFIGS  # noqa: E402
 
 NAME = "weiss_table1"
 MODES = ("global", "sift", "hybrid")
 MODE_TITLES = {"global": "WGII + WGOH", "sift": "SIFT", "hybrid": "Hybrid"}
 CONFIG = "weiss2008"
+PAPER_FILTER = " (the paper's: 300 particles, d_global = 5.5 m, d_SIFT = 7.0 m)"
 
 DATASETS = {
     1: {"seed": 1, "passes": ("sunny", "cloudy", "sunny", "cloudy")},
@@ -90,9 +93,9 @@ def run_pairs(args: argparse.Namespace) -> list[dict]:
                 c.log(label)
                 exp = c.experiment(folder, map_pass, query_pass)
                 res = evaluate(exp.map_data, exp.queries, exp.truth, modes=list(MODES),
-                               configs=[CONFIG], starts=args.starts, seed=args.seed,
+                               configs=[args.config], starts=args.starts, seed=args.seed,
                                skip=args.skip, progress=c.progress_printer(label))
-                runs = c.records(res, CONFIG)
+                runs = c.records(res, args.config)
                 pairs.append({"set": ds, "train": train, "test": test, "map_pass": map_pass,
                               "query_pass": query_pass, "runs": runs})
                 c.log("  mean error " + ", ".join(
@@ -174,7 +177,7 @@ Robot worlds from `clients.world` (`kind="robot"`): dataset 1 = seed {DATASETS[1
 {", ".join(DATASETS[2]['passes'])} (the paper's dataset 2 "cloudy" rounds were taken in the
 evening, overcast and getting dark: `dusk` here). {args.frames} frames per pass on a
 {args.route_length:g} m round ({args.route_length / args.frames:.2f} m apart; the paper: about
-400 images on 260 m). Filter `{CONFIG}` (300 particles, d_global = 5.5 m, d_SIFT = 7.0 m),
+400 images on 260 m). Filter `{args.config}`{PAPER_FILTER if args.config == CONFIG else ""},
 {args.starts} starting frames per pass pair, up to {args.pairs} pass pair(s) per row; the first
 {args.skip} frames of each run are left out of the errors; ± is the standard deviation of
 the per-run mean errors. Map images are positioned by their EXIF GPS (pass 1: truth + 0.5 m
@@ -200,6 +203,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--pairs", type=int, default=1, choices=(1, 2),
                         help="pass pairs per row (2: both directions, twice the time)")
     parser.add_argument("--datasets", default="1,2", help="comma-separated data sets")
+    parser.add_argument("--config", default=CONFIG, choices=sorted(CONFIGS),
+                        help=f"filter configuration (default {CONFIG}, the paper's)")
     args = c.resolve_sizes(parser.parse_args(argv))
     args.argv = ["bench/paper/weiss_table1.py", *(sys.argv[1:] if argv is None else argv)]
     args.datasets = [int(d) for d in args.datasets.split(",")]
@@ -208,7 +213,7 @@ def main(argv: list[str] | None = None) -> dict:
     avg = averages(table_rows)
     data = {"sizes": {"frames": args.frames, "route_length_m": args.route_length,
                       "starts": args.starts, "pairs_per_row": args.pairs, "skip": args.skip,
-                      "seed": args.seed, "config": CONFIG, "datasets": DATASETS},
+                      "seed": args.seed, "config": args.config, "datasets": DATASETS},
             "seconds": c.elapsed(), "command": " ".join(args.argv), "machine": c.machine(),
             "rows": table_rows, "averages": avg, "pairs": pairs}
     plot(pairs, Path(args.out) / f"{NAME}.png")

@@ -27,6 +27,8 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+import numpy as np  # noqa: E402
+
 from bench.paper import _common as c  # noqa: E402
 from bench.paper import weiss_table1  # noqa: E402
 
@@ -44,6 +46,7 @@ PAPER_SIFT_S, PAPER_GLOBAL_S = 1.70, 0.39
 """Seconds per image of SIFT alone and global features alone on the paper's robot."""
 
 CLAIM = {"error_ratio_max": 1.10, "sift_share_max": 0.20, "speedup_min": 3.0}
+SPREAD_MARKS = (2.5, 5.5, 7.0)
 
 
 def groups(pairs: list[dict], skip: int) -> list[dict]:
@@ -66,6 +69,35 @@ def groups(pairs: list[dict], skip: int) -> list[dict]:
                     "speedup": sift["ms_per_frame"] / hybrid["ms_per_frame"],
                     "error_ratio": hybrid["mean_error_m"] / sift["mean_error_m"]})
     return out
+
+
+def spread_figures(runs: list[dict], skip: int) -> dict:
+    """How concentrated the cloud was: the median spread max(sigma_x, sigma_y) and the share
+    of frames below 2.5 m (the paper: "about 50 %"), d_global = 5.5 m and d_SIFT = 7 m."""
+    spread = np.concatenate([np.asarray(r["spread"])[skip:] for r in runs])
+    return {"median_spread_m": float(np.median(spread)),
+            **{f"below_{t:g}m": float((spread < t).mean()) for t in SPREAD_MARKS}}
+
+
+def spread_table(pairs: list[dict], rows: list[dict], skip: int) -> tuple[str, dict]:
+    """Spread of the cloud per mode and condition (why the hybrid does or does not switch)."""
+    lines = ["| dataset | illumination | mode | median spread (m) | "
+             + " | ".join(f"spread < {t:g} m" for t in SPREAD_MARKS) + " |",
+             "|---|---|---|---:|" + "---:|" * len(SPREAD_MARKS)]
+    out = {}
+    for r in rows:
+        if r["condition"] == "average":
+            continue
+        chosen = [p for p in pairs if r["set"] in ("all", p["set"])
+                  and weiss_table1.condition(p["train"], p["test"]) == r["condition"]]
+        for m in weiss_table1.MODES:
+            f = spread_figures(sum((p["runs"][m] for p in chosen), []), skip)
+            out[f"{r['set']}/{r['condition']}/{m}"] = f
+            lines.append(f"| {r['set']} | {r['condition']} | {weiss_table1.MODE_TITLES[m]} "
+                         f"| {f['median_spread_m']:.1f} | "
+                         + " | ".join(f"{100 * f[f'below_{t:g}m']:.0f} %" for t in SPREAD_MARKS)
+                         + " |")
+    return "\n".join(lines), out
 
 
 def claim(rows: list[dict]) -> dict | None:
@@ -143,6 +175,8 @@ def main(argv: list[str] | None = None) -> dict:
     skip = data1["sizes"]["skip"]
     rows = groups(data1["pairs"], skip)
     verdict = claim(rows)
+    has_spread = all("spread" in r for p in data1["pairs"] for r in p["runs"]["sift"])
+    spreads, spread_data = spread_table(data1["pairs"], rows, skip) if has_spread else ("", {})
     sizes = data1["sizes"]
     md = f"""# Weiss et al. 2008, Table II: localising one frame with the hybrid method
 
@@ -159,7 +193,19 @@ shared 2-core machine ({data1['machine']}); the paper's are seconds on a 1.8 GHz
 
 {claim_text(verdict)}
 """
+    if spreads:
+        md += f"""
+## Spread of the particle cloud
+
+The hybrid switches to global features only once max(sigma_x, sigma_y) falls below
+d_SIFT = 7 m after a SIFT step, and back to SIFT when it exceeds d_global = 5.5 m after a
+global step (Weiss IV-B). The paper: "about 50 % of the particle clouds have standard
+deviations < 2.5 m". Spread after each step, frames after the first {skip} of each run:
+
+{spreads}
+"""
     data = {"source": str(source), "rows": rows, "claim": verdict, "claim_thresholds": CLAIM,
+            "spread": spread_data,
             "paper": {f"{k[0]}/{k[1]}": v for k, v in PAPER.items()}}
     c.write(args.out, NAME, md, data)
     return data

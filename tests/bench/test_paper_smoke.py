@@ -56,6 +56,7 @@ def test_table1_json_holds_every_run(table1):
         for mode in weiss_table1.MODES:
             (run,) = pair["runs"][mode]
             assert len(run["errors"]) == len(run["ms"]) == len(run["steps"]) == 30
+            assert len(run["spread"]) == 30 and min(run["spread"]) >= 0
             assert set(run["steps"]) <= {"S", "G"}
         assert set(pair["runs"]["sift"][0]["steps"]) == {"S"}
         assert set(pair["runs"]["global"][0]["steps"]) == {"G"}
@@ -89,6 +90,7 @@ def test_table2_reads_table1_and_judges_the_claim(table1):
     assert "| 1 | constant | 2 | " in md and "/ 2.57 |" in md
     assert "| 1 | changing | 2 | " in md and "/ 6.37 |" in md
     assert "| all | average | 4 | " in md
+    assert "## Spread of the particle cloud" in md and "| 1 | changing | SIFT |" in md
     changing = next(r for r in data["rows"] if r["condition"] == "changing")
     hybrid, sift = changing["modes"]["hybrid"], changing["modes"]["sift"]
     assert changing["speedup"] == pytest.approx(sift["ms_per_frame"] / hybrid["ms_per_frame"])
