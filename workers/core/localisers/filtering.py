@@ -19,10 +19,7 @@ from .similarity_models import global_similarity, sift_similarity
 TRUST_RATE = 0.3
 """Weight of the newest SIFT step in the running agreement of global features with SIFT."""
 
-TRUST_NEEDED = 0.75
-"""Running agreement needed before global steps are allowed: from no trust, four SIFT steps
-in a row must agree. Global features that are right only half the time still mislead the
-filter more than they save (measured on seneca-uav)."""
+
 
 MIN_REDUCED_KEYPOINTS = 20
 """Below this many keypoints surviving the match with the previous frame, the frame is kept
@@ -144,7 +141,7 @@ class FilterLocaliser(Localiser):
             # thresholds grow with the motion noise and would let chance agree.
             agree = float(gap <= self._agree_radius)
             self.trust = (1.0 - TRUST_RATE) * self.trust + TRUST_RATE * agree
-        if self.trust < TRUST_NEEDED:
+        if self.trust < cfg.global_trust_level:
             self.pf.mode = SIFT
         return ms
 

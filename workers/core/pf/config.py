@@ -84,8 +84,13 @@ class FilterConfig:
         Hybrid only: on each SIFT step, check whether one of the ``global_trust`` map
         images the global features rank highest lies within d_global of the SIFT-based
         estimate, and keep a running share of agreement; switch to global features only
-        while that share is at least three quarters. Global features that fail under the
+        while that share is at least ``global_trust_level``. Global features that fail under the
         current light (dusk, colour casts) are then left alone. 0 disables (the paper).
+    global_trust_level : float
+        The running agreement needed before global steps are allowed. 0.95 takes nine
+        agreeing SIFT steps in a row from no trust: on seneca-uav, global features that
+        agree with SIFT on half or even three quarters of the steps still cost accuracy
+        (hybrid median 20.8 m and 16.1 m against SIFT's 12.3 m).
     velocity : bool
         Particles carry a velocity (constant-velocity motion model).
     resampler : {"multinomial", "systematic"}
@@ -111,6 +116,7 @@ class FilterConfig:
     global_check: int = 0
     sift_candidates: int = 0
     global_trust: int = 0
+    global_trust_level: float = 0.95
     velocity: bool = False
     resampler: str = "multinomial"
 
@@ -141,6 +147,8 @@ def _check(c: FilterConfig) -> None:
         positive("distance_scale", c.distance_scale)
     if c.speed is not None and c.speed != "auto":
         positive("speed", c.speed)
+    if not 0.0 <= c.global_trust_level <= 1.0:
+        raise ValueError(f"global_trust_level must be in [0, 1], got {c.global_trust_level!r}")
     if not 0.0 <= c.pull < 1.0:
         raise ValueError(f"pull must be in [0, 1), got {c.pull!r}")
     if not 0.0 <= c.replace_fraction < 1.0:
