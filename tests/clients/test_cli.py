@@ -140,6 +140,10 @@ def test_session_commands(vloc, sdk, shots, dataset_dir, tmp_path):
     queued = json.loads(vloc("session", "send", session_id, str(images[0]), "--no-wait")
                         .stdout)
     assert queued["seq"] == 3
+    # Let frame 3's pose go by before watching: the watch below must see frame 10 first.
+    deadline = time.monotonic() + 60
+    while not any(p.seq == 3 for p in sdk.list_poses(session_id)) and time.monotonic() < deadline:
+        time.sleep(0.02)
 
     # watch: a frame sent once the stream is subscribed comes out as one JSON line.
     def send_when_watched() -> None:
