@@ -61,13 +61,14 @@ class ModeSummary:
             tracked = [i for i, s in enumerate(r.status) if s == Status.TRACKING]
             if tracked:
                 after.append(r.errors[tracked[0]:])
-        after_conv = float(np.concatenate(after).mean()) if after else float("nan")
+        after_conv = float(np.concatenate(after).mean()) if after else None
         feats = np.array(sum((r.feature for r in self.runs), []))
         ms = np.concatenate([r.ms for r in self.runs])
         is_sift = feats == "sift"
 
-        def mean_or_nan(a: np.ndarray) -> float:
-            return float(a.mean()) if len(a) else float("nan")
+        def mean_or_none(a: np.ndarray) -> float | None:
+            # None (JSON null) where a mode took no step of that kind
+            return float(a.mean()) if len(a) else None
 
         return {
             "config": self.config,
@@ -80,8 +81,8 @@ class ModeSummary:
             "mean_error_after_convergence_m": after_conv,
             "sift_step_share": float(is_sift.mean()),
             "ms_per_frame": float(ms.mean()),
-            "ms_per_global_step": mean_or_nan(ms[~is_sift]),
-            "ms_per_sift_step": mean_or_nan(ms[is_sift]),
+            "ms_per_global_step": mean_or_none(ms[~is_sift]),
+            "ms_per_sift_step": mean_or_none(ms[is_sift]),
         }
 
 
