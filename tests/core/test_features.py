@@ -334,7 +334,8 @@ def test_wgii_and_wgoh_unchanged_by_a_brightness_offset(smooth_grey):
     base = (smooth_grey.astype(int) * 200 // 255).astype(np.uint8)  # no saturation at +50
     brighter = base + np.uint8(50)
     for feature in (wgii, wgii2, wgii2_sparse, wgoh):
-        np.testing.assert_array_equal(feature(brighter), feature(base))
+        # equal up to float32 round-off in the final normalisation
+        np.testing.assert_allclose(feature(brighter), feature(base), rtol=1e-6, atol=1e-9)
 
 
 def test_wgoh_unchanged_by_a_gain(smooth_grey):
