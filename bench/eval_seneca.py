@@ -48,7 +48,7 @@ def main() -> None:
     if not (args.dataset / "images").is_dir():
         sys.exit(f"data set not found: {args.dataset}")
     args.out.mkdir(parents=True, exist_ok=True)
-    sections = [f"# seneca-uav: pass 2 localised against a map of pass 1", "",
+    sections = ["# seneca-uav: pass 2 localised against a map of pass 1", "",
                 f"{args.starts} starting frames, seed {args.seed}, errors over the frames after "
                 f"the 10th of each run. {platform.machine()}, Python {platform.python_version()}.",
                 "Command: `make eval-seneca` (`.venv/bin/python bench/eval_seneca.py`).", "",
