@@ -38,7 +38,7 @@ STAGES: tuple[tuple[str, list[str]], ...] = (
                               "--out", f"{QUICK_OUT}/world.md"]),
     ("bench/bench_service.py", ["--sessions", "1,10", "--frames", "20,5",
                                 "--out", f"{QUICK_OUT}/service.md"]),
-    ("bench/paper/weiss_table1.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),
+    ("bench/paper/weiss_table1.py", ["--quick", "--pairs", "1", "--out", f"{QUICK_OUT}/paper"]),
     ("bench/paper/weiss_table2.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),
     ("bench/paper/weiss_fig4.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),
     ("bench/paper/flyphone_fig7.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),

@@ -22,7 +22,8 @@ import pytest
 from bench.paper import _common, weiss_table1
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY = ["--frames", "30", "--route-length", "30", "--starts", "1", "--datasets", "1"]
+TINY = ["--frames", "30", "--route-length", "30", "--starts", "1", "--pairs", "1",
+        "--datasets", "1"]
 
 
 def run_script(name: str, *args: str) -> None:
