@@ -22,6 +22,7 @@ import argparse  # noqa: E402
 import hashlib  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import re  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -52,6 +53,7 @@ QUICK = {"frames": 100, "route_length": 104.0, "starts": 2}
 """``--quick``: a 104 m round at the same 1.04 m spacing, two starts."""
 
 _T0 = time.perf_counter()
+_NUMBER_LIST = re.compile(r"\[\s*((?:-?[0-9][0-9.eE+-]*,?\s*)+)\]")
 
 
 def log(message: str) -> None:
@@ -229,7 +231,11 @@ def write(out_dir: Path, name: str, markdown: str, data: dict) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     md = out_dir / f"{name}.md"
     md.write_text(markdown.rstrip() + "\n", encoding="utf-8")
-    (out_dir / f"{name}.json").write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    text = json.dumps(data, indent=1)
+    # lists of numbers (per-frame series) on one line each: a readable, diffable file
+    text = _NUMBER_LIST.sub(lambda m: "[" + ", ".join(m.group(1).split()).replace(",,", ",")
+                            + "]", text)
+    (out_dir / f"{name}.json").write_text(text + "\n", encoding="utf-8")
     print(markdown, flush=True)
     log(f"wrote {md} and {name}.json")
     return md
