@@ -95,3 +95,10 @@ def test_query_reduction_falls_back_to_whole_frame_without_overlap():
 def test_tiny_inputs_give_no_matches(n):
     a = np.zeros((n, 128), np.uint8)
     assert ratio_matches(a, np.zeros((1, 128), np.uint8)).shape == (0, 2)
+
+
+def test_a_tie_for_nearest_is_no_match():
+    a = np.array([[0.0, 0.0]], np.float32)
+    b = np.array([[3.0, 0.0], [0.0, 3.0], [9.0, 9.0]], np.float32)
+    assert len(ratio_matches(a, b, ratio=0.99)) == 0
+    assert len(ratio_matches(a, b[1:], ratio=0.99)) == 1
