@@ -14,7 +14,7 @@ under constant illumination (sunny -> sunny) and one under changing (sunny -> cl
 Usage::
 
     .venv/bin/python bench/paper/weiss_fig4.py [--part e,f] [--particles 100,300,500]
-        [--thresholds 3.5:5,4.5:6,5.5:7,6.5:8,7.5:9] [--frames 250] [--starts 3] [--quick]
+        [--thresholds 3.5:5,4.5:6,5.5:7,6.5:8,7.5:9] [--frames 433] [--starts 3] [--quick]
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ The raw runs go to ``weiss_table1.json``; ``weiss_table2.py`` reads them for Tab
 
 Usage::
 
-    .venv/bin/python bench/paper/weiss_table1.py [--frames 250] [--route-length 260]
+    .venv/bin/python bench/paper/weiss_table1.py [--frames 433] [--route-length 260]
         [--starts 3] [--pairs 2] [--datasets 1,2] [--config weiss2008] [--quick]
         [--out bench/results/paper]
 """

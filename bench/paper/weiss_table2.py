@@ -9,7 +9,7 @@ within 10 % of SIFT-only or better, SIFT steps under 20 %, hybrid at least 3x fa
 
 Usage::
 
-    .venv/bin/python bench/paper/weiss_table2.py [--rerun] [--frames 250] [--starts 3]
+    .venv/bin/python bench/paper/weiss_table2.py [--rerun] [--frames 433] [--starts 3]
         [--quick] [--out bench/results/paper]
 """
 
