@@ -45,7 +45,7 @@ class DemoOptions:
     frames: int = 200
     seed: int = 0
     query_light: str = "cloudy"
-    config: str = "default"
+    config: str = "weiss2008"
     workers: int | None = None
     keep: bool = False
     quiet: bool = False
@@ -127,10 +127,10 @@ def _tail(path: Path, lines: int = 25) -> str:
         return "(no server log)"
 
 
-FRAME_SPACING_M = 1.3
-"""Metres between frames: 200 frames go once round the generator's default 260 m block;
-fewer frames go round a smaller block at the same spacing, so a reduced demo keeps the
-density of views the localisers see."""
+FRAME_SPACING_M = 0.65
+"""Metres between frames, as in Weiss et al.'s robot runs (about 400 images on 260 m): 200
+frames go once round a 130 m block; fewer frames go round a smaller block at the same
+spacing, so a reduced demo keeps the density of views the localisers see."""
 
 MIN_ROUTE_M = 60.0
 

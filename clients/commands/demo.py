@@ -12,14 +12,16 @@ import click
               default=Path("demo-output"), show_default=True,
               help="Folder for the world, tracks.png, results.json and the server log.")
 @click.option("--frames", type=click.IntRange(10, 2000), default=200, show_default=True,
-              help="Frames per pass, 1.3 m apart: 200 go once round a 260 m block, fewer "
+              help="Frames per pass, 0.65 m apart: 200 go once round a 130 m block, fewer "
                    "round a smaller one (faster).")
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True,
               help="Seeds the world and the sessions.")
 @click.option("--query-light", type=click.Choice(["cloudy", "dusk"]), default="cloudy",
               show_default=True, help="Illumination of the replayed pass (the map is sunny).")
-@click.option("--config", default="default", show_default=True,
-              help="Filter configuration of the sessions: default or weiss2008.")
+@click.option("--config", default="weiss2008", show_default=True,
+              help="Filter configuration of the sessions: weiss2008 (the paper's hybrid, "
+                   "made for street scenes like the demo's) or default (tuned on real "
+                   "UAV imagery: more SIFT steps, slower).")
 @click.option("--workers", type=click.IntRange(1), default=None,
               help="Server worker processes [default: one per core].")
 @click.option("--keep", is_flag=True,

@@ -18,7 +18,7 @@ import sys
 import pytest
 
 FRAMES = 60
-"""Frames per pass: a 78 m block at the demo's spacing, small enough for CI."""
+"""Frames per pass: the smallest (60 m) block, small enough for CI."""
 
 ERROR_MARGIN_M = 1.0
 """Absolute slack on "hybrid within 10 % of SIFT-only": a few frames decide a small run."""
@@ -70,7 +70,7 @@ def test_hybrid_error_close_to_sift_with_fewer_sift_steps(demo):
     hybrid, sift = modes["hybrid"], modes["sift"]
     assert hybrid["mean_error_m"] <= 1.1 * sift["mean_error_m"] + ERROR_MARGIN_M, modes
     # "At a fraction of the time": the time hybrid saves is the SIFT steps it skips.
-    assert hybrid["sift_step_share"] < 1.0
+    assert hybrid["sift_step_share"] < 0.5
     assert hybrid["frames_answered"] == sift["frames_answered"] == FRAMES
 
 
