@@ -91,10 +91,11 @@ class FilterConfig:
     global_trust : int
         Hybrid only: on each SIFT step, check whether one of the ``global_trust`` map
         images the global features rank highest lies within d_global of the SIFT-based
-        estimate (``default``: the best one alone; with the best three, chance agreement
-        let in global steps that cost seneca-uav 1.2 m of mean error), and keep a running share of agreement; switch to global features only
-        while that share is at least ``global_trust_level``. Global features that fail under the
-        current light (dusk, colour casts) are then left alone. 0 disables (the paper).
+        estimate, and keep a running share of agreement; switch to global features only
+        while that share is at least ``global_trust_level``. Global features that fail
+        under the current light (dusk, colour casts) are then left alone. 0 disables (the
+        paper). ``default`` checks the best image alone: with the best three, chance
+        agreement let in global steps that cost seneca-uav 1.2 m of mean error.
     global_trust_level : float
         The running agreement needed before global steps are allowed. 0.95 takes nine
         agreeing SIFT steps in a row from no trust: on seneca-uav, global features that
