@@ -58,8 +58,10 @@ def sift_similarity(query: SiftFeatures, map_data: MapData, idx: np.ndarray, *, 
     n = len(query)
     if n == 0:
         return out
+    # Converted once here rather than once per map image inside ratio_matches.
+    q_desc = np.asarray(query.descriptors, dtype=np.float32)
     for j, i in enumerate(idx):
         ref = map_data.sift(int(i), reduced=reduced)
-        m = ratio_matches(query.descriptors, ref.descriptors, ratio=ratio)
+        m = ratio_matches(q_desc, ref.descriptors, ratio=ratio)
         out[j] = verified_count(query, ref, m, verify) / n
     return out
