@@ -1,0 +1,99 @@
+"""Camera geometry: metric positions beyond the nearest map image.
+
+At map build, :func:`build_geometry` reconstructs the map cameras over the ground plane
+(:mod:`.reconstruct`) and places every stored keypoint on the ground (:mod:`.mapgeometry`).
+Per frame, :func:`register_against` matches the frame's keypoints to a few map images and
+solves its camera pose (:mod:`.register`). Maps whose images do not look at one plane
+(street-level robots and phones) fail the reconstruction's checks and get no geometry; the
+localisers then fall back to a match-weighted position between the best verified map images.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .camera import Intrinsics, focal_from_exif, focal_from_fov
+from .mapgeometry import MapGeometry
+from .reconstruct import match_pairs, reconstruct_plane
+from .register import Registration, register_frame
+
+MAX_RESIDUAL_PX: float = 4.0
+"""A reconstruction whose median tie-point error exceeds this is not a plane seen from above."""
+
+MAX_GPS_RMS: float = 15.0
+"""... nor one whose cameras sit further than this (m RMS) from their GPS tags."""
+
+MIN_HEIGHT: float = 5.0
+"""... nor one whose cameras are lower than this above the ground (m)."""
+
+MIN_RECONSTRUCTED: float = 0.3
+"""... nor one that places fewer than this share of the map images."""
+
+
+def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
+                   positions: np.ndarray, altitudes: np.ndarray, K0: Intrinsics, *,
+                   rng: np.random.Generator) -> MapGeometry | None:
+    """Reconstruct the map cameras, or None when the map is not a plane seen from above.
+
+    Parameters
+    ----------
+    keypoints, descriptors : lists, one entry per map image
+        Local features (pixels in the first two keypoint columns; SIFT descriptors).
+    positions : (N, 2) float ndarray
+        East/north of the map images (GPS).
+    altitudes : (N,) float ndarray
+        GPS altitudes, NaN where unknown.
+    K0 : Intrinsics
+        Initial camera intrinsics (EXIF or an assumed field of view).
+    """
+    positions = np.asarray(positions, np.float64)
+    if len(positions) < 3:
+        return None
+    spacing = np.sort(np.linalg.norm(positions[:, None] - positions[None], axis=2), axis=1)
+    # Footprints overlap over a few spacings; tie images up to three median spacings apart.
+    reach = 3.0 * float(np.median(spacing[:, 1])) if len(positions) > 1 else 0.0
+    pairs = match_pairs(keypoints, descriptors, positions, max_distance=max(reach, 1.0),
+                        rng=rng)
+    rec = reconstruct_plane(pairs, positions, np.asarray(altitudes, np.float64), K0)
+    done = rec.reconstructed
+    if done.mean() < MIN_RECONSTRUCTED or not math.isfinite(rec.residual_px):
+        return None
+    heights = rec.centres[done, 2]
+    if (rec.residual_px > MAX_RESIDUAL_PX or rec.gps_rms > MAX_GPS_RMS
+            or np.median(heights) < MIN_HEIGHT):
+        return None
+    return MapGeometry.from_reconstruction(rec)
+
+
+def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
+                     matches: list[tuple[int, np.ndarray, np.ndarray]], *,
+                     frame_shape: tuple[int, int]) -> Registration | None:
+    """A frame's pose from its matches to map images of local-feature set ``kind``.
+
+    Parameters
+    ----------
+    geometry : MapGeometry
+    kind : str
+        Which keypoint set the map rows index (``"sift"``).
+    frame_px : (K, >=2) float ndarray
+        The frame's keypoints (pixels first).
+    matches : list of (image, frame rows, map rows)
+        Matches into each map image; map rows are global rows of the keypoint set.
+    frame_shape : (height, width)
+        The frame's size: its intrinsics are the map's, centred on the frame.
+    """
+    if kind not in geometry.ground or not matches:
+        return None
+    ground = geometry.ground[kind]
+    fp = np.concatenate([np.asarray(frame_px[q, :2], np.float64) for _, q, _ in matches])
+    gx = np.concatenate([np.asarray(ground[r], np.float64) for _, _, r in matches])
+    img = np.concatenate([np.full(len(q), i) for i, q, _ in matches])
+    h, w = frame_shape
+    K = Intrinsics(geometry.intrinsics.f, w / 2.0, h / 2.0)
+    return register_frame(fp, gx, img, K, height_range=geometry.height_range())
+
+
+__all__ = ["Intrinsics", "MapGeometry", "Registration", "build_geometry", "focal_from_exif",
+           "focal_from_fov", "register_against"]

@@ -1,0 +1,292 @@
+"""Map reconstruction on a ground plane: every map camera's pose, aligned to its GPS tag.
+
+Aerial map images over nearly flat ground see one plane, so two overlapping images are
+related by a homography and each camera by its pose above the plane. The reconstruction is a
+plane-based bundle adjustment (``scipy.optimize.least_squares``, robust Huber loss, sparse
+Jacobian):
+
+- unknowns: each reconstructed camera's rotation (a rotation vector) and centre (east,
+  north, height above the ground plane), one focal length shared by the map, and the ground's
+  altitude in the GPS altitude frame;
+- tie points: ratio-test matches between GPS-neighbouring map images that survive a RANSAC
+  homography; a match (p in image a, q in image b) contributes the symmetric transfer error
+  through the ground: p backprojected from a onto ``Z = 0`` and projected into b lands on q,
+  and the other way round;
+- priors: each camera's centre is its GPS position (sigma ``gps_sigma`` horizontally,
+  ``alt_sigma`` vertically above the unknown ground altitude), and the focal length its
+  EXIF or assumed value (a loose prior; height and focal trade off on flat ground).
+
+The result places every keypoint of every reconstructed map image on the ground
+(:func:`ground_points`): the 3-D points a query frame is registered against
+(:mod:`workers.core.geometry.register`). Camera tilt is what this buys over a 2-D image
+mosaic: at 75 m above ground a 3 degree tilt moves the image centre 4 m from the nadir point.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from .camera import Intrinsics, backproject_to_ground, nadir_rotation
+
+
+@dataclass(frozen=True)
+class PairMatches:
+    """Verified tie points between map images ``a`` and ``b`` (pixels in each)."""
+
+    a: int
+    b: int
+    pa: np.ndarray  # (n, 2) float64
+    pb: np.ndarray  # (n, 2) float64
+    homography: np.ndarray  # (3, 3), pixels of a -> pixels of b
+
+
+@dataclass(frozen=True)
+class PlaneReconstruction:
+    """Camera poses of the map images over the ground plane ``Z = 0``.
+
+    Attributes
+    ----------
+    rotations : (N, 3, 3) float64
+        World -> camera rotations; NaN rows for images that are not reconstructed.
+    centres : (N, 3) float64
+        Camera centres (east, north, height above ground); NaN where not reconstructed.
+    intrinsics : Intrinsics
+    ground_alt : float
+        Altitude of the ground plane in the frame of the GPS altitudes (m).
+    residual_px : float
+        Median reprojection (transfer) error of the tie points after adjustment.
+    gps_rms : float
+        RMS horizontal distance between reconstructed centres and their GPS positions (m).
+    """
+
+    rotations: np.ndarray
+    centres: np.ndarray
+    intrinsics: Intrinsics
+    ground_alt: float
+    residual_px: float
+    gps_rms: float
+
+    @property
+    def reconstructed(self) -> np.ndarray:
+        """(N,) bool: which map images have a pose."""
+        return np.isfinite(self.centres[:, 0])
+
+
+def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
+                positions: np.ndarray, *, max_distance: float, neighbours: int = 8,
+                ratio: float = 0.8, min_inliers: int = 15, max_per_pair: int = 80,
+                ransac_px: float = 3.0, rng: np.random.Generator) -> list[PairMatches]:
+    """Verified matches between each map image and its GPS neighbours.
+
+    Parameters
+    ----------
+    keypoints : list of (K_i, >=2) float arrays
+        Pixel coordinates in the first two columns.
+    descriptors : list of (K_i, D) arrays
+        SIFT (float-comparable) descriptors.
+    positions : (N, 2) float ndarray
+        GPS east/north of the images.
+    max_distance : float
+        Only pairs closer than this (m) are tried: further apart the footprints cannot
+        overlap.
+    """
+    from ..sift import ratio_matches
+
+    n = len(keypoints)
+    if n < 2:
+        return []
+    tree = cKDTree(positions)
+    k = min(neighbours + 1, n)
+    dist, idx = tree.query(positions, k=k)
+    pairs = set()
+    for i in range(n):
+        for d, j in zip(np.atleast_1d(dist[i])[1:], np.atleast_1d(idx[i])[1:], strict=True):
+            if d <= max_distance and j != i:
+                pairs.add((min(i, int(j)), max(i, int(j))))
+    out = []
+    for a, b in sorted(pairs):
+        m = ratio_matches(descriptors[a], descriptors[b], ratio=ratio)
+        if len(m) < min_inliers:
+            continue
+        pa = np.asarray(keypoints[a][m[:, 0], :2], np.float64)
+        pb = np.asarray(keypoints[b][m[:, 1], :2], np.float64)
+        H, mask = cv2.findHomography(pa, pb, cv2.RANSAC, ransac_px)
+        if H is None:
+            continue
+        inl = mask.ravel().astype(bool)
+        if inl.sum() < min_inliers:
+            continue
+        sel = np.flatnonzero(inl)
+        if len(sel) > max_per_pair:
+            sel = np.sort(rng.choice(sel, size=max_per_pair, replace=False))
+        out.append(PairMatches(a, b, pa[sel], pb[sel], H))
+    return out
+
+
+def _initial_headings(pairs: list[PairMatches], positions: np.ndarray, K: Intrinsics,
+                      n: int) -> tuple[np.ndarray, float]:
+    """Per-image heading and a common height from the pair homographies and GPS offsets.
+
+    A nadir camera maps an image vector (du, dv) to the ground vector ``s Rot(theta) (du, -dv)``;
+    the displacement of a neighbour's image centre, seen through the homography, against the
+    GPS offset gives theta (circular mean, weighted by the offset's length) and s = height / f.
+    """
+    sin_sum = np.zeros(n)
+    cos_sum = np.zeros(n)
+    heights = []
+    centre = np.array([K.cx, K.cy, 1.0])
+    for p in pairs:
+        for i, j, H in ((p.a, p.b, np.linalg.inv(p.homography)), (p.b, p.a, p.homography)):
+            # centre of image j expressed in the pixels of image i
+            c = H @ centre
+            if abs(c[2]) < 1e-12:
+                continue
+            du, dv = c[0] / c[2] - K.cx, c[1] / c[2] - K.cy
+            d_gps = positions[j] - positions[i]
+            length = float(np.hypot(*d_gps))
+            pix = math.hypot(du, dv)
+            if length < 1e-6 or pix < 1e-6:
+                continue
+            theta = math.atan2(d_gps[1], d_gps[0]) - math.atan2(-dv, du)
+            sin_sum[i] += length * math.sin(theta)
+            cos_sum[i] += length * math.cos(theta)
+            heights.append(K.f * length / pix)
+    theta = np.arctan2(sin_sum, cos_sum)
+    theta[(sin_sum == 0) & (cos_sum == 0)] = np.nan
+    height = float(np.median(heights)) if heights else float("nan")
+    return theta, height
+
+
+def _rotations(rvecs: np.ndarray) -> np.ndarray:
+    return Rotation.from_rotvec(rvecs).as_matrix()
+
+
+def _transfer(Ra, Ca, Rb, Cb, f, c, p):
+    """Pixels p of cameras (Ra, Ca) through the ground plane into cameras (Rb, Cb)."""
+    rays_c = np.concatenate([(p - c) / f, np.ones((len(p), 1))], axis=1)
+    rays = np.einsum("nij,ni->nj", Ra, rays_c)  # R.T @ ray
+    t = -Ca[:, 2] / rays[:, 2]
+    X = Ca + t[:, None] * rays
+    pc = np.einsum("nij,nj->ni", Rb, X - Cb)
+    return f * pc[:, :2] / pc[:, 2:3] + c
+
+
+def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes: np.ndarray,
+                      K0: Intrinsics, *, gps_sigma: float = 3.5, alt_sigma: float = 5.0,
+                      focal_sigma: float = 0.15, huber_px: float = 2.0,
+                      max_nfev: int = 200) -> PlaneReconstruction:
+    """Bundle-adjust the map cameras over the ground plane (see the module docstring).
+
+    Parameters
+    ----------
+    pairs : list of PairMatches
+    positions : (N, 2) float ndarray
+        GPS east/north (m).
+    altitudes : (N,) float ndarray
+        GPS altitudes (m); NaN where unknown.
+    K0 : Intrinsics
+        Initial intrinsics; the focal length is refined with a relative prior
+        ``focal_sigma``.
+    """
+    n = len(positions)
+    nan_rec = PlaneReconstruction(np.full((n, 3, 3), np.nan), np.full((n, 3), np.nan), K0,
+                                  float("nan"), float("nan"), float("nan"))
+    if not pairs:
+        return nan_rec
+    theta, height = _initial_headings(pairs, positions, K0, n)
+    used = np.zeros(n, dtype=bool)
+    for p in pairs:
+        used[p.a] = used[p.b] = True
+    used &= np.isfinite(theta)
+    pairs = [p for p in pairs if used[p.a] and used[p.b]]
+    if not pairs or not math.isfinite(height):
+        return nan_rec
+    cams = np.flatnonzero(used)
+    slot = np.full(n, -1)
+    slot[cams] = np.arange(len(cams))
+    m = len(cams)
+    alt = np.asarray(altitudes, np.float64)
+    has_alt = np.isfinite(alt[cams])
+    ground0 = float(np.median(alt[cams][has_alt]) - height) if has_alt.any() else 0.0
+
+    rv0 = Rotation.from_matrix(np.stack([nadir_rotation(t) for t in theta[cams]])).as_rotvec()
+    C0 = np.column_stack([positions[cams], np.where(has_alt, alt[cams] - ground0, height)])
+    x0 = np.concatenate([rv0.ravel(), C0.ravel(), [math.log(K0.f), ground0]])
+
+    a = np.concatenate([np.full(len(p.pa), slot[p.a]) for p in pairs])
+    b = np.concatenate([np.full(len(p.pa), slot[p.b]) for p in pairs])
+    pa = np.concatenate([p.pa for p in pairs])
+    pb = np.concatenate([p.pb for p in pairs])
+    c = np.array([K0.cx, K0.cy])
+    gps = positions[cams]
+    n_obs = len(a)
+    i_f, i_g = 6 * m, 6 * m + 1
+
+    def unpack(x):
+        rv = x[: 3 * m].reshape(m, 3)
+        C = x[3 * m: 6 * m].reshape(m, 3)
+        return _rotations(rv), C, math.exp(x[i_f]), x[i_g]
+
+    def residuals(x):
+        R, C, f, g = unpack(x)
+        ab = _transfer(R[a], C[a], R[b], C[b], f, c, pa) - pb
+        ba = _transfer(R[b], C[b], R[a], C[a], f, c, pb) - pa
+        r_xy = (C[:, :2] - gps) / gps_sigma * huber_px
+        r_z = np.where(has_alt, (C[:, 2] - (alt[cams] - g)) / alt_sigma * huber_px, 0.0)
+        r_f = np.array([(x[i_f] - math.log(K0.f)) / focal_sigma * huber_px])
+        out = np.concatenate([ab.ravel(), ba.ravel(), r_xy.ravel(), r_z, r_f])
+        return np.nan_to_num(out, nan=1e3, posinf=1e3, neginf=-1e3)
+
+    n_res = 4 * n_obs + 3 * m + 1
+    sparsity = lil_matrix((n_res, 6 * m + 2), dtype=np.int8)
+    for block in range(2):
+        rows = 2 * block * n_obs + np.arange(2 * n_obs)
+        cams_a = np.repeat(a, 2)
+        cams_b = np.repeat(b, 2)
+        for k in range(3):
+            sparsity[rows, 3 * cams_a + k] = 1
+            sparsity[rows, 3 * m + 3 * cams_a + k] = 1
+            sparsity[rows, 3 * cams_b + k] = 1
+            sparsity[rows, 3 * m + 3 * cams_b + k] = 1
+        sparsity[rows, i_f] = 1
+    base = 4 * n_obs
+    for k in range(2):
+        sparsity[base + 2 * np.arange(m) + k, 3 * m + 3 * np.arange(m) + k] = 1
+    base += 2 * m
+    sparsity[base + np.arange(m), 3 * m + 3 * np.arange(m) + 2] = 1
+    sparsity[base + np.arange(m), i_g] = 1
+    sparsity[n_res - 1, i_f] = 1
+
+    sol = least_squares(residuals, x0, jac_sparsity=sparsity, loss="huber", f_scale=huber_px,
+                        max_nfev=max_nfev, method="trf")
+    R, C, f, g = unpack(sol.x)
+    K = Intrinsics(f, K0.cx, K0.cy)
+    r = residuals(sol.x)[: 4 * n_obs].reshape(-1, 2)
+    rotations = np.full((n, 3, 3), np.nan)
+    centres = np.full((n, 3), np.nan)
+    rotations[cams] = R
+    centres[cams] = C
+    gps_rms = float(np.sqrt(np.mean(np.sum((C[:, :2] - gps) ** 2, axis=1))))
+    return PlaneReconstruction(rotations, centres, K, float(g),
+                               float(np.median(np.linalg.norm(r, axis=1))), gps_rms)
+
+
+def ground_points(rec: PlaneReconstruction, keypoints: list[np.ndarray]) -> list[np.ndarray]:
+    """Every keypoint of every map image on the ground: (K_i, 2) east/north, NaN where the
+    image is not reconstructed or the ray misses the ground."""
+    out = []
+    for i, kp in enumerate(keypoints):
+        if not np.isfinite(rec.centres[i, 0]) or len(kp) == 0:
+            out.append(np.full((len(kp), 2), np.nan))
+            continue
+        out.append(backproject_to_ground(rec.rotations[i], rec.centres[i], rec.intrinsics,
+                                         np.asarray(kp, np.float64)[:, :2]))
+    return out
