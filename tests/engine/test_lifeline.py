@@ -11,6 +11,7 @@ import time
 import pytest
 
 from tests.conftest import REPO_ROOT
+from tests.procs import descendants, running, wait_gone
 from workers.engine import LocalEngine
 
 TIMEOUT = 30.0
@@ -41,49 +42,13 @@ sys.stdin.readline()
 """
 
 
-def _descendants(pid: int) -> set[int]:
-    """Every process below ``pid`` (children first found through /proc)."""
-    children: dict[int, list[int]] = {}
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, []).append(int(entry))
-    found, todo = set(), [pid]
-    while todo:
-        for child in children.get(todo.pop(), []):
-            found.add(child)
-            todo.append(child)
-    return found
-
-
-def _running(pid: int) -> bool:
-    """The process exists and is not a zombie waiting for a parent to reap it."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
-def wait_gone(pids: set[int], timeout: float = TIMEOUT) -> set[int]:
-    """The processes of ``pids`` still running after ``timeout`` (polled)."""
-    deadline = time.monotonic() + timeout
-    while (left := {p for p in pids if _running(p)}) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return left
-
-
 def test_workers_forkserver_and_tracker_exit_when_the_owner_is_killed():
     owner = subprocess.Popen([sys.executable, "-c", OWNER], cwd=REPO_ROOT, text=True,
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE)
     workers: set[int] = set()
     try:
         workers = {int(p) for p in owner.stdout.readline().split()}
-        below = _descendants(owner.pid)
+        below = descendants(owner.pid)
         # Two workers, their forkserver and the resource tracker.
         assert len(workers) == 2 and workers < below and len(below) == 4
         for pid in workers:
@@ -101,7 +66,7 @@ def test_workers_forkserver_and_tracker_exit_when_the_owner_is_killed():
         if owner.poll() is None:
             owner.kill()
         for pid in workers:
-            if _running(pid):
+            if running(pid):
                 os.kill(pid, signal.SIGKILL)
 
 
