@@ -5,9 +5,9 @@ Threads and the loop:
 - the event loop accepts frames: it numbers each (no awaits between the sequence check and
   the queueing, so two requests of one session cannot take the same number) and queues
   its record for the writer, and publishes messages;
-- one writer thread stores, in batches and in order, the records of accepted frames
-  (:class:`~app.sessions.models.Frame`) and the outcomes (poses, counters, checkpoints),
-  then has the loop settle them. A frame goes to its worker only once its record is
+- one writer thread (:mod:`app.sessions.writer`) stores, in batches and in order, the
+  records of accepted frames (:class:`~app.sessions.models.Frame`) and the outcomes
+  (poses, counters, checkpoints), then has the loop settle them. A frame goes to its worker only once its record is
   stored, so that a frame accepted by a server that then dies is reported after the
   restart and its ``seq`` never reused; a request is answered ``202`` only then too;
 - the engine's reader thread hands each outcome to :meth:`SessionRuntime.on_outcome`, which
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import queue
 import threading
 import time
 import uuid
@@ -38,6 +37,7 @@ from app.sessions import store
 from app.sessions.models import LocalisationSession
 from app.sessions.schemas import MAX_SEQ, FrameError, PoseEstimate
 from app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
+from app.sessions.writer import Accepted, Barrier, Writer
 from app.stream.hub import LocalHub
 from workers.engine import (
     Checkpoint,
@@ -52,8 +52,6 @@ from workers.engine import (
 
 log = logging.getLogger(__name__)
 
-_STOP = object()
-_BATCH = 512
 OPEN_TIMEOUT_S = 120.0
 
 
@@ -87,21 +85,6 @@ def spec_for(row: LocalisationSession, settings: Settings) -> SessionSpec:
     return SessionSpec(session_id=str(row.id), map_id=str(row.map_id),
                        revision=row.map_revision, map_folder=str(folder), mode=row.mode,
                        params=dict(row.params), seed=int(row.seed))
-
-
-@dataclass(frozen=True, slots=True)
-class _Accepted:
-    """Writer queue: a frame's record, with the live session that accepted it."""
-
-    live: LiveSession
-    record: FrameRecord
-
-
-@dataclass(frozen=True, slots=True)
-class _Barrier:
-    """Writer queue: resolves once every frame queued before it has gone to the engine."""
-
-    done: asyncio.Future
 
 
 def next_seq(last_seq: int | None, seq: int | None) -> int:
@@ -143,8 +126,7 @@ class SessionRuntime:
         self._seq_floor: dict[str, int] = {}
         """Last seq of a live session dropped for a reload, until the reload reads it."""
         self._lock = threading.Lock()
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._writer: threading.Thread | None = None
+        self._writer = Writer(self.store, metrics, self._settle)
         self._idle = asyncio.Event()
         self._closing = False
 
@@ -152,9 +134,7 @@ class SessionRuntime:
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
-        self._writer = threading.Thread(target=self._write_loop, name="pose-writer",
-                                        daemon=True)
-        self._writer.start()
+        self._writer.start(loop)
 
     async def drain(self, timeout: float) -> None:
         """Refuse new frames, then wait (up to ``timeout``) until every accepted frame has
@@ -170,9 +150,7 @@ class SessionRuntime:
 
     def stop(self) -> None:
         """Store what the engine has reported; call after the engine has stopped."""
-        if self._writer is not None:
-            self._queue.put(_STOP)
-            self._writer.join(30.0)
+        self._writer.stop(30.0)
 
     def pending_total(self) -> int:
         return sum(len(live.arrivals) for live in list(self._live.values()))
@@ -299,7 +277,7 @@ class SessionRuntime:
                           live.last_seq)
         live.arrivals[seq] = arrival
         live.last_seq = seq
-        self._queue.put(_Accepted(live, FrameRecord(live.id, seq, arrival.received_at,
+        self._writer.put(Accepted(live, FrameRecord(live.id, seq, arrival.received_at,
                                                     captured_at)))
         self.metrics.frames_accepted.inc()
         return seq, arrival.queued
@@ -308,7 +286,7 @@ class SessionRuntime:
         """Return once every frame accepted so far has gone to the engine (or failed), so
         that a control sent now runs after them."""
         done = self.loop.create_future()
-        self._queue.put(_Barrier(done))
+        self._writer.put(Barrier(done))
         await done
 
     def waiter(self, live: LiveSession, seq: int) -> asyncio.Future:
@@ -321,7 +299,7 @@ class SessionRuntime:
     def drop_waiter(self, live: LiveSession, seq: int) -> None:
         self._waiters.pop((live.id, seq), None)
 
-    def _to_engine(self, item: _Accepted, error: Exception | None) -> None:
+    def _to_engine(self, item: Accepted, error: Exception | None) -> None:
         """Event loop: the frame's record is stored (or refused); hand it to its worker."""
         live, seq = item.live, item.record.seq
         arrival = live.arrivals.get(seq)
@@ -358,87 +336,7 @@ class SessionRuntime:
         msg = self._message(outcome, time.perf_counter())
         if msg is not None and self.loop is not None and not self.loop.is_closed():
             self.loop.call_soon_threadsafe(self.hub.publish, msg[0], msg[2])
-        self._queue.put(OutcomeRecord(outcome, msg[2] if msg is not None else None))
-
-    def _write_loop(self) -> None:
-        while True:
-            batch, stop = self._take_batch()
-            if batch:
-                done = self._write(batch)
-                if self.loop is not None and not self.loop.is_closed():
-                    self.loop.call_soon_threadsafe(self._settle, done)
-            if stop:
-                return
-
-    def _take_batch(self) -> tuple[list, bool]:
-        first = self._queue.get()
-        if first is _STOP:
-            return [], True
-        batch = [first]
-        while len(batch) < _BATCH:
-            try:
-                item = self._queue.get_nowait()
-            except queue.Empty:
-                break
-            if item is _STOP:
-                return batch, True
-            batch.append(item)
-        return batch, False
-
-    def _write(self, batch: list) -> list[tuple[object, Exception | None]]:
-        """Writer thread: store a batch; each item with the error that refused it, if any.
-
-        An outcome the database refused is replaced by a ``not_stored`` failure (stored
-        too where possible), which the loop then publishes.
-        """
-        rows = [(i, item.record if isinstance(item, _Accepted) else item)
-                for i, item in enumerate(batch) if not isinstance(item, _Barrier)]
-        refused = self.store.write([row for _, row in rows])
-        errors = {rows[j][0]: exc for j, exc in refused.items()}
-        done = []
-        for i, item in enumerate(batch):
-            error = errors.get(i)
-            if isinstance(item, OutcomeRecord):
-                if error is None:
-                    self._count(item.message)
-                elif item.message is None:
-                    log.error("a checkpoint of session %s could not be stored: %r",
-                              item.outcome.session_id, error)
-                else:
-                    item = self._not_stored(item, error)
-            elif isinstance(item, _Accepted) and error is not None:
-                log.error("frame %d of session %s could not be recorded: %r",
-                          item.record.seq, item.record.session_id, error)
-            done.append((item, error))
-        return done
-
-    def _not_stored(self, item: OutcomeRecord, error: Exception) -> OutcomeRecord:
-        o, msg = item.outcome, item.message
-        log.error("the outcome of frame %d of session %s could not be stored: %r",
-                  o.seq, o.session_id, error)
-        what = "estimate" if isinstance(o, FrameDone) else "failure"
-        failed = FrameFailed(o.session_id, o.seq, "not_stored",
-                             f"the frame's {what} could not be stored "
-                             f"({type(error).__name__})")
-        message = FrameError(session_id=o.session_id, seq=o.seq,
-                             captured_at=msg["captured_at"], kind=failed.kind,
-                             reason=failed.reason, latency_ms=msg["latency_ms"])
-        replacement = OutcomeRecord(failed, message.model_dump(mode="json"))
-        if self.store.write([replacement]):
-            log.error("frame %d of session %s: its failure could not be stored either",
-                      o.seq, o.session_id)
-        self._count(replacement.message)
-        return replacement
-
-    def _count(self, m: dict | None) -> None:
-        if m is None:
-            return
-        if m["type"] == "pose":
-            self.metrics.frames_processed.labels(m["feature"]).inc()
-            self.metrics.step_seconds.labels(m["feature"]).observe(m["processing_ms"] / 1e3)
-            self.metrics.frame_latency.observe(m["latency_ms"] / 1e3)
-        else:
-            self.metrics.frames_failed.labels(m["kind"]).inc()
+        self._writer.put(OutcomeRecord(outcome, msg[2] if msg is not None else None))
 
     def _message(self, outcome: Outcome, t_back: float) -> tuple[str, int, dict] | None:
         if isinstance(outcome, Checkpoint):
@@ -469,9 +367,9 @@ class SessionRuntime:
         """Event loop: the items are stored (or refused). Frames go to the engine; answered
         frames wake their waiters and leave the arrivals."""
         for item, error in done:
-            if isinstance(item, _Accepted):
+            if isinstance(item, Accepted):
                 self._to_engine(item, error)
-            elif isinstance(item, _Barrier):
+            elif isinstance(item, Barrier):
                 _resolve(item.done, None)
             elif item.message is not None:
                 session_id, seq, msg = item.outcome.session_id, item.outcome.seq, item.message
