@@ -106,8 +106,7 @@ async def drain(app: FastAPI, timeout: float = DRAIN_TIMEOUT_S) -> None:
     ctx: AppContext = app.state.ctx
     await ctx.runtime.drain(timeout)
     if (left := ctx.runtime.pending_total()):
-        log.warning("stopping with %d frame(s) unanswered; they will be reported "
-                    "interrupted at the next start", left)
+        log.warning("closing the streams with %d frame(s) still unanswered", left)
     await ctx.hub.going_away(STREAMS_CLOSE_TIMEOUT_S)
 
 
