@@ -106,7 +106,7 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
     try:
         # Answered once the frame is recorded: an accepted frame survives a crash.
         await asyncio.shield(queued)
-    except Problem:
+    except BaseException:  # refused, or the client went away
         runtime.drop_waiter(live, seq)
         raise
     if fut is None:
