@@ -80,7 +80,13 @@ class Writer:
         while True:
             batch, stop = self._take()
             if batch:
-                done = self._write(batch)
+                try:
+                    done = self._write(batch)
+                except Exception as exc:  # noqa: BLE001 - the thread must go on
+                    log.exception("writing a batch of %d items failed", len(batch))
+                    # Nobody waits for ever: records refused, outcomes and barriers settled.
+                    done = [(item, exc if isinstance(item, Accepted) else None)
+                            for item in batch]
                 if self.loop is not None and not self.loop.is_closed():
                     self.loop.call_soon_threadsafe(self.settle, done)
             if stop:
