@@ -165,6 +165,18 @@ def _initial_headings(pairs: list[PairMatches], positions: np.ndarray, K: Intrin
     return theta, height
 
 
+def _unrobust(r: np.ndarray, scale: float) -> np.ndarray:
+    """Residuals whose soft-L1 cost equals their plain squared cost.
+
+    ``least_squares`` applies its robust loss to every residual; the GPS and focal priors
+    must stay quadratic, or a camera far from its tag would count as an outlier and drift.
+    With ``z = (r / scale)^2``, soft-L1 gives ``2 (sqrt(1 + z') - 1)``, which equals ``z``
+    for ``z' = z + z^2 / 4``.
+    """
+    z = (r / scale) ** 2
+    return r * np.sqrt(1.0 + z / 4.0)
+
+
 def _rotations(rvecs: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(rvecs).as_matrix()
 
@@ -180,7 +192,7 @@ def _transfer(Ra, Ca, Rb, Cb, f, c, p):
 
 
 def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes: np.ndarray,
-                      K0: Intrinsics, *, gps_sigma: float = 3.5, alt_sigma: float = 5.0,
+                      K0: Intrinsics, *, gps_sigma: float = 1.0, alt_sigma: float = 5.0,
                       focal_sigma: float = 0.15, robust_px: float = 2.0,
                       max_nfev: int = 100) -> PlaneReconstruction:
     """Bundle-adjust the map cameras over the ground plane (see the module docstring).
@@ -242,7 +254,8 @@ def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes
         r_xy = (C[:, :2] - gps) / gps_sigma * robust_px
         r_z = np.where(has_alt, (C[:, 2] - (alt[cams] - g)) / alt_sigma * robust_px, 0.0)
         r_f = np.array([(x[i_f] - math.log(K0.f)) / focal_sigma * robust_px])
-        out = np.concatenate([ab.ravel(), ba.ravel(), r_xy.ravel(), r_z, r_f])
+        priors = _unrobust(np.concatenate([r_xy.ravel(), r_z, r_f]), robust_px)
+        out = np.concatenate([ab.ravel(), ba.ravel(), priors])
         return np.nan_to_num(out, nan=1e3, posinf=1e3, neginf=-1e3)
 
     n_res = 4 * n_obs + 3 * m + 1
