@@ -37,6 +37,14 @@ class Estimate:
         Time spent in the core for this frame (decoding excluded).
     best_image : int
         Index of the best-matching map image this step (-1 if none).
+    measurement : str
+        What weighed the particles this step: the feature type alone (``"sift"``,
+        ``"global"``), or with a metric position (``"sift+registered"``: a camera pose
+        from the map's geometry; ``"sift+interpolated"``: a match-weighted position
+        between the best map images). Empty means the same as ``feature``.
+    heading_deg, heading_sigma_deg : float or None
+        Compass bearing (degrees clockwise from north) of the top edge of the frame and
+        its standard deviation, where camera geometry gave one this step.
     """
 
     x: float
@@ -52,6 +60,9 @@ class Estimate:
     status: Status
     processing_ms: float
     best_image: int = -1
+    measurement: str = ""
+    heading_deg: float | None = None
+    heading_sigma_deg: float | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)

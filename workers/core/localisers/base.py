@@ -70,7 +70,9 @@ class Localiser(ABC):
 
     def _estimate(self, mean: np.ndarray, cov: np.ndarray, *, feature: str, next_feature: str,
                   n_particles: int, status: Status, processing_ms: float,
-                  best_image: int) -> Estimate:
+                  best_image: int, measurement: str | None = None,
+                  heading: float | None = None,
+                  heading_sigma: float | None = None) -> Estimate:
         lat, lon = self.map.origin.to_wgs84(mean[0], mean[1])
         return Estimate(
             x=float(mean[0]), y=float(mean[1]), lat=float(lat), lon=float(lon),
@@ -78,7 +80,10 @@ class Localiser(ABC):
             sigma_y=float(np.sqrt(max(cov[1, 1], 0.0))),
             cov=(float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 0]), float(cov[1, 1])),
             feature=feature, next_feature=next_feature, n_particles=n_particles,
-            status=status, processing_ms=float(processing_ms), best_image=int(best_image))
+            status=status, processing_ms=float(processing_ms), best_image=int(best_image),
+            measurement=measurement or feature,
+            heading_deg=None if heading is None else float(heading),
+            heading_sigma_deg=None if heading_sigma is None else float(heading_sigma))
 
     def get_state(self) -> bytes:
         """Everything needed to resume bit-for-bit, as bytes."""

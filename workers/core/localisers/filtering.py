@@ -14,6 +14,7 @@ from ..pf.motion import MotionModel
 from ..query import QueryFrame
 from ..sift import SiftFeatures
 from .base import Localiser
+from .refine import Refinement, refine_sift
 from .similarity_models import global_similarity, sift_similarity
 
 TRUST_RATE = 0.3
@@ -97,10 +98,21 @@ class FilterLocaliser(Localiser):
             def similarity(idx: np.ndarray) -> np.ndarray:
                 return sift_similarity(q_sift, self.map, idx, ratio=cfg.sift_ratio,
                                        verify=cfg.sift_verify, reduced=reduced_map)
+        refinement: list[Refinement] = []
+        refine = None
+        if cfg.refine and kind == SIFT:
+            def refine(scored: np.ndarray, sims: np.ndarray):
+                order = np.argsort(-sims, kind="stable")
+                fix = refine_sift(query.sift()[0], self.map, scored[order], sims[order],
+                                  frame_shape=query.frame.grey.shape)
+                if fix is None:
+                    return None
+                refinement.append(fix)
+                return fix.xy, fix.sigma
         t_filter = time.perf_counter()
         every = kind == GLOBAL and (cfg.replacement == "retrieval" or cfg.global_check > 0)
         stats, used, scored, sims = self.pf.step(similarity, dt, all_similarities=every,
-                                                 candidates=candidates)
+                                                 candidates=candidates, refine=refine)
         self._pin()
         filter_ms = (time.perf_counter() - t_filter) * 1e3
         if self.mode == "hybrid" and cfg.global_trust:
@@ -125,9 +137,13 @@ class FilterLocaliser(Localiser):
         if status is Status.TRACKING:
             self.stats["ever_tracked"] = 1
         best = int(scored[np.argmax(sims)]) if len(scored) else -1
+        fix = refinement[0] if refinement else None
         return self._estimate(stats.mean, stats.cov, feature=used, next_feature=self.pf.mode,
                               n_particles=len(self.pf.w), status=status,
-                              processing_ms=feat_ms + filter_ms, best_image=best)
+                              processing_ms=feat_ms + filter_ms, best_image=best,
+                              measurement=used if fix is None else f"{used}+{fix.kind}",
+                              heading=None if fix is None else fix.heading_deg,
+                              heading_sigma=None if fix is None else fix.heading_sigma_deg)
 
     def _judge_global(self, query: QueryFrame, used: str, estimate: np.ndarray) -> float:
         """Update the trust in global features on SIFT steps; veto global while it is low.

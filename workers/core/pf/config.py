@@ -105,6 +105,12 @@ class FilterConfig:
         Particles carry a velocity (constant-velocity motion model).
     resampler : {"multinomial", "systematic"}
         Weiss draws m particles at random by weight: multinomial.
+    refine : bool
+        Metric refinement: solve the frame's camera pose against the best map images
+        (camera geometry where the map has it, a match-weighted position between the best
+        images where it does not) and fuse it as a position measurement. Off in the paper.
+    refine_outlier : float
+        Probability that a refined position is wrong: the floor of its likelihood.
     """
 
     n_particles: int = 300
@@ -129,6 +135,8 @@ class FilterConfig:
     global_trust_level: float = 0.95
     velocity: bool = False
     resampler: str = "multinomial"
+    refine: bool = False
+    refine_outlier: float = 0.1
 
     def __post_init__(self) -> None:
         _check(self)
@@ -159,6 +167,10 @@ def _check(c: FilterConfig) -> None:
         positive("speed", c.speed)
     if not 0.0 <= c.global_trust_level <= 1.0:
         raise ValueError(f"global_trust_level must be in [0, 1], got {c.global_trust_level!r}")
+    if not isinstance(c.refine, bool):
+        raise ValueError(f"refine must be true or false, got {c.refine!r}")
+    if not 0.0 < c.refine_outlier < 1.0:
+        raise ValueError(f"refine_outlier must be in (0, 1), got {c.refine_outlier!r}")
     if not 0.0 <= c.pull < 1.0:
         raise ValueError(f"pull must be in [0, 1), got {c.pull!r}")
     if not 0.0 <= c.replace_fraction < 1.0:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import REFERENCE_SIGMA, FilterConfig
-from .measurement import log_likelihoods, normalise_log
+from .measurement import log_likelihoods, normalise_log, position_log_likelihoods
 from .motion import MotionModel
 from .resampling import RESAMPLERS
 
@@ -29,6 +29,12 @@ GLOBAL = "global"
 
 SimilarityFn = Callable[[np.ndarray], np.ndarray]
 """Map-image indexes (k,) -> similarities (k,) in [0, 1] of the current frame."""
+
+PositionFix = tuple[np.ndarray, float]
+"""A metric position measurement: east/north (2,) and its sigma per axis (m)."""
+
+RefineFn = Callable[[np.ndarray, np.ndarray], "PositionFix | None"]
+"""(scored map images, their similarities) -> a position measurement of the frame, or None."""
 
 
 @dataclass(frozen=True)
@@ -87,6 +93,7 @@ class ParticleFilter:
         self.mode = SIFT
         self.steps = 0
         self.converged = False
+        self.last_fix: PositionFix | None = None
         self.initialise()
 
     # -- state ---------------------------------------------------------------------------
@@ -131,7 +138,8 @@ class ParticleFilter:
     # -- one step ------------------------------------------------------------------------
 
     def step(self, similarity: SimilarityFn, dt: float | None, *,
-             all_similarities: bool = False, candidates: np.ndarray | None = None
+             all_similarities: bool = False, candidates: np.ndarray | None = None,
+             refine: RefineFn | None = None,
              ) -> tuple[CloudStats, str, np.ndarray, np.ndarray]:
         """Run one filter step with the feature type in ``self.mode``.
 
@@ -148,6 +156,10 @@ class ParticleFilter:
         candidates : (c,) int ndarray or None
             Further map images to score besides the particles' nearest ones (e.g. the best
             global matches, shortlisted for SIFT), so replacement particles can start there.
+        refine : callable or None
+            Called with the scored map images and their similarities; a position it
+            returns is fused as a second measurement (:func:`position_log_likelihoods`)
+            and seeds a quarter of the replacement particles. ``self.last_fix`` keeps it.
 
         Returns
         -------
@@ -181,8 +193,17 @@ class ParticleFilter:
             sims = np.asarray(similarity(scored), dtype=np.float64)
             per_particle = sims[np.searchsorted(scored, nearest)]
         power = cfg.global_power if used == GLOBAL else cfg.sift_power
-        w = normalise_log(log_likelihoods(per_particle, dist, power=power,
-                                          scale=self.distance_scale))
+        logw = log_likelihoods(per_particle, dist, power=power, scale=self.distance_scale)
+        self.last_fix = refine(scored, sims) if refine is not None else None
+        if self.last_fix is not None:
+            # Both measurements come from one frame but from different evidence (which
+            # place it looks like; where its camera is): their likelihoods multiply.
+            # Without any similar image the position alone still weighs the particles.
+            base = logw if np.isfinite(logw).any() else np.zeros_like(logw)
+            logw = base + position_log_likelihoods(self.xy, self.last_fix[0],
+                                                   self.last_fix[1],
+                                                   outlier=cfg.refine_outlier)
+        w = normalise_log(logw)
         # No image looked anything like the frame: the measurement says nothing, so the
         # predicted cloud stands with uniform weights.
         self.w = np.full(len(self.xy), 1.0 / len(self.xy)) if w is None else w
@@ -223,6 +244,12 @@ class ParticleFilter:
                 pick = scored[self.rng.choice(len(scored), size=half, p=prob)]
                 new_xy[:half] = self.map_xy[pick] + self.rng.normal(
                     0.0, 0.5 * self.distance_scale, size=(half, 2))
+        if self.last_fix is not None:
+            # Sensor resetting at the measured position: a filter that lost the platform
+            # comes back at once when a pose is solved.
+            quarter = k // 4
+            xy, sigma = self.last_fix
+            new_xy[k - quarter:] = xy + self.rng.normal(0.0, sigma, size=(quarter, 2))
         self.xy[worst] = new_xy
         if self.v is not None:
             self.v[worst] = self._random_velocity(k)

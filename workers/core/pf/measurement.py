@@ -48,3 +48,29 @@ def normalise_log(logw: np.ndarray) -> np.ndarray | None:
         return None
     w = np.exp(logw - top)
     return w / w.sum()
+
+
+def position_log_likelihoods(xy: np.ndarray, position: np.ndarray, sigma: float, *,
+                             outlier: float) -> np.ndarray:
+    """Log-likelihood of a metric position measurement for each particle.
+
+    A Gaussian of ``sigma`` metres per axis around the measured position, mixed with a
+    constant floor: with probability ``outlier`` the measurement is wrong (a pose solved
+    on the wrong place), and then it says nothing about the particle. The floor keeps one
+    bad registration from wiping out a cloud that is right.
+
+    Parameters
+    ----------
+    xy : (m, 2) float ndarray
+        Particle positions.
+    position : (2,) float ndarray
+    sigma : float
+    outlier : float in [0, 1)
+
+    Returns
+    -------
+    (m,) float64 ndarray
+    """
+    d2 = np.sum((np.asarray(xy, np.float64) - np.asarray(position, np.float64)) ** 2, axis=1)
+    gauss = np.exp(-0.5 * d2 / sigma ** 2)
+    return np.log((1.0 - outlier) * gauss + outlier)
