@@ -9,6 +9,10 @@ In: binary messages are frames (JPEG or PNG bytes). A text message
 ``{"type": "frame_meta", "seq": 12, "captured_at": "..."}`` sets the sequence number and
 capture time of the next binary frame; ``{"type": "ping"}`` is answered with ``pong``.
 
+The token comes as ``Authorization: Bearer <token>``, as a subprotocol
+(``Sec-WebSocket-Protocol: vloc, vloc.token.<token>``; the server answers ``vloc``) or,
+for old clients, as ``?token=`` (redacted from the logs).
+
 Close codes: 4401 no token, 4403 wrong token, 4404 unknown session, 1011 the session
 could not be restored, 1013 the client read too slowly.
 """
@@ -29,7 +33,7 @@ from app.context import AppContext
 from app.imagecheck import check_image
 from app.limits import too_large
 from app.problems import Problem
-from app.security import matches, presented_secret
+from app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
 from app.sessions.runtime import LiveSession
 from app.stream.hub import CLOSED, OVERFLOW, Subscription
 
@@ -46,7 +50,8 @@ class FrameMeta(BaseModel):
 async def stream(websocket: WebSocket, session_id: str) -> None:
     ctx: AppContext = websocket.app.state.ctx
     secret = presented_secret(websocket)
-    await websocket.accept()
+    offered = websocket.scope.get("subprotocols", ())
+    await websocket.accept(subprotocol=TOKEN_SUBPROTOCOL if TOKEN_SUBPROTOCOL in offered else None)
     live = await _authorise(websocket, ctx, session_id, secret)
     if live is None:
         return
@@ -70,7 +75,7 @@ async def stream(websocket: WebSocket, session_id: str) -> None:
 async def _authorise(websocket: WebSocket, ctx: AppContext, session_id: str,
                      secret: str | None) -> LiveSession | None:
     if secret is None:
-        await websocket.close(4401, "a session token is required (?token=...)")
+        await websocket.close(4401, "a session token is required (Authorization: Bearer)")
         return None
     try:
         live = await ctx.runtime.get(uuid.UUID(session_id))

@@ -29,7 +29,7 @@ def test_metrics_count_requests_by_route_template(module_client):
     c = module_client
     for _ in range(3):
         c.get("/v1/maps/00000000-0000-0000-0000-000000000000", headers=ADMIN)
-    text = c.get("/metrics").text
+    text = c.get("/metrics", headers=ADMIN).text
     line = next(ln for ln in text.splitlines() if ln.startswith(
         'vloc_http_requests_total{method="GET",route="/v1/maps/{map_id}",status="404"}'))
     assert float(line.split()[-1]) >= 3
