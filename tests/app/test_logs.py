@@ -66,7 +66,8 @@ def configured():
 
 def test_our_handler_redacts_messages_and_fields(configured):
     out = io.StringIO()
-    (handler,) = logging.getLogger("vloc").handlers
+    (handler,) = [h for h in logging.getLogger("vloc").handlers
+                  if any(isinstance(f, logs.RedactSecrets) for f in h.filters)]
     handler.setStream(out)
     logging.getLogger("vloc.test").info("client sent %s", f"Bearer {TOKEN}",
                                         extra={"url": f"/a?token={TOKEN}"})
