@@ -17,11 +17,11 @@ from app.problems import Problem
 from app.sessions import service
 from app.sessions.dependencies import LiveSessionDep, SessionDep
 from app.sessions.models import LocalisationSession
+from app.sessions.params import SessionCreate
 from app.sessions.schemas import (
     FrameAccepted,
     InitialPose,
     PoseEstimate,
-    SessionCreate,
     SessionCreated,
     SessionRead,
 )

@@ -10,15 +10,6 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field, model_validator
 
 
-class SessionCreate(BaseModel):
-    map_id: uuid.UUID
-    mode: str = Field("hybrid", description="hybrid, global, sift, hierarchical or retrieval")
-    params: dict[str, Any] = Field(default_factory=dict,
-                                   description="Localiser parameters; defaults filled in")
-    seed: int | None = Field(None, ge=0, lt=2**63,
-                             description="Random seed (or params.seed); random when unset")
-
-
 class SessionStats(BaseModel):
     sift_share: float | None = Field(description="Share of estimates that used SIFT")
     latency_ms_p50: float | None

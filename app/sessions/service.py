@@ -14,8 +14,9 @@ from app.maps.models import Map
 from app.problems import Problem, not_found
 from app.security import hash_secret, new_token
 from app.sessions.models import LocalisationSession, Pose
+from app.sessions.params import SessionCreate
 from app.sessions.runtime import SessionRuntime
-from app.sessions.schemas import PoseEstimate, SessionCreate, SessionRead, SessionStats
+from app.sessions.schemas import PoseEstimate, SessionRead, SessionStats
 from workers.engine import WorkerDied
 
 LATENCY_WINDOW = 1000
@@ -23,7 +24,7 @@ LATENCY_WINDOW = 1000
 
 
 def resolve_seed(body: SessionCreate) -> int:
-    given = body.params.get("seed")
+    given = body.params.seed
     if given is not None and body.seed is not None and given != body.seed:
         raise Problem(422, f"seed {body.seed} and params.seed {given} disagree",
                       kind="bad-params")
@@ -38,7 +39,8 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
     The engine may take a while (the worker loads the map, it may be busy with frames);
     nothing holds a database connection or a request thread while it does.
     """
-    row, token = await asyncio.to_thread(_plan, db_sessions, body)
+    row, token = await asyncio.to_thread(_plan, db_sessions, body,
+                                         runtime.settings.max_sessions)
     try:
         await runtime.open_new(row)
     except ValueError as exc:
@@ -55,11 +57,17 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
     return read, token
 
 
-def _plan(db_sessions: sessionmaker[Session],
-          body: SessionCreate) -> tuple[LocalisationSession, str]:
+def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
+          max_sessions: int) -> tuple[LocalisationSession, str]:
     from workers.core.localisers import validate_params
 
     with db_sessions() as db:
+        existing = db.scalar(select(func.count(LocalisationSession.id)))
+        if existing >= max_sessions:
+            raise Problem(429, f"{existing} sessions exist, the most this server keeps "
+                          f"(VLOC_MAX_SESSIONS); delete finished sessions first",
+                          kind="too-many-sessions", headers={"Retry-After": "60"},
+                          max_sessions=max_sessions)
         map_ = db.get(Map, body.map_id)
         if map_ is None:
             raise not_found("map", body.map_id)
@@ -68,7 +76,7 @@ def _plan(db_sessions: sessionmaker[Session],
                           kind="map-not-built")
         map_id, revision = map_.id, map_.revision
     try:
-        params = validate_params(body.mode, body.params)
+        params = validate_params(body.mode, body.given_params())
     except ValueError as exc:
         raise Problem(422, str(exc), kind="bad-params") from None
     seed = resolve_seed(body)

@@ -62,5 +62,5 @@ def test_openapi_documents_the_routes(module_client):
         assert path in paths, path
     frames = paths["/v1/sessions/{session_id}/frames"]["post"]
     assert set(frames["requestBody"]["content"]) == {"image/jpeg", "image/png"}
-    assert {"MapCreate", "MapRead", "SessionCreate", "PoseEstimate"} <= set(
+    assert {"MapCreate", "MapRead", "FilterSessionCreate", "PoseEstimate"} <= set(
         spec["components"]["schemas"])

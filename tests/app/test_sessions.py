@@ -63,9 +63,9 @@ def test_seed_from_params_and_random_seed(service):
 
 
 BAD_CREATES = {
-    "unknown-mode": ({"mode": "teleport"}, 422, "bad-params"),
-    "bad-param": ({"params": {"n_particles": -3}}, 422, "bad-params"),
-    "unknown-param": ({"mode": "retrieval", "params": {"bogus": 1}}, 422, "bad-params"),
+    "unknown-mode": ({"mode": "teleport"}, 422, "validation"),
+    "bad-param": ({"params": {"n_particles": -3}}, 422, "validation"),
+    "unknown-param": ({"mode": "retrieval", "params": {"bogus": 1}}, 422, "validation"),
     "seeds-disagree": ({"params": {"seed": 1}, "seed": 2}, 422, "bad-params"),
     "negative-seed": ({"seed": -1}, 422, "validation"),
     "unknown-map": ({"map_id": str(uuid.uuid4())}, 404, "not-found"),
