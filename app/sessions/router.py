@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from datetime import UTC, datetime
+from datetime import datetime
 
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
@@ -12,7 +12,6 @@ from fastapi.responses import JSONResponse
 from app.deps import Ctx, DbSession, require_admin
 from app.imagecheck import check_image, kind_of_content_type
 from app.limits import too_large
-from app.maps.service import check_position
 from app.problems import Problem
 from app.sessions import service
 from app.sessions.dependencies import LiveSessionDep, SessionDep
@@ -25,6 +24,7 @@ from app.sessions.schemas import (
     SessionCreated,
     SessionRead,
 )
+from app.validation import check_captured_at, check_position
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
@@ -76,7 +76,8 @@ def list_poses(row: SessionDep, db: DbSession,
 async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
                      seq: int | None = Query(None, ge=0, lt=2**62),
                      captured_at: datetime | None = Query(
-                         None, description="ISO 8601 or seconds since the epoch"),
+                         None, description="ISO 8601 or seconds since the epoch; from 1990 "
+                                           "to one day from now"),
                      wait: bool = Query(False, description="Answer with the estimate")):
     """Queue one frame (the raw image is the body); its estimate goes to the stream."""
     t0 = time.perf_counter()
@@ -84,14 +85,13 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
     if declared is None:
         raise Problem(415, "send the frame as the raw body with Content-Type image/jpeg or "
                       "image/png", kind="unsupported-media-type")
-    data = await _read_body(request, ctx.settings.max_frame_bytes)
     try:
+        captured = check_captured_at(captured_at)
+        data = await _read_body(request, ctx.settings.max_frame_bytes)
         check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
         raise
-    captured = captured_at.replace(tzinfo=UTC) if captured_at is not None \
-        and captured_at.tzinfo is None else captured_at
     runtime = ctx.runtime
     seq = runtime.accept(live, data, seq=seq, captured_at=captured, t0=t0)
     if not wait:

@@ -24,7 +24,7 @@ import contextlib
 import json
 import time
 import uuid
-from datetime import UTC, datetime
+from datetime import datetime
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ValidationError
@@ -36,6 +36,7 @@ from app.problems import Problem
 from app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
 from app.sessions.runtime import LiveSession
 from app.stream.hub import CLOSED, OVERFLOW, Subscription
+from app.validation import check_captured_at
 
 router = APIRouter(tags=["stream"])
 
@@ -127,9 +128,7 @@ def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: bytes,
         if len(data) > ctx.settings.max_frame_bytes:
             raise too_large(ctx.settings.max_frame_bytes)
         check_image(data, max_pixels=ctx.settings.max_pixels)
-        captured = meta.captured_at
-        if captured is not None and captured.tzinfo is None:
-            captured = captured.replace(tzinfo=UTC)
+        captured = check_captured_at(meta.captured_at)
         ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured, t0=t0)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
