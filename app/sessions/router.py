@@ -120,6 +120,10 @@ async def reset(live: LiveSessionDep, ctx: Ctx) -> SessionRead:
 @router.post("/{session_id}/initial-pose", response_model=SessionRead)
 async def set_initial_pose(body: InitialPose, live: LiveSessionDep, ctx: Ctx) -> SessionRead:
     """Start the filter around a known position (as AMCL's initial pose)."""
+    spec = live.spec
+    frame = await asyncio.to_thread(service.map_frame, spec.map_folder, spec.map_id,
+                                    spec.revision)
+    service.check_initial_pose(frame, body)
     if body.lat is not None:
         check_position(body.lat, body.lon, None)
         args = {"lat": body.lat, "lon": body.lon}

@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import math
 import secrets
+from dataclasses import dataclass
+from functools import lru_cache
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
@@ -16,11 +18,59 @@ from app.security import hash_secret, new_token
 from app.sessions.models import LocalisationSession, Pose
 from app.sessions.params import SessionCreate
 from app.sessions.runtime import SessionRuntime
-from app.sessions.schemas import PoseEstimate, SessionRead, SessionStats
+from app.sessions.schemas import InitialPose, PoseEstimate, SessionRead, SessionStats
+from workers.core.geo import GeoOrigin
 from workers.engine import WorkerDied
 
 LATENCY_WINDOW = 1000
 """Latency percentiles are over the session's most recent estimates."""
+INITIAL_POSE_MARGIN_M = 100.0
+"""How far outside the map images' bounding box an initial pose may lie."""
+
+
+@dataclass(frozen=True, slots=True)
+class MapFrame:
+    """The local frame and extent of one packed map revision."""
+
+    origin: GeoOrigin
+    extent: tuple[float, float, float, float]
+    """(min_east, min_north, max_east, max_north), metres."""
+
+
+@lru_cache(maxsize=64)
+def map_frame(folder: str, map_id: str, revision: int) -> MapFrame:
+    """Read a packed revision's frame (revisions never change once packed).
+
+    Raises Problem 503 ``map-revision-missing``, without the data directory's path, when
+    the revision's files are gone.
+    """
+    from workers.core.mapdata import MapData
+
+    try:
+        data = MapData.load(folder)
+    except FileNotFoundError:
+        raise revision_missing(map_id, revision) from None
+    return MapFrame(data.origin, data.extent)
+
+
+def revision_missing(map_id: str, revision: int) -> Problem:
+    return Problem(503, f"the files of map {map_id} revision {revision} are missing from "
+                   "the data directory; restore them or rebuild the map",
+                   kind="map-revision-missing")
+
+
+def check_initial_pose(frame: MapFrame, pose: InitialPose) -> None:
+    """422 ``bad-initial-pose`` for a position outside the extent plus the margin."""
+    if pose.lat is not None:
+        east, north = (float(v) for v in frame.origin.to_local(pose.lat, pose.lon))
+    else:
+        east, north = pose.x, pose.y
+    e0, n0, e1, n1 = frame.extent
+    m = INITIAL_POSE_MARGIN_M
+    if not (e0 - m <= east <= e1 + m and n0 - m <= north <= n1 + m):
+        raise Problem(422, f"the initial pose ({east:.1f} m east, {north:.1f} m north) lies "
+                      f"outside the map's extent ({e0:.1f}..{e1:.1f} m east, "
+                      f"{n0:.1f}..{n1:.1f} m north) plus {m:g} m", kind="bad-initial-pose")
 
 
 def resolve_seed(body: SessionCreate) -> int:
