@@ -17,7 +17,7 @@ from app.problems import Problem, not_found
 from app.security import hash_secret, new_token
 from app.sessions.models import LocalisationSession, Pose
 from app.sessions.params import SessionCreate
-from app.sessions.runtime import SessionRuntime
+from app.sessions.runtime import SessionRuntime, revision_missing
 from app.sessions.schemas import InitialPose, PoseEstimate, SessionRead, SessionStats
 from workers.core.geo import GeoOrigin
 from workers.engine import WorkerDied
@@ -51,12 +51,6 @@ def map_frame(folder: str, map_id: str, revision: int) -> MapFrame:
     except FileNotFoundError:
         raise revision_missing(map_id, revision) from None
     return MapFrame(data.origin, data.extent)
-
-
-def revision_missing(map_id: str, revision: int) -> Problem:
-    return Problem(503, f"the files of map {map_id} revision {revision} are missing from "
-                   "the data directory; restore them or rebuild the map",
-                   kind="map-revision-missing")
 
 
 def check_initial_pose(frame: MapFrame, pose: InitialPose) -> None:
