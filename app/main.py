@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from app import logs, problems
+from app import logs, openapi, problems
 from app.config import Settings, ensure_admin_key, private_dir
 from app.context import AppContext
 from app.db import make_engine, make_session_factory
@@ -59,6 +59,7 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     problems.install(app)
     for router in (health_router, maps_router, jobs_router, sessions_router, stream_router):
         app.include_router(router)
+    openapi.install(app)
     app.add_middleware(EdgeGate)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(logs.RequestLogMiddleware)

@@ -48,7 +48,7 @@ def list_images(map_: MapDep, db: DbSession) -> list[MapImage]:
 
 @router.delete("/{map_id}/images/{image_id}", status_code=204)
 def delete_image(map_: MapDep, db: DbSession, settings: SettingsDep,
-                 image_id: int = Path(ge=1, le=2**63 - 1)) -> Response:
+                 image_id: int = Path(ge=1, lt=2**63)) -> Response:
     """Delete one image (its features and file); the next build leaves it out."""
     service.delete_image(db, map_=map_, image_id=image_id, settings=settings)
     return Response(status_code=204)
@@ -58,7 +58,8 @@ def delete_image(map_: MapDep, db: DbSession, settings: SettingsDep,
              responses={413: {"description": "Too large"}, 415: {"description": "Not an image"},
                         422: {"description": "No file accepted"}})
 async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: ImageVerifier,
-                     files: list[UploadFile] = File(description="JPEG/PNG map images"),
+                     files: list[UploadFile] = File(min_length=1,
+                                                    description="JPEG/PNG map images"),
                      lat: float | None = Form(None, ge=-90, le=90, allow_inf_nan=False,
                                               description="Only with a single file"),
                      lon: float | None = Form(None, ge=-180, le=180, allow_inf_nan=False,

@@ -16,8 +16,9 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
 
-MAX_SEED = 2**63 - 1
-"""Seeds are stored in a signed 64-bit column."""
+SEED_BOUND = 2**63
+"""Seeds are stored in a signed 64-bit column: below 2**63 (an exclusive bound, which a
+JSON number states exactly where 2**63 - 1 is rounded up)."""
 
 FilterConfigName = Literal["default", "weiss2008"]
 FeatureName = Literal["grid_hist", "wgoh", "wgii", "wgii2", "wgii2_sparse", "hue_hist"]
@@ -39,7 +40,7 @@ class _Params(BaseModel):
     model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False,
                               json_schema_extra=_no_defaults)
 
-    seed: int = _unset(ge=0, le=MAX_SEED, description="Random seed (as the body's seed)")
+    seed: int = _unset(ge=0, lt=SEED_BOUND, description="Random seed (as the body's seed)")
 
 
 class FilterParams(_Params):
@@ -91,7 +92,7 @@ class HierarchicalParams(_Params):
 
 class _SessionCreate(BaseModel):
     map_id: uuid.UUID
-    seed: int | None = Field(None, ge=0, le=MAX_SEED, strict=True,
+    seed: int | None = Field(None, ge=0, lt=SEED_BOUND, strict=True,
                              description="Random seed (or params.seed); random when unset")
 
     def given_params(self) -> dict:
