@@ -235,3 +235,25 @@ def test_data_dir_and_sqlite_file_are_private(tmp_path):
     assert stat.S_IMODE(db.stat().st_mode) == 0o600
     for extra in data.glob("vloc.sqlite3-*"):
         assert stat.S_IMODE(extra.stat().st_mode) & 0o077 == 0
+
+
+def test_the_gate_policies_match_the_documented_security(edge_client):
+    """The gate's path table and the routes' own security dependencies (as the OpenAPI
+    description states them) agree on every operation."""
+    import re
+
+    from app.edge import Access, policy_for
+
+    expected = {frozenset(): Access.PUBLIC,
+                frozenset({"adminKey", "adminApiKey"}): Access.ADMIN,
+                frozenset({"sessionToken", "adminKey", "adminApiKey"}): Access.SESSION}
+    spec = edge_client.get("/openapi.json").json()
+    checked = 0
+    for path, operations in spec["paths"].items():
+        concrete = re.sub(r"\{[^}]+\}", "00000000-0000-0000-0000-000000000001", path)
+        for method, operation in operations.items():
+            schemes = frozenset(name for req in operation.get("security", []) for name in req)
+            policy, _ = policy_for(method.upper(), concrete)
+            assert policy.access is expected[schemes], (method, path)
+            checked += 1
+    assert checked >= 19
