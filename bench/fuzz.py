@@ -64,7 +64,8 @@ def run_fuzz(max_examples: int, *, seed: int = 1, phases: str | None = None,
             if phases:
                 cmd += ["--phases", phases]
             t0 = time.perf_counter()
-            done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True,
+            # In the temporary directory: Schemathesis keeps its caches in the working one.
+            done = subprocess.run(cmd, cwd=tmp, capture_output=True, text=True,
                                   env={**os.environ, "COLUMNS": "120"})
             seconds = time.perf_counter() - t0
         finally:
