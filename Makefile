@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench eval-seneca lint clean
+.PHONY: demo test bench fuzz eval-seneca lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -25,6 +25,10 @@ test: $(STAMP)
 ## bench: stage timings and the paper experiments (long; writes bench/results/)
 bench: $(STAMP)
 	$(BIN)/python bench/run_all.py
+
+## fuzz: Schemathesis with every check against a real server (writes bench/results/fuzz.txt)
+fuzz: $(STAMP)
+	$(BIN)/python bench/fuzz.py --max-examples 200 --out bench/results/fuzz.txt
 
 ## eval-seneca: the real-data evaluation (needs ../shared/datasets/seneca-uav)
 eval-seneca: $(STAMP)

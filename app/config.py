@@ -36,6 +36,7 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(25 * 2**20, gt=0, description="Largest map image file.")
     max_files_per_upload: int = Field(200, gt=0)
     max_frame_bytes: int = Field(8 * 2**20, gt=0, description="Largest frame body.")
+    max_json_bytes: int = Field(2**20, gt=0, description="Largest JSON (or empty) body.")
     max_pixels: int = Field(50_000_000, gt=0, description="Decompression-bomb guard.")
     max_pending_frames: int = Field(
         64, gt=0, description="Frames a session may have queued before 429.")
@@ -49,6 +50,9 @@ class Settings(BaseSettings):
         default_factory=socket.gethostname, min_length=1, max_length=255,
         description="This server among those sharing a database: frames it left queued "
                     "are reported interrupted when it starts again.")
+    max_sessions: int = Field(100, gt=0, description="Sessions that may exist at once.")
+    metrics_token: str | None = Field(
+        None, min_length=16, description="Bearer token for /metrics (the admin key works too).")
 
     auto_migrate: bool = Field(True, description="Run Alembic migrations at start-up.")
     log_level: str = "INFO"
@@ -75,7 +79,7 @@ class Settings(BaseSettings):
 
     @property
     def request_limit_bytes(self) -> int:
-        """Largest request body of any kind: a full upload batch plus multipart overhead."""
+        """Largest map-image upload body: a full batch of files plus multipart overhead."""
         return self.max_upload_bytes * min(self.max_files_per_upload, 8) + 2**20
 
     def images_dir(self, map_id: str) -> Path:
@@ -84,6 +88,13 @@ class Settings(BaseSettings):
     def packed_map_dir(self, map_id: str, revision: int) -> Path:
         """Where the memory-mappable :class:`~workers.core.mapdata.MapData` of a build lives."""
         return self.data_dir / "maps" / map_id / f"rev-{revision:06d}"
+
+
+def private_dir(path: Path) -> None:
+    """Create ``path`` readable by this user alone (0700), or make it so when it is ours."""
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if path.stat().st_uid == os.getuid() and path.stat().st_mode & 0o077:
+        path.chmod(0o700)
 
 
 def ensure_admin_key(settings: Settings, *, announce=None) -> str:
@@ -97,7 +108,7 @@ def ensure_admin_key(settings: Settings, *, announce=None) -> str:
     path = settings.data_dir / ADMIN_KEY_FILE
     if path.exists():
         return path.read_text().strip()
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    private_dir(settings.data_dir)
     key = secrets.token_urlsafe(32)
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     with os.fdopen(fd, "w") as f:

@@ -7,6 +7,7 @@ decoding happens in the workers.
 
 from __future__ import annotations
 
+import re
 import warnings
 from dataclasses import dataclass
 from io import BytesIO
@@ -101,7 +102,18 @@ def _header_size(data: bytes, max_pixels: int) -> tuple[int, int]:
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
         if "truncated" in str(exc).lower() or isinstance(exc, EOFError):
             raise Problem(422, "the image is truncated", kind="truncated-image") from None
-        raise Problem(422, f"the image header is unreadable: {exc}", kind="bad-image") from None
+        raise Problem(422, f"the image header is unreadable: {_describe(exc)}",
+                      kind="bad-image") from None
+
+
+def _describe(exc: Exception) -> str:
+    """Pillow's message without the repr of our in-memory file (``<_io.BytesIO ...>``)."""
+    if isinstance(exc, UnidentifiedImageError):
+        return "not an image Pillow can identify"
+    return _OBJECT_REPR.sub("the image", str(exc)) or type(exc).__name__
+
+
+_OBJECT_REPR = re.compile(r"<[^<>]*\bobject at 0x[0-9a-fA-F]+>")
 
 
 def _truncated(data: bytes, kind: str) -> bool:

@@ -1,10 +1,22 @@
-"""Request-body size limits, enforced while the body arrives (not after it is stored)."""
+"""Request-body size limits, one per kind of body.
+
+Map-image uploads and frames have their own limits; every other route takes a small JSON
+body or none. :class:`app.edge.EdgeGate` enforces them while the body arrives, before
+FastAPI reads any of it.
+"""
 
 from __future__ import annotations
 
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from enum import Enum
 
-from app.problems import Problem, problem_response
+from app.config import Settings
+from app.problems import Problem
+
+
+class BodyKind(Enum):
+    JSON = "json"
+    UPLOAD = "upload"
+    FRAME = "frame"
 
 
 def too_large(limit: int) -> Problem:
@@ -12,37 +24,10 @@ def too_large(limit: int) -> Problem:
                    limit=limit)
 
 
-class BodySizeLimitMiddleware:
-    """Refuse bodies over ``limit`` bytes: by Content-Length up front, else while streaming."""
-
-    def __init__(self, app: ASGIApp, limit: int) -> None:
-        self.app = app
-        self.limit = limit
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        for key, value in scope.get("headers", ()):
-            if key == b"content-length":
-                try:
-                    declared = int(value)
-                except ValueError:
-                    declared = -1
-                if declared > self.limit or declared < 0:
-                    problem = too_large(self.limit) if declared > self.limit else Problem(
-                        400, "invalid Content-Length header", kind="bad-request")
-                    await problem_response(problem, scope["path"])(scope, receive, send)
-                    return
-        seen = 0
-
-        async def counted() -> Message:
-            nonlocal seen
-            message = await receive()
-            if message["type"] == "http.request":
-                seen += len(message.get("body", b""))
-                if seen > self.limit:
-                    raise too_large(self.limit)
-            return message
-
-        await self.app(scope, counted, send)
+def body_limit(kind: BodyKind, settings: Settings) -> int:
+    """Largest body in bytes: ``VLOC_MAX_JSON_BYTES``, the frame limit or the upload batch."""
+    if kind is BodyKind.UPLOAD:
+        return settings.request_limit_bytes
+    if kind is BodyKind.FRAME:
+        return settings.max_frame_bytes
+    return settings.max_json_bytes

@@ -1,9 +1,15 @@
-"""Structured logs: one JSON object per line, with a request id on request lines."""
+"""Structured logs: one JSON object per line, with a request id on request lines.
+
+Secrets never reach a log: :class:`RedactSecrets` rewrites ``?token=...`` in URLs, bearer
+credentials and ``vloc.token.`` subprotocols in every record our handler writes and every
+record of uvicorn's loggers (whose WebSocket lines carry the request's full path).
+"""
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
 import time
 import uuid
@@ -14,6 +20,50 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 _STANDARD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime"}
 
 access_log = logging.getLogger("vloc.access")
+
+REDACTED = "[redacted]"
+_SECRETS = (
+    re.compile(r"(?i)([?&](?:token|access_token|api_key|key)=)[^&\s\"'#]+"),
+    re.compile(r"(?i)(\bbearer\s+)[^\s\"',]+"),
+    re.compile(r"(?i)(\bx-api-key:\s*)[^\s\"',]+"),
+    re.compile(r"(vloc\.token\.)[^\s\"',]+"),
+)
+
+
+def redact(text: str) -> str:
+    """``text`` with every credential it carries replaced by ``[redacted]``."""
+    for pattern in _SECRETS:
+        text = pattern.sub(r"\1" + REDACTED, text)
+    return text
+
+
+def _redact_value(value):
+    return redact(value) if isinstance(value, str) else value
+
+
+class RedactSecrets(logging.Filter):
+    """Redacts the message, its arguments (kept in place: uvicorn's formatters unpack
+    them) and the string fields of a record."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str):
+            record.msg = redact(record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(_redact_value(a) for a in record.args)
+        elif isinstance(record.args, dict):
+            record.args = {k: _redact_value(v) for k, v in record.args.items()}
+        for key, value in list(vars(record).items()):
+            if key not in _STANDARD and isinstance(value, str):
+                setattr(record, key, redact(value))
+        return True
+
+
+def redact_uvicorn() -> None:
+    """Put the filter on uvicorn's own loggers, whatever handlers they write to."""
+    for name in ("uvicorn.access", "uvicorn.error"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, RedactSecrets) for f in logger.filters):
+            logger.addFilter(RedactSecrets())
 
 
 class JsonFormatter(logging.Formatter):
@@ -34,6 +84,7 @@ class JsonFormatter(logging.Formatter):
 def configure(level: str = "INFO", *, json_lines: bool = True) -> None:
     """Send the service's and uvicorn's logs to stderr in one format."""
     handler = logging.StreamHandler(sys.stderr)
+    handler.addFilter(RedactSecrets())
     handler.setFormatter(JsonFormatter() if json_lines else logging.Formatter(
         "%(asctime)s %(levelname)s %(name)s: %(message)s"))
     for name in ("vloc", "app", "workers", "uvicorn", "uvicorn.error"):

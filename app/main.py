@@ -9,14 +9,14 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from app import logs, problems
-from app.config import Settings, ensure_admin_key
+from app import logs, openapi, problems
+from app.config import Settings, ensure_admin_key, private_dir
 from app.context import AppContext
 from app.db import make_engine, make_session_factory
+from app.edge import EdgeGate
 from app.health.router import router as health_router
 from app.jobs.router import router as jobs_router
 from app.jobs.service import BuildRunner, fail_interrupted
-from app.limits import BodySizeLimitMiddleware
 from app.maps.router import router as maps_router
 from app.metrics import Metrics, MetricsMiddleware
 from app.security import hash_secret
@@ -38,7 +38,8 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     settings = settings or Settings()
     if configure_logging:
         logs.configure(settings.log_level, json_lines=settings.log_json)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    logs.redact_uvicorn()
+    private_dir(settings.data_dir)
     db_engine = make_engine(settings.resolved_database_url)
     db_sessions = make_session_factory(db_engine)
     metrics = Metrics()
@@ -60,8 +61,8 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     problems.install(app)
     for router in (health_router, maps_router, jobs_router, sessions_router, stream_router):
         app.include_router(router)
-    app.add_middleware(BodySizeLimitMiddleware,
-                       limit=max(settings.request_limit_bytes, settings.max_frame_bytes))
+    openapi.install(app)
+    app.add_middleware(EdgeGate)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(logs.RequestLogMiddleware)
     return app

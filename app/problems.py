@@ -8,6 +8,7 @@ Starlette's 404/405 are rewritten into the same shape.
 from __future__ import annotations
 
 import logging
+import re
 from http import HTTPStatus
 
 from fastapi import FastAPI, Request
@@ -68,6 +69,30 @@ def not_found(what: str, ident: object) -> Problem:
     return Problem(404, f"{what} {ident} does not exist", kind="not-found")
 
 
+def allowed_methods(request: Request) -> list[str] | None:
+    """Every method the OpenAPI description gives the request's path, None for a path it
+    does not describe.
+
+    One path may be served by several routes, and Starlette's 405 names only the methods
+    of the first of them.
+    """
+    templates = getattr(request.app.state, "path_methods", None)
+    if templates is None:
+        templates = []
+        for path, operations in request.app.openapi()["paths"].items():
+            pattern = re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(path))
+            templates.append((re.compile(f"^{pattern}$"),
+                              sorted(m.upper() for m in operations if m in _HTTP_METHODS)))
+        request.app.state.path_methods = templates
+    for pattern, methods in templates:
+        if pattern.match(request.url.path):
+            return methods
+    return None
+
+
+_HTTP_METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "trace"}
+
+
 def install(app: FastAPI) -> None:
     """Register the handlers that turn every error into a problem response."""
 
@@ -78,9 +103,13 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         detail = exc.detail if isinstance(exc.detail, str) else HTTPStatus(exc.status_code).phrase
+        headers = exc.headers
         if exc.status_code == 404 and detail == "Not Found":
             detail = f"no route {request.method} {request.url.path}"
-        return problem_response(Problem(exc.status_code, detail, headers=exc.headers),
+        if exc.status_code == 405 and (allowed := allowed_methods(request)):
+            headers = {**(headers or {}), "Allow": ", ".join(allowed)}
+            detail = f"{request.method} is not allowed here; use {', '.join(allowed)}"
+        return problem_response(Problem(exc.status_code, detail, headers=headers),
                                 request.url.path)
 
     @app.exception_handler(RequestValidationError)

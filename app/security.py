@@ -25,18 +25,40 @@ def matches(secret: str | None, expected_hash: str) -> bool:
     return hmac.compare_digest(hash_secret(secret), expected_hash)
 
 
+TOKEN_SUBPROTOCOL = "vloc"
+"""The WebSocket subprotocol the stream speaks; ``vloc.token.<token>`` beside it carries
+the token where a client cannot set headers (browsers)."""
+_TOKEN_PREFIX = TOKEN_SUBPROTOCOL + ".token."
+
+
 def presented_secret(conn: HTTPConnection) -> str | None:
-    """``Authorization: Bearer <secret>``, else ``X-API-Key``, else ``?token=`` (WebSocket)."""
-    auth = conn.headers.get("authorization")
+    """The credentials of a request or WebSocket handshake, None when there are none.
+
+    ``Authorization: Bearer <secret>``, else ``X-API-Key``; a WebSocket also takes a
+    ``Sec-WebSocket-Protocol`` of ``vloc, vloc.token.<token>`` and, last, ``?token=``
+    (kept for old clients; access logs redact it, see :mod:`app.logs`).
+    """
+    secret = presented_secret_from_headers(conn.scope)
+    if secret is not None or conn.scope["type"] != "websocket":
+        return secret
+    for protocol in conn.scope.get("subprotocols", ()):
+        if protocol.startswith(_TOKEN_PREFIX) and len(protocol) > len(_TOKEN_PREFIX):
+            return protocol[len(_TOKEN_PREFIX):]
+    return conn.query_params.get("token") or None
+
+
+def presented_secret_from_headers(scope) -> str | None:
+    """``Authorization: Bearer <secret>``, else ``X-API-Key``, from an ASGI scope."""
+    auth = key = None
+    for name, value in scope.get("headers", ()):
+        if name == b"authorization" and auth is None:
+            auth = value.decode("latin-1")
+        elif name == b"x-api-key" and key is None:
+            key = value.decode("latin-1")
     if auth:
         scheme, _, value = auth.partition(" ")
         if scheme.lower() == "bearer" and value.strip():
             return value.strip()
-    key = conn.headers.get("x-api-key")
-    if key:
+    if key and key.strip():
         return key.strip()
-    # Browsers cannot set headers on a WebSocket handshake, so the stream also takes the
-    # token from the query; HTTP routes do not, to keep tokens out of access logs.
-    if conn.scope["type"] == "websocket":
-        return conn.query_params.get("token") or None
     return None

@@ -85,7 +85,8 @@ async def one_session(http, ws_base, map_id, seed, frames, stamps, out: list) ->
     r.raise_for_status()
     sid, token = r.json()["id"], r.json()["token"]
     headers = {"Authorization": f"Bearer {token}", "Content-Type": "image/jpeg"}
-    async with connect(f"{ws_base}/v1/sessions/{sid}/stream?token={token}",
+    async with connect(f"{ws_base}/v1/sessions/{sid}/stream",
+                       additional_headers={"Authorization": f"Bearer {token}"},
                        max_size=2**24) as ws:
         json.loads(await ws.recv())  # hello
         for data, stamp in zip(frames, stamps, strict=True):

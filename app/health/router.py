@@ -1,12 +1,13 @@
-"""``/healthz`` (the process answers), ``/readyz`` (database and workers), ``/metrics``."""
+"""``/healthz`` (the process answers), ``/readyz`` (database and workers), ``/metrics``
+(the admin key or ``VLOC_METRICS_TOKEN``)."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Depends, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
-from app.deps import Ctx
+from app.deps import Ctx, require_metrics
 from app.problems import Problem
 
 router = APIRouter(tags=["health"])
@@ -32,7 +33,7 @@ def readyz(ctx: Ctx) -> dict:
             "workers": ctx.engine.n_workers}
 
 
-@router.get("/metrics", include_in_schema=False)
+@router.get("/metrics", include_in_schema=False, dependencies=[Depends(require_metrics)])
 def metrics(ctx: Ctx) -> Response:
     m = ctx.metrics
     m.workers_alive.set(ctx.engine.alive_count())

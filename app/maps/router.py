@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Path, Response, UploadFile
 
 from app.deps import Ctx, DbSession, SettingsDep, require_admin
 from app.jobs.service import start_build
@@ -13,6 +13,7 @@ from app.maps.dependencies import ImageVerifier, MapDep, parse_id
 from app.maps.models import MapImage
 from app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
 from app.problems import Problem
+from app.validation import MAX_ALT_M, MIN_ALT_M, aware
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(require_admin)])
 
@@ -45,21 +46,35 @@ def list_images(map_: MapDep, db: DbSession) -> list[MapImage]:
     return service.list_images(db, map_=map_)
 
 
+@router.delete("/{map_id}/images/{image_id}", status_code=204)
+def delete_image(map_: MapDep, db: DbSession, settings: SettingsDep,
+                 image_id: int = Path(ge=1, lt=2**63)) -> Response:
+    """Delete one image (its features and file); the next build leaves it out."""
+    service.delete_image(db, map_=map_, image_id=image_id, settings=settings)
+    return Response(status_code=204)
+
+
 @router.post("/{map_id}/images", status_code=201, response_model=ImageUploadResult,
              responses={413: {"description": "Too large"}, 415: {"description": "Not an image"},
                         422: {"description": "No file accepted"}})
 async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: ImageVerifier,
-                     files: list[UploadFile] = File(description="JPEG/PNG map images"),
-                     lat: float | None = Form(None, description="Only with a single file"),
-                     lon: float | None = Form(None, description="Only with a single file"),
-                     alt: float | None = Form(None),
-                     captured_at: datetime | None = Form(None)) -> ImageUploadResult:
+                     files: list[UploadFile] = File(min_length=1,
+                                                    description="JPEG/PNG map images"),
+                     lat: float | None = Form(None, ge=-90, le=90, allow_inf_nan=False,
+                                              description="Only with a single file"),
+                     lon: float | None = Form(None, ge=-180, le=180, allow_inf_nan=False,
+                                              description="Only with a single file"),
+                     alt: float | None = Form(None, ge=MIN_ALT_M, le=MAX_ALT_M,
+                                              allow_inf_nan=False, description="Metres"),
+                     captured_at: datetime | None = Form(
+                         None, description="ISO 8601; from 1990 to one day from now"),
+                     ) -> ImageUploadResult:
     """Add geotagged images: GPS from EXIF, or ``lat``/``lon`` fields for one file."""
     if (lat is None) != (lon is None):
         raise Problem(422, "give both lat and lon, or neither", kind="bad-position")
     position = None
     if lat is not None:
-        position = service.GivenPosition(lat, lon, alt, _aware(captured_at))
+        position = service.GivenPosition(lat, lon, alt, aware(captured_at))
     # One byte past the limit is enough to know that a file is too large.
     uploads = [service.Upload(f.filename or "image", await f.read(settings.max_upload_bytes + 1))
                for f in files]
@@ -75,9 +90,3 @@ def build_map(map_: MapDep, db: DbSession, ctx: Ctx, response: Response) -> Buil
     ctx.builds.launch(job.id)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return BuildAccepted(job_id=job.id, status=job.status)
-
-
-def _aware(t: datetime | None) -> datetime | None:
-    from datetime import UTC
-
-    return t.replace(tzinfo=UTC) if t is not None and t.tzinfo is None else t

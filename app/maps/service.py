@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
-import math
 import os
 import shutil
 import uuid
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 
 from sqlalchemy import func, select
@@ -31,6 +30,14 @@ from app.maps.schemas import (
 )
 from app.problems import Problem, not_found
 from app.sessions.models import LocalisationSession
+from app.validation import (
+    MAX_ALT_M,
+    MIN_ALT_M,
+    aware,
+    check_captured_at,
+    check_position,
+    plausible_time,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,20 +120,31 @@ def delete_map(db: Session, *, map_: Map, settings: Settings) -> None:
     shutil.rmtree(settings.data_dir / "maps" / map_id, ignore_errors=True)
 
 
+def delete_image(db: Session, *, map_: Map, image_id: int, settings: Settings) -> None:
+    """Delete one image of a map with its features and file.
+
+    The map then needs a build to leave the image out of a revision (``unbuilt``), or has
+    no images left (``empty``). Revisions already packed, and the sessions on them, keep
+    the image. Refused (409) while a build runs: the build may be reading it.
+    """
+    image = db.get(MapImage, image_id)
+    if image is None or image.map_id != map_.id:
+        raise not_found("image", image_id)
+    if db.scalar(select(func.count(BuildJob.id)).where(
+            BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
+        raise Problem(409, "a build of this map is running", kind="map-busy")
+    path = image_path(settings, image)
+    db.delete(image)
+    db.flush()
+    remaining = db.scalar(select(func.count(MapImage.id)).where(MapImage.map_id == map_.id))
+    map_.status = MapStatus.UNBUILT if remaining else MapStatus.EMPTY
+    db.commit()
+    path.unlink(missing_ok=True)
+
+
 def list_images(db: Session, *, map_: Map) -> list[MapImage]:
     return list(db.scalars(select(MapImage).where(MapImage.map_id == map_.id)
                            .order_by(MapImage.id)))
-
-
-def check_position(lat: float, lon: float, alt: float | None) -> None:
-    from workers.core.geo import check_lat_lon
-
-    try:
-        check_lat_lon(lat, lon)
-    except ValueError as exc:
-        raise Problem(422, str(exc), kind="bad-position") from None
-    if alt is not None and not math.isfinite(alt):
-        raise Problem(422, f"alt must be a finite number, got {alt!r}", kind="bad-position")
 
 
 async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,
@@ -150,6 +168,7 @@ async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,
             raise Problem(422, "lat/lon form fields apply to a single file; upload several "
                           "files with EXIF GPS instead", kind="position-ambiguous")
         check_position(position.lat, position.lon, position.alt)
+        check_captured_at(position.captured_at)
     rejected, candidates = await asyncio.to_thread(
         _screen, db_sessions, map_id, uploads, position, settings)
     errors = await verify([c[0].data for c in candidates]) if candidates else []
@@ -215,11 +234,16 @@ def _check_one(up: Upload, position: GivenPosition | None,
     if tag is None:
         raise Problem(422, "the image has no GPS position in its EXIF; give lat and lon "
                       "form fields with a single file", kind="no-gps")
-    captured = tag.captured_at
-    if captured is not None and captured.tzinfo is None:
-        # Camera-local time without an offset: kept as is, labelled UTC. Only differences
-        # between capture times are used (the platform's speed), which this keeps.
-        captured = captured.replace(tzinfo=UTC)
+    if tag.alt is not None and not MIN_ALT_M <= tag.alt <= MAX_ALT_M:
+        raise Problem(422, f"EXIF GPS altitude {tag.alt:g} m is outside [{MIN_ALT_M:g}, "
+                      f"{MAX_ALT_M:g}] m", kind="bad-gps")
+    # Camera-local time without an offset: kept as is, labelled UTC. Only differences
+    # between capture times are used (the platform's speed), which this keeps. A time
+    # outside 1990..tomorrow is a clock that was never set: treated as absent, as a
+    # damaged time stamp is.
+    captured = aware(tag.captured_at)
+    if captured is not None and not plausible_time(captured):
+        captured = None
     return header, GivenPosition(tag.lat, tag.lon, tag.alt, captured)
 
 

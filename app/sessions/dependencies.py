@@ -5,11 +5,11 @@ from __future__ import annotations
 import uuid
 from typing import Annotated
 
-from fastapi import Depends
+from fastapi import Depends, Security
 from starlette.requests import HTTPConnection
 
 from app.context import AppContext
-from app.deps import Ctx, DbSession, unauthenticated
+from app.deps import AdminSchemes, Ctx, DbSession, session_bearer, unauthenticated
 from app.maps.dependencies import parse_id
 from app.problems import Problem, not_found
 from app.security import matches, presented_secret
@@ -26,8 +26,12 @@ def authorise(secret: str | None, token_hash: str, ctx: AppContext, session_id: 
                       kind="forbidden")
 
 
-def get_session(session_id: str, conn: HTTPConnection, db: DbSession,
-                ctx: Ctx) -> LocalisationSession:
+SessionScheme = Security(session_bearer)
+
+
+def get_session(session_id: str, conn: HTTPConnection, db: DbSession, ctx: Ctx,
+                _token=SessionScheme, _bearer=AdminSchemes[0],
+                _key=AdminSchemes[1]) -> LocalisationSession:
     secret = presented_secret(conn)
     if secret is None:
         raise unauthenticated("a session token is required: Authorization: Bearer <token>")
@@ -41,7 +45,9 @@ def get_session(session_id: str, conn: HTTPConnection, db: DbSession,
 SessionDep = Annotated[LocalisationSession, Depends(get_session)]
 
 
-async def get_live_session(session_id: str, conn: HTTPConnection, ctx: Ctx) -> LiveSession:
+async def get_live_session(session_id: str, conn: HTTPConnection, ctx: Ctx,
+                           _token=SessionScheme, _bearer=AdminSchemes[0],
+                           _key=AdminSchemes[1]) -> LiveSession:
     """The live session (no database round trip once loaded), authorised."""
     secret = presented_secret(conn)
     if secret is None:

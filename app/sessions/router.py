@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from datetime import UTC, datetime
+from datetime import datetime
 
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
@@ -12,21 +12,21 @@ from fastapi.responses import JSONResponse
 from app.deps import Ctx, DbSession, require_admin
 from app.imagecheck import check_image, kind_of_content_type
 from app.limits import too_large
-from app.maps.service import check_position
 from app.problems import Problem
 from app.sessions import service
 from app.sessions.dependencies import LiveSessionDep, SessionDep
 from app.sessions.models import LocalisationSession
+from app.sessions.params import SessionCreate
 from app.sessions.schemas import (
     MAX_SEQ,
     FrameAccepted,
     FrameError,
     InitialPose,
     PoseEstimate,
-    SessionCreate,
     SessionCreated,
     SessionRead,
 )
+from app.validation import check_captured_at, check_position
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
@@ -76,6 +76,9 @@ def list_poses(row: SessionDep, db: DbSession,
                         415: {"description": "Not image/jpeg or image/png"},
                         422: {"description": "Empty, corrupt or truncated image; seq out of "
                                              "range"},
+                        500: {"description": "With ?wait=true: the frame was accepted and "
+                                             "gave no estimate (frame-error), or its outcome "
+                                             "could not be stored (frame-not-stored)"},
                         503: {"description": "Shutting down, or the frame could not be "
                                              "recorded"}},
              openapi_extra={"requestBody": {"required": True, "content": {
@@ -84,7 +87,8 @@ def list_poses(row: SessionDep, db: DbSession,
 async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
                      seq: int | None = Query(None, ge=0, le=MAX_SEQ),
                      captured_at: datetime | None = Query(
-                         None, description="ISO 8601 or seconds since the epoch"),
+                         None, description="ISO 8601 or seconds since the epoch; from 1990 "
+                                           "to one day from now"),
                      wait: bool = Query(False, description="Answer with the estimate")):
     """Queue one frame (the raw image is the body); its estimate goes to the stream."""
     t0 = time.perf_counter()
@@ -92,14 +96,13 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
     if declared is None:
         raise Problem(415, "send the frame as the raw body with Content-Type image/jpeg or "
                       "image/png", kind="unsupported-media-type")
-    data = await _read_body(request, ctx.settings.max_frame_bytes)
     try:
+        captured = check_captured_at(captured_at)
+        data = await _read_body(request, ctx.settings.max_frame_bytes)
         check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
         raise
-    captured = captured_at.replace(tzinfo=UTC) if captured_at is not None \
-        and captured_at.tzinfo is None else captured_at
     runtime = ctx.runtime
     seq, queued = runtime.accept(live, data, seq=seq, captured_at=captured, t0=t0)
     fut = runtime.waiter(live, seq) if wait else None
@@ -134,6 +137,10 @@ async def reset(live: LiveSessionDep, ctx: Ctx) -> SessionRead:
 @router.post("/{session_id}/initial-pose", response_model=SessionRead)
 async def set_initial_pose(body: InitialPose, live: LiveSessionDep, ctx: Ctx) -> SessionRead:
     """Start the filter around a known position (as AMCL's initial pose)."""
+    spec = live.spec
+    frame = await asyncio.to_thread(service.map_frame, spec.map_folder, spec.map_id,
+                                    spec.revision)
+    service.check_initial_pose(frame, body)
     if body.lat is not None:
         check_position(body.lat, body.lon, None)
         args = {"lat": body.lat, "lon": body.lon}

@@ -26,6 +26,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from datetime import datetime
+from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -109,6 +110,19 @@ def next_seq(last_seq: int | None, seq: int | None) -> int:
     return seq
 
 
+def check_revision(spec: SessionSpec) -> None:
+    """503 ``map-revision-missing`` (naming the map, not the data path) when the packed
+    revision a session needs is gone from the data directory."""
+    if not Path(spec.map_folder).is_dir():
+        raise revision_missing(spec.map_id, spec.revision)
+
+
+def revision_missing(map_id: str, revision: int) -> Problem:
+    return Problem(503, f"the files of map {map_id} revision {revision} are missing from "
+                   "the data directory; restore them or rebuild the map",
+                   kind="map-revision-missing")
+
+
 class SessionRuntime:
     def __init__(self, *, settings: Settings, db_sessions: sessionmaker[Session],
                  engine: LocalEngine, hub: LocalHub, metrics: Metrics) -> None:
@@ -160,6 +174,7 @@ class SessionRuntime:
     async def open_new(self, row: LocalisationSession) -> LiveSession:
         """Create a new session's localiser in the engine."""
         spec = spec_for(row, self.settings)
+        check_revision(spec)
         try:
             await asyncio.wait_for(asyncio.wrap_future(self.engine.open_session(spec)),
                                    OPEN_TIMEOUT_S)
@@ -201,11 +216,14 @@ class SessionRuntime:
         if row is None:
             return None
         spec = spec_for(row, self.settings)
+        check_revision(spec)
         try:
             await asyncio.wrap_future(self.engine.open_session(spec, state=row.state))
         except Exception as exc:
-            raise Problem(503, f"the session could not be restored: {exc}",
-                          kind="session-unavailable") from None
+            # The worker's message may name files under the data directory: logged only.
+            log.warning("session %s could not be restored", spec.session_id, exc_info=exc)
+            raise Problem(503, f"the session could not be restored ({type(exc).__name__}); "
+                          "see the server log", kind="session-unavailable") from None
         # Never reuse a seq: the highest ever accepted, answered or not, counts.
         known = [s for s in (row.last_seq, recorded, self._seq_floor.pop(spec.session_id, None))
                  if s is not None]

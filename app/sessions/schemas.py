@@ -7,7 +7,7 @@ import uuid
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 MAX_SEQ = 2**63 - 1
 """The largest frame sequence number: the database stores it as a signed 64-bit integer."""
@@ -15,14 +15,8 @@ MAX_SEQ = 2**63 - 1
 Seq = Annotated[int, Field(ge=0, le=MAX_SEQ, strict=True,
                            description=f"Frame sequence number, 0 to {MAX_SEQ}")]
 
-
-class SessionCreate(BaseModel):
-    map_id: uuid.UUID
-    mode: str = Field("hybrid", description="hybrid, global, sift, hierarchical or retrieval")
-    params: dict[str, Any] = Field(default_factory=dict,
-                                   description="Localiser parameters; defaults filled in")
-    seed: int | None = Field(None, ge=0, lt=2**63,
-                             description="Random seed (or params.seed); random when unset")
+MAX_INITIAL_SIGMA_M = 1000.0
+"""A wider prior than this is no prior: use reset (particles over the whole map)."""
 
 
 class SessionStats(BaseModel):
@@ -97,13 +91,21 @@ class FrameAccepted(BaseModel):
 
 
 class InitialPose(BaseModel):
-    """A position prior: ``lat``/``lon`` (WGS84) or ``x``/``y`` (map frame, metres)."""
+    """A position prior: ``lat``/``lon`` (WGS84) or ``x``/``y`` (map frame, metres).
 
-    lat: float | None = None
-    lon: float | None = None
-    x: float | None = None
-    y: float | None = None
-    sigma: float = Field(5.0, gt=0, le=1e5, description="Standard deviation, metres")
+    The position must lie within the map's extent plus a margin
+    (:data:`app.sessions.service.INITIAL_POSE_MARGIN_M`); that is checked against the
+    session's map revision.
+    """
+
+    model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False)
+
+    lat: float | None = Field(None, ge=-90, le=90)
+    lon: float | None = Field(None, ge=-180, le=180)
+    x: float | None = Field(None, ge=-1e7, le=1e7, description="East, metres")
+    y: float | None = Field(None, ge=-1e7, le=1e7, description="North, metres")
+    sigma: float = Field(5.0, gt=0, le=MAX_INITIAL_SIGMA_M,
+                         description="Standard deviation, metres")
 
     @model_validator(mode="after")
     def _one_pair(self) -> InitialPose:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import math
 import secrets
+from dataclasses import dataclass
+from functools import lru_cache
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
@@ -14,22 +16,65 @@ from app.maps.models import Map
 from app.problems import Problem, not_found
 from app.security import hash_secret, new_token
 from app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
-from app.sessions.runtime import SessionRuntime
+from app.sessions.params import SessionCreate
+from app.sessions.runtime import SessionRuntime, revision_missing
 from app.sessions.schemas import (
     FrameError,
+    InitialPose,
     PoseEstimate,
-    SessionCreate,
     SessionRead,
     SessionStats,
 )
+from workers.core.geo import GeoOrigin
 from workers.engine import WorkerDied
 
 LATENCY_WINDOW = 1000
 """Latency percentiles are over the session's most recent estimates."""
+INITIAL_POSE_MARGIN_M = 100.0
+"""How far outside the map images' bounding box an initial pose may lie."""
+
+
+@dataclass(frozen=True, slots=True)
+class MapFrame:
+    """The local frame and extent of one packed map revision."""
+
+    origin: GeoOrigin
+    extent: tuple[float, float, float, float]
+    """(min_east, min_north, max_east, max_north), metres."""
+
+
+@lru_cache(maxsize=64)
+def map_frame(folder: str, map_id: str, revision: int) -> MapFrame:
+    """Read a packed revision's frame (revisions never change once packed).
+
+    Raises Problem 503 ``map-revision-missing``, without the data directory's path, when
+    the revision's files are gone.
+    """
+    from workers.core.mapdata import MapData
+
+    try:
+        data = MapData.load(folder)
+    except FileNotFoundError:
+        raise revision_missing(map_id, revision) from None
+    return MapFrame(data.origin, data.extent)
+
+
+def check_initial_pose(frame: MapFrame, pose: InitialPose) -> None:
+    """422 ``bad-initial-pose`` for a position outside the extent plus the margin."""
+    if pose.lat is not None:
+        east, north = (float(v) for v in frame.origin.to_local(pose.lat, pose.lon))
+    else:
+        east, north = pose.x, pose.y
+    e0, n0, e1, n1 = frame.extent
+    m = INITIAL_POSE_MARGIN_M
+    if not (e0 - m <= east <= e1 + m and n0 - m <= north <= n1 + m):
+        raise Problem(422, f"the initial pose ({east:.1f} m east, {north:.1f} m north) lies "
+                      f"outside the map's extent ({e0:.1f}..{e1:.1f} m east, "
+                      f"{n0:.1f}..{n1:.1f} m north) plus {m:g} m", kind="bad-initial-pose")
 
 
 def resolve_seed(body: SessionCreate) -> int:
-    given = body.params.get("seed")
+    given = body.params.seed
     if given is not None and body.seed is not None and given != body.seed:
         raise Problem(422, f"seed {body.seed} and params.seed {given} disagree",
                       kind="bad-params")
@@ -44,7 +89,8 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
     The engine may take a while (the worker loads the map, it may be busy with frames);
     nothing holds a database connection or a request thread while it does.
     """
-    row, token = await asyncio.to_thread(_plan, db_sessions, body)
+    row, token = await asyncio.to_thread(_plan, db_sessions, body,
+                                         runtime.settings.max_sessions)
     try:
         await runtime.open_new(row)
     except ValueError as exc:
@@ -61,11 +107,17 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
     return read, token
 
 
-def _plan(db_sessions: sessionmaker[Session],
-          body: SessionCreate) -> tuple[LocalisationSession, str]:
+def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
+          max_sessions: int) -> tuple[LocalisationSession, str]:
     from workers.core.localisers import validate_params
 
     with db_sessions() as db:
+        existing = db.scalar(select(func.count(LocalisationSession.id)))
+        if existing >= max_sessions:
+            raise Problem(429, f"{existing} sessions exist, the most this server keeps "
+                          f"(VLOC_MAX_SESSIONS); delete finished sessions first",
+                          kind="too-many-sessions", headers={"Retry-After": "60"},
+                          max_sessions=max_sessions)
         map_ = db.get(Map, body.map_id)
         if map_ is None:
             raise not_found("map", body.map_id)
@@ -74,7 +126,7 @@ def _plan(db_sessions: sessionmaker[Session],
                           kind="map-not-built")
         map_id, revision = map_.id, map_.revision
     try:
-        params = validate_params(body.mode, body.params)
+        params = validate_params(body.mode, body.given_params())
     except ValueError as exc:
         raise Problem(422, str(exc), kind="bad-params") from None
     seed = resolve_seed(body)

@@ -11,6 +11,10 @@ In: binary messages are frames (JPEG or PNG bytes). A text message
 ``{"type": "frame_meta", "seq": 12, "captured_at": "..."}`` sets the sequence number and
 capture time of the next binary frame; ``{"type": "ping"}`` is answered with ``pong``.
 
+The token comes as ``Authorization: Bearer <token>``, as a subprotocol
+(``Sec-WebSocket-Protocol: vloc, vloc.token.<token>``; the server answers ``vloc``) or,
+for old clients, as ``?token=`` (redacted from the logs).
+
 Close codes: 4401 no token, 4403 wrong token, 4404 unknown session, 1011 the session
 could not be restored, 1013 the client read too slowly, 1001 the server shuts down (after
 the messages of every frame it had accepted).
@@ -23,7 +27,7 @@ import contextlib
 import json
 import time
 import uuid
-from datetime import UTC, datetime
+from datetime import datetime
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ValidationError
@@ -32,10 +36,11 @@ from app.context import AppContext
 from app.imagecheck import check_image
 from app.limits import too_large
 from app.problems import Problem
-from app.security import matches, presented_secret
+from app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
 from app.sessions.runtime import LiveSession
 from app.sessions.schemas import Seq
 from app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
+from app.validation import check_captured_at
 
 router = APIRouter(tags=["stream"])
 
@@ -50,7 +55,8 @@ class FrameMeta(BaseModel):
 async def stream(websocket: WebSocket, session_id: str) -> None:
     ctx: AppContext = websocket.app.state.ctx
     secret = presented_secret(websocket)
-    await websocket.accept()
+    offered = websocket.scope.get("subprotocols", ())
+    await websocket.accept(subprotocol=TOKEN_SUBPROTOCOL if TOKEN_SUBPROTOCOL in offered else None)
     live = await _authorise(websocket, ctx, session_id, secret)
     if live is None:
         return
@@ -78,7 +84,7 @@ async def stream(websocket: WebSocket, session_id: str) -> None:
 async def _authorise(websocket: WebSocket, ctx: AppContext, session_id: str,
                      secret: str | None) -> LiveSession | None:
     if secret is None:
-        await websocket.close(4401, "a session token is required (?token=...)")
+        await websocket.close(4401, "a session token is required (Authorization: Bearer)")
         return None
     try:
         live = await ctx.runtime.get(uuid.UUID(session_id))
@@ -133,9 +139,7 @@ def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: bytes,
         if len(data) > ctx.settings.max_frame_bytes:
             raise too_large(ctx.settings.max_frame_bytes)
         check_image(data, max_pixels=ctx.settings.max_pixels)
-        captured = meta.captured_at
-        if captured is not None and captured.tzinfo is None:
-            captured = captured.replace(tzinfo=UTC)
+        captured = check_captured_at(meta.captured_at)
         _, queued = ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured, t0=t0)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()

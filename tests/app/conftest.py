@@ -106,13 +106,19 @@ class Service:
 def module_client(request, tmp_path_factory) -> Iterator[TestClient]:
     """One app per test module and backend (tests isolate themselves by their own maps
     and sessions); one worker process, so a test can hold it."""
+    yield from backend_client(request.param, tmp_path_factory)
+
+
+def backend_client(backend: str, tmp_path_factory, **overrides) -> Iterator[TestClient]:
+    """The app on a fresh ``"sqlite"`` file or ``"postgres"`` schema, with settings
+    overridden."""
     data = tmp_path_factory.mktemp("service")
 
     def run(url: str) -> Iterator[TestClient]:
-        with TestClient(create_app(service_settings(data / "data", url))) as c:
+        with TestClient(create_app(service_settings(data / "data", url, **overrides))) as c:
             yield c
 
-    if request.param == "sqlite":
+    if backend == "sqlite":
         yield from run(f"sqlite:///{data / 'vloc.sqlite3'}")
     else:
         with postgres_schema_url() as url:

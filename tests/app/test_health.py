@@ -60,7 +60,7 @@ def test_metrics_count_requests_by_route_template(module_client):
     c = module_client
     for _ in range(3):
         c.get("/v1/maps/00000000-0000-0000-0000-000000000000", headers=ADMIN)
-    text = c.get("/metrics").text
+    text = c.get("/metrics", headers=ADMIN).text
     line = next(ln for ln in text.splitlines() if ln.startswith(
         'vloc_http_requests_total{method="GET",route="/v1/maps/{map_id}",status="404"}'))
     assert float(line.split()[-1]) >= 3
@@ -93,5 +93,28 @@ def test_openapi_documents_the_routes(module_client):
         assert path in paths, path
     frames = paths["/v1/sessions/{session_id}/frames"]["post"]
     assert set(frames["requestBody"]["content"]) == {"image/jpeg", "image/png"}
-    assert {"MapCreate", "MapRead", "SessionCreate", "PoseEstimate"} <= set(
+    assert {"MapCreate", "MapRead", "FilterSessionCreate", "PoseEstimate"} <= set(
         spec["components"]["schemas"])
+
+
+def test_openapi_states_the_frame_and_readiness_failures(module_client):
+    """Frames: a duplicate, stale or exhausted seq (409), an outcome not stored (500), the
+    server stopping or a frame not recorded (503); readiness: 503. All as problems; the
+    poses listing may hold frame errors."""
+    spec = module_client.get("/openapi.json").json()
+    paths = spec["paths"]
+    frames = paths["/v1/sessions/{session_id}/frames"]["post"]["responses"]
+    assert {"409", "500", "503"} <= set(frames)
+    for status in ("409", "500", "503"):
+        assert set(frames[status]["content"]) == {"application/problem+json"}, status
+    assert "exhausted" in frames["409"]["description"]
+    assert "not-stored" in frames["500"]["description"]
+    ready = paths["/readyz"]["get"]["responses"]
+    assert set(ready["503"]["content"]) == {"application/problem+json"}
+    listed = paths["/v1/sessions/{session_id}/poses"]["get"]["responses"]["200"]
+    items = listed["content"]["application/json"]["schema"]["items"]
+    refs = {ref["$ref"].rsplit("/", 1)[-1] for ref in items["anyOf"]}
+    assert refs == {"PoseEstimate", "FrameError"}
+    seq = next(p for p in paths["/v1/sessions/{session_id}/frames"]["post"]["parameters"]
+               if p["name"] == "seq")
+    assert seq["schema"]["anyOf"][0]["maximum"] == 2**63 - 1

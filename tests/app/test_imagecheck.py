@@ -38,3 +38,14 @@ def test_bad_images(data, declared, max_pixels, status, kind):
     with pytest.raises(Problem) as info:
         check_image(data, max_pixels=max_pixels, declared=declared)
     assert (info.value.status, info.value.kind) == (status, kind)
+
+
+def test_unidentifiable_image_detail_names_no_python_object():
+    """Pillow names the file object it was given; the detail must not show it."""
+    from app.imagecheck import check_image
+    from app.problems import Problem
+
+    with pytest.raises(Problem) as info:
+        check_image(b"\xff\xd8\xff" + bytes(200), max_pixels=10**6)
+    assert info.value.status == 422 and "object at 0x" not in info.value.detail
+    assert "BytesIO" not in info.value.detail

@@ -289,3 +289,22 @@ def test_build_conflicts(module_client, shots, hold_worker):
     assert c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()["status"] == "building"
     assert snapshot(c) == before
     assert c.get(f"/v1/jobs/{job_id}", headers=ADMIN).json()["status"] in ("queued", "running")
+
+
+@pytest.mark.parametrize("name", ["nul\x00name", "line\nbreak", "\x7f", "tab\there"])
+def test_map_name_with_control_characters_is_422(module_client, name):
+    def map_ids():  # (builds of earlier tests may still change the maps' status)
+        return [m["id"] for m in module_client.get("/v1/maps", headers=ADMIN).json()]
+
+    before = map_ids()
+    r = module_client.post("/v1/maps", json={"name": name}, headers=ADMIN)
+    assert r.status_code == 422 and r.headers["content-type"] == PROBLEM, r.text
+    assert map_ids() == before
+
+
+def test_a_frame_that_pillow_cannot_identify_has_a_clean_detail(module_client):
+    map_id = new_map(module_client)
+    r = module_client.post(f"/v1/maps/{map_id}/images", headers=ADMIN, data={
+        "lat": "41", "lon": "-83"}, files=[("files", ("x.jpg", b"\xff\xd8\xff" + bytes(300),
+                                                     "image/jpeg"))])
+    assert r.status_code == 422 and "object at 0x" not in r.text

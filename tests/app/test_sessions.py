@@ -63,9 +63,9 @@ def test_seed_from_params_and_random_seed(service):
 
 
 BAD_CREATES = {
-    "unknown-mode": ({"mode": "teleport"}, 422, "bad-params"),
-    "bad-param": ({"params": {"n_particles": -3}}, 422, "bad-params"),
-    "unknown-param": ({"mode": "retrieval", "params": {"bogus": 1}}, 422, "bad-params"),
+    "unknown-mode": ({"mode": "teleport"}, 422, "validation"),
+    "bad-param": ({"params": {"n_particles": -3}}, 422, "validation"),
+    "unknown-param": ({"mode": "retrieval", "params": {"bogus": 1}}, 422, "validation"),
     "seeds-disagree": ({"params": {"seed": 1}, "seed": 2}, 422, "bad-params"),
     "negative-seed": ({"seed": -1}, 422, "validation"),
     "unknown-map": ({"map_id": str(uuid.uuid4())}, 404, "not-found"),
@@ -322,3 +322,31 @@ def test_map_with_sessions_cannot_be_deleted(service):
     r = c.delete(f"/v1/maps/{service.map_id}", headers=ADMIN)
     assert r.status_code == 409 and r.json()["type"] == "urn:vloc:problem:map-in-use"
     assert snapshot(c) == before
+
+
+def test_a_missing_map_revision_is_a_problem_without_the_data_path(service):
+    """A session whose packed revision is gone from the data directory cannot be restored;
+    the answer and the close reason name the map, never the files' path."""
+    import shutil
+
+    c = service.client
+    ctx = c.app.state.ctx
+    sid, auth = service.new_session()
+    folder = ctx.settings.packed_map_dir(service.map_id, 1)
+    hidden = folder.with_name(folder.name + ".away")
+    ctx.runtime.forget(uuid.UUID(sid))  # as after a restart: restored on next use
+    shutil.move(folder, hidden)
+    try:
+        before = snapshot(c)
+        r = c.post(f"/v1/sessions/{sid}/reset", headers=auth)
+        assert r.status_code == 503 and r.headers["content-type"] == PROBLEM
+        assert r.json()["type"] == "urn:vloc:problem:map-revision-missing"
+        data_dir = str(ctx.settings.data_dir.resolve())
+        assert data_dir not in r.text and str(ctx.settings.data_dir) not in r.text
+        with pytest.raises(WebSocketDisconnect) as info, open_stream(c, sid, auth) as ws:
+            ws.receive_json()
+        assert info.value.code == 1011 and data_dir not in (info.value.reason or "")
+        assert "revision 1" in info.value.reason
+        assert snapshot(c) == before
+    finally:
+        shutil.move(hidden, folder)

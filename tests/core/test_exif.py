@@ -150,8 +150,13 @@ _ONE = (R(1, 1), R(0, 1), R(0, 1))
     ({1: "N", 2: _ONE}, "no longitude"),
     ({1: "N", 2: _ONE, 3: "E", 4: _ONE, 5: 7, 6: R(10, 1)}, "altitude reference"),
     ({1: "N", 2: _ONE, 3: "E", 4: _ONE, 6: R(10, 0)}, "altitude is not finite"),
+    ({1: "N", 2: (R(1, 1), R(60, 1), R(0, 1)), 3: "E", 4: _ONE}, "below 60"),
+    ({1: "N", 2: _ONE, 3: "E", 4: (R(1, 1), R(0, 1), R(6000, 100))}, "below 60"),
+    ({1: "N", 2: _ONE, 3: "E", 4: (R(1, 1), R(75, 1))}, "below 60"),
 ])
 def test_malformed_gps_raises(gps, message):
+    """Each case is a tag a broken writer could produce; 59.99 minutes or seconds is the
+    most a well-formed one holds."""
     exif = Image.Exif()
     exif[ExifTags.IFD.GPSInfo] = gps
     with pytest.raises(GpsError, match=message):

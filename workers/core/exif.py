@@ -78,7 +78,8 @@ def read_gps(data: bytes) -> GpsTag | None:
         The bytes are not an image Pillow can open.
     GpsError
         GPS tags are present but malformed: missing or invalid hemisphere references,
-        non-numeric or negative components, NaN or out-of-range coordinates or altitude.
+        non-numeric or negative components, minutes or seconds of 60 or more, NaN or
+        out-of-range coordinates or altitude.
     """
     exif = _open_exif(data)
     gps = exif.get_ifd(ExifTags.IFD.GPSInfo)
@@ -218,6 +219,10 @@ def _signed(gps: dict, value_tag: int, ref_tag: int, refs: str) -> float:
     parts = _floats(gps[value_tag], f"GPS {what}")
     if not 1 <= len(parts) <= 3 or min(parts) < 0:
         raise GpsError(f"GPS {what} must be 1 to 3 non-negative numbers, got {parts}")
+    if any(p >= 60.0 for p in parts[1:]):
+        # 0..59.99 minutes and seconds; 60 or more is a writer's arithmetic error, and
+        # reading it as is would move the position by whole minutes of arc.
+        raise GpsError(f"GPS {what} minutes and seconds must be below 60, got {parts}")
     degrees = sum(p / 60.0**i for i, p in enumerate(parts))
     ref = _text(gps.get(ref_tag))
     if ref is None:

@@ -1,0 +1,48 @@
+"""Plausibility of positions and times at the edge, so that nothing out of range reaches a
+build, a filter or the database."""
+
+from __future__ import annotations
+
+import math
+from datetime import UTC, datetime, timedelta
+
+from app.problems import Problem
+
+MIN_ALT_M, MAX_ALT_M = -500.0, 10_000.0
+"""Altitudes a camera on or above the ground can have (the Dead Sea shore to high flight)."""
+EARLIEST = datetime(1990, 1, 1, tzinfo=UTC)
+"""Before consumer GPS; an earlier capture time is a camera clock that was never set."""
+FUTURE_SLACK = timedelta(days=1)
+"""Capture times may run ahead of the server's clock by this much (time zones, drift)."""
+
+
+def check_position(lat: float, lon: float, alt: float | None) -> None:
+    """422 ``bad-position`` for NaN, infinite or out-of-range coordinates or altitude."""
+    from workers.core.geo import check_lat_lon
+
+    try:
+        check_lat_lon(lat, lon)
+    except ValueError as exc:
+        raise Problem(422, str(exc), kind="bad-position") from None
+    if alt is not None and not (math.isfinite(alt) and MIN_ALT_M <= alt <= MAX_ALT_M):
+        raise Problem(422, f"alt must be a finite number of metres in [{MIN_ALT_M:g}, "
+                      f"{MAX_ALT_M:g}], got {alt!r}", kind="bad-position")
+
+
+def aware(t: datetime | None) -> datetime | None:
+    """A time without an offset is taken as UTC."""
+    return t.replace(tzinfo=UTC) if t is not None and t.tzinfo is None else t
+
+
+def plausible_time(t: datetime) -> bool:
+    return EARLIEST <= aware(t) <= datetime.now(UTC) + FUTURE_SLACK
+
+
+def check_captured_at(t: datetime | None) -> datetime | None:
+    """The capture time as an aware datetime; 422 ``bad-captured-at`` outside 1990 to
+    tomorrow."""
+    t = aware(t)
+    if t is not None and not plausible_time(t):
+        raise Problem(422, f"captured_at must lie between {EARLIEST:%Y-%m-%d} and one day "
+                      f"from now, got {t.isoformat()}", kind="bad-captured-at")
+    return t
