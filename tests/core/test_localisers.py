@@ -89,6 +89,7 @@ def test_filter_localisers_converge(world, small_map, mode):
         errors.append(np.hypot(e.x - t[0], e.y - t[1]))
         feats.append(e.feature)
         assert e.n_particles == 200
+        assert e.measurement == e.feature  # one image-similarity measurement per step
     # within a map spacing (10 m) for global features, better for SIFT
     assert np.median(errors[10:]) < (10.0 if mode == "global" else 6.0)
     assert feats[0] == ("global" if mode == "global" else "sift")
@@ -159,6 +160,19 @@ def test_validate_params_fills_defaults_and_refuses_bad():
         with pytest.raises(ValueError):
             validate_params(mode, bad)
     assert set(MODES) == {"hybrid", "global", "sift", "hierarchical", "retrieval"}
+
+
+def test_single_frame_localisers_have_their_own_configs():
+    from workers.core.localisers.hierarchical import HierarchicalConfig
+    from workers.core.localisers.retrieval import RetrievalConfig
+    from workers.core.sift import RATIO
+
+    assert RetrievalConfig().to_params() == {"feature": "wgoh", "measure": "bradley"}
+    assert HierarchicalConfig().sift_ratio == RATIO  # Lowe 2004, the one source of 0.8
+    assert validate_params("hierarchical", {"k": 3}) == {"k": 3, "sift_ratio": RATIO,
+                                                         "sift_verify": "none"}
+    with pytest.raises(ValueError, match="for mode 'hierarchical': feature"):
+        HierarchicalConfig.from_params({"feature": "wgoh"})
 
 
 def test_mapdata_save_load_round_trip(tmp_path, small_map):

@@ -37,6 +37,10 @@ class Estimate:
         Time spent in the core for this frame (decoding excluded).
     best_image : int
         Index of the best-matching map image this step (-1 if none).
+    measurement : str
+        Kind of measurement the step weighed the estimate by: ``"sift"`` or ``"global"``
+        (an image similarity under that feature type); several kinds in one step are
+        joined by ``"+"``. Empty where not known.
     """
 
     x: float
@@ -52,6 +56,7 @@ class Estimate:
     status: Status
     processing_ms: float
     best_image: int = -1
+    measurement: str = ""
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -13,7 +13,7 @@ name               dim   definition                                             
 
 Every feature is a non-negative float32 vector summing to 1 (up to float32 rounding), or all
 zeros when the image has nothing to count (a WGOH without gradients, a hue histogram without
-colour); :mod:`workers.core.similarity` re-normalises as each measure needs. The measure
+colour); :mod:`workers.core.measures` re-normalises as each measure needs. The measure
 column is the one the feature's source paper uses with it (Flyphone's best for
 ``grid_hist`` and ``wgii2``).
 
@@ -81,7 +81,7 @@ class FeatureSpec:
     description : str
     measure : str
         Similarity measure the source paper pairs with the feature (a name in
-        :data:`workers.core.similarity.MEASURES`).
+        :data:`workers.core.measures.MEASURES`).
     """
 
     name: str

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from workers.core.similarity import (
+from workers.core.measures import (
     D_MAX,
     MEASURES,
     distances,

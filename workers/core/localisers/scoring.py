@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 
 from ..mapdata import MapData
+from ..measures import similarities
 from ..sift import SiftFeatures, ratio_matches
-from ..similarity import similarities
 
 _MIN_VERIFY = {"homography": 4, "fundamental": 8}
 RANSAC_PX = 4.0
