@@ -171,8 +171,14 @@ def main() -> None:
         if args.seneca:
             exps["seneca"] = seneca_experiment(shared_dir() / "datasets" / "seneca-uav")
         stored.update(record_all(exps, {"seneca": SENECA_FRAMES}))
-    GOLDEN_FILE.write_text(json.dumps(stored, indent=0, sort_keys=True) + "\n")
+    write_golden(stored)
     print(f"{len(stored)} cases written to {GOLDEN_FILE}")
+
+
+def write_golden(stored: dict) -> None:
+    """One case per line, keys sorted: a changed case shows as one changed line."""
+    lines = [f"{json.dumps(k)}: {json.dumps(stored[k], sort_keys=True)}" for k in sorted(stored)]
+    GOLDEN_FILE.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
 
 
 def first_difference(want: list[list], got: list[list]) -> str:
