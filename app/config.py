@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import socket
 import sys
 from functools import cached_property
 from pathlib import Path
@@ -42,6 +43,12 @@ class Settings(BaseSettings):
         60.0, gt=0, description="How long ?wait=true waits for an estimate.")
     checkpoint_every: int = Field(
         1, ge=1, description="Store the filter state in the database every N frames.")
+    worker_stall_s: float = Field(
+        5.0, gt=0.5, description="A worker silent this long is not ready (/readyz 503).")
+    instance_name: str = Field(
+        default_factory=socket.gethostname, min_length=1, max_length=255,
+        description="This server among those sharing a database: frames it left queued "
+                    "are reported interrupted when it starts again.")
 
     auto_migrate: bool = Field(True, description="Run Alembic migrations at start-up.")
     log_level: str = "INFO"

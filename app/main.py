@@ -22,6 +22,7 @@ from app.metrics import Metrics, MetricsMiddleware
 from app.security import hash_secret
 from app.sessions.router import router as sessions_router
 from app.sessions.runtime import SessionRuntime
+from app.sessions.store import interrupt_left_queued
 from app.stream.hub import LocalHub
 from app.stream.router import router as stream_router
 from workers.engine import LocalEngine
@@ -29,6 +30,7 @@ from workers.engine import LocalEngine
 log = logging.getLogger("vloc.app")
 
 DRAIN_TIMEOUT_S = 10.0
+STREAMS_CLOSE_TIMEOUT_S = 5.0
 
 
 def create_app(settings: Settings | None = None, *, configure_logging: bool = False) -> FastAPI:
@@ -41,7 +43,7 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     db_sessions = make_session_factory(db_engine)
     metrics = Metrics()
     engine = LocalEngine(settings.worker_count, checkpoint_every=settings.checkpoint_every,
-                         max_pixels=settings.max_pixels)
+                         max_pixels=settings.max_pixels, stall_s=settings.worker_stall_s)
     hub = _make_hub(settings)
     runtime = SessionRuntime(settings=settings, db_sessions=db_sessions, engine=engine,
                              hub=hub, metrics=metrics)
@@ -97,6 +99,17 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         log.info("vloc stopped")
 
 
+async def drain(app: FastAPI, timeout: float = DRAIN_TIMEOUT_S) -> None:
+    """A graceful stop's first half, while connections are still open: refuse new frames,
+    answer and store the frames already accepted, let every stream send their messages,
+    then close the streams with 1001 (going away)."""
+    ctx: AppContext = app.state.ctx
+    await ctx.runtime.drain(timeout)
+    if (left := ctx.runtime.pending_total()):
+        log.warning("closing the streams with %d frame(s) still unanswered", left)
+    await ctx.hub.going_away(STREAMS_CLOSE_TIMEOUT_S)
+
+
 def _prepare_database(ctx: AppContext) -> None:
     from app import migrate
 
@@ -105,3 +118,6 @@ def _prepare_database(ctx: AppContext) -> None:
     with ctx.db_sessions() as db:
         if (n := fail_interrupted(db)):
             log.warning("marked %d interrupted build job(s) failed", n)
+        if (n := interrupt_left_queued(db, owner=ctx.settings.instance_name)):
+            log.warning("%d frame(s) accepted before a stop were never answered; "
+                        "reported as interrupted", n)

@@ -3,7 +3,7 @@
 from app.db import Base
 from app.jobs.models import BuildJob
 from app.maps.models import ImageGlobalFeature, ImageSift, Map, MapImage
-from app.sessions.models import LocalisationSession, Pose
+from app.sessions.models import Frame, LocalisationSession, Pose
 
-__all__ = ["Base", "BuildJob", "ImageGlobalFeature", "ImageSift", "LocalisationSession",
-           "Map", "MapImage", "Pose"]
+__all__ = ["Base", "BuildJob", "Frame", "ImageGlobalFeature", "ImageSift",
+           "LocalisationSession", "Map", "MapImage", "Pose"]

@@ -26,7 +26,8 @@ def readyz(ctx: Ctx) -> dict:
         raise Problem(503, f"database unreachable: {type(exc).__name__}",
                       kind="not-ready") from None
     if not ctx.engine.alive():
-        raise Problem(503, "worker processes are not all running", kind="not-ready")
+        raise Problem(503, "worker processes are not all running, or one has not run for "
+                      f"{ctx.settings.worker_stall_s:g} s", kind="not-ready")
     return {"status": "ready", "database": ctx.db_engine.dialect.name,
             "workers": ctx.engine.n_workers}
 

@@ -109,8 +109,10 @@ class BuildRunner:
             await asyncio.to_thread(self._progress, job_id, done, len(todo))
         revision = await asyncio.to_thread(self._next_revision, map_id)
         folder = self.settings.packed_map_dir(str(map_id), revision)
+        lens_files = await asyncio.to_thread(self._lens_sample, map_id)
         packed = await asyncio.wrap_future(self.engine.call(
-            "workers.engine.build:pack_map", url, str(map_id), revision, str(folder)))
+            "workers.engine.build:pack_map", url, str(map_id), revision, str(folder),
+            lens_files=lens_files))
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 
     # -- database steps (threads) -----------------------------------------------------------
@@ -126,6 +128,15 @@ class BuildRunner:
             job.n_images = len(images)
             db.commit()
             return job.map_id, [(img.id, str(image_path(self.settings, img))) for img in images]
+
+    def _lens_sample(self, map_id: uuid.UUID, size: int = 25) -> list[str]:
+        """Files of up to ``size`` of the map's images, spread over the map, whose EXIF
+        gives the camera's focal length for the map's geometry."""
+        with self.db_sessions() as db:
+            images = list(db.scalars(select(MapImage).where(MapImage.map_id == map_id)
+                                     .order_by(MapImage.id)))
+        step = max(1, len(images) // size)
+        return [str(image_path(self.settings, img)) for img in images[::step]][:size]
 
     def _progress(self, job_id: uuid.UUID, done: int, total: int) -> None:
         with self.db_sessions() as db:

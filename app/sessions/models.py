@@ -1,4 +1,4 @@
-"""Tables of localisation sessions and their pose estimates."""
+"""Tables of localisation sessions, their accepted frames and their pose estimates."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from sqlalchemy import (
     Integer,
     LargeBinary,
     String,
+    Text,
     UniqueConstraint,
 )
 from sqlalchemy.orm import Mapped, mapped_column
@@ -35,7 +36,7 @@ class LocalisationSession(Base):
     token_hash: Mapped[str] = mapped_column(String(64))
     """SHA-256 of the session token, hex; the token itself is shown once and never stored."""
     last_seq: Mapped[int | None] = mapped_column(BigInteger)
-    """Highest frame sequence number processed (estimated or failed)."""
+    """Highest frame sequence number processed (estimated or failed, interrupted included)."""
     state: Mapped[bytes | None] = mapped_column(LargeBinary)
     """Checkpointed filter state, ``Localiser.get_state()`` bytes (opaque, versioned there)."""
     state_seq: Mapped[int | None] = mapped_column(BigInteger)
@@ -80,3 +81,39 @@ class Pose(Base):
     """Time in the core's step (decoding excluded)."""
     latency_ms: Mapped[float] = mapped_column(Float)
     """From the frame's arrival at the API to its estimate's return to the API."""
+
+
+class FrameStatus:
+    QUEUED = "queued"
+    """Recorded, not answered yet."""
+    ANSWERED = "answered"
+    """Its estimate is stored."""
+    FAILED = "failed"
+    """It gave no estimate (``error_kind`` says why), and that was reported."""
+    INTERRUPTED = "interrupted"
+    """Its server stopped before answering it; not yet reported on a stream."""
+
+
+class Frame(Base):
+    """One accepted frame, recorded before it reaches a worker.
+
+    The record is what makes a frame accepted: a server that dies with frames queued leaves
+    them ``queued`` here, the next start reports them (``interrupted``) instead of
+    forgetting them, and no later frame of the session is given their ``seq``.
+    """
+
+    __tablename__ = "frames"
+
+    session_id: Mapped[uuid.UUID] = mapped_column(
+        ForeignKey("sessions.id", ondelete="CASCADE"), primary_key=True)
+    seq: Mapped[int] = mapped_column(BigInteger, primary_key=True, autoincrement=False)
+    received_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    captured_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    status: Mapped[str] = mapped_column(String(16), index=True)
+    owner: Mapped[str] = mapped_column(String(255))
+    """The server instance that accepted it (``VLOC_INSTANCE_NAME``)."""
+    error_kind: Mapped[str | None] = mapped_column(String(32))
+    """For a frame that gave no estimate: the ``kind`` of its ``frame_error``."""
+    error_reason: Mapped[str | None] = mapped_column(Text)
+    latency_ms: Mapped[float | None] = mapped_column(Float)
+    """From arrival to its outcome's return (none for an interrupted frame)."""

@@ -18,7 +18,9 @@ from app.sessions import service
 from app.sessions.dependencies import LiveSessionDep, SessionDep
 from app.sessions.models import LocalisationSession
 from app.sessions.schemas import (
+    MAX_SEQ,
     FrameAccepted,
+    FrameError,
     InitialPose,
     PoseEstimate,
     SessionCreate,
@@ -28,7 +30,8 @@ from app.sessions.schemas import (
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
-FAILED_FRAME_STATUS = {"bad_image": 422, "worker_died": 503, "not_open": 503, "error": 500}
+FAILED_FRAME_STATUS = {"bad_image": 422, "worker_died": 503, "not_open": 503, "error": 500,
+                       "not_stored": 500}
 
 
 @router.post("", status_code=201, response_model=SessionCreated,
@@ -57,24 +60,29 @@ def delete_session(row: SessionDep, db: DbSession, ctx: Ctx) -> Response:
     return Response(status_code=204)
 
 
-@router.get("/{session_id}/poses", response_model=list[PoseEstimate])
+@router.get("/{session_id}/poses", response_model=list[PoseEstimate | FrameError])
 def list_poses(row: SessionDep, db: DbSession,
-               after_seq: int | None = Query(None, ge=-1),
-               limit: int = Query(1000, ge=1, le=10000)) -> list[PoseEstimate]:
+               after_seq: int | None = Query(None, ge=-1, le=MAX_SEQ),
+               limit: int = Query(1000, ge=1, le=10000)) -> list[PoseEstimate | FrameError]:
+    """The stored outcome of every answered frame in sequence order: its estimate, or the
+    ``frame_error`` of a frame that gave none (interrupted ones included)."""
     return service.list_poses(db, row=row, after_seq=after_seq, limit=limit)
 
 
 @router.post("/{session_id}/frames", status_code=202, response_model=FrameAccepted,
              responses={200: {"model": PoseEstimate, "description": "With ?wait=true"},
-                        409: {"description": "Duplicate or stale seq"},
+                        409: {"description": "Duplicate, stale or exhausted seq"},
                         413: {"description": "Body or image too large"},
                         415: {"description": "Not image/jpeg or image/png"},
-                        422: {"description": "Empty, corrupt or truncated image"}},
+                        422: {"description": "Empty, corrupt or truncated image; seq out of "
+                                             "range"},
+                        503: {"description": "Shutting down, or the frame could not be "
+                                             "recorded"}},
              openapi_extra={"requestBody": {"required": True, "content": {
                  "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
                  "image/png": {"schema": {"type": "string", "format": "binary"}}}}})
 async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
-                     seq: int | None = Query(None, ge=0, lt=2**62),
+                     seq: int | None = Query(None, ge=0, le=MAX_SEQ),
                      captured_at: datetime | None = Query(
                          None, description="ISO 8601 or seconds since the epoch"),
                      wait: bool = Query(False, description="Answer with the estimate")):
@@ -93,10 +101,16 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
     captured = captured_at.replace(tzinfo=UTC) if captured_at is not None \
         and captured_at.tzinfo is None else captured_at
     runtime = ctx.runtime
-    seq = runtime.accept(live, data, seq=seq, captured_at=captured, t0=t0)
-    if not wait:
+    seq, queued = runtime.accept(live, data, seq=seq, captured_at=captured, t0=t0)
+    fut = runtime.waiter(live, seq) if wait else None
+    try:
+        # Answered once the frame is recorded: an accepted frame survives a crash.
+        await asyncio.shield(queued)
+    except BaseException:  # refused, or the client went away
+        runtime.drop_waiter(live, seq)
+        raise
+    if fut is None:
         return JSONResponse({"seq": seq}, status_code=202)
-    fut = runtime.waiter(live, seq)
     try:
         msg = await asyncio.wait_for(fut, ctx.settings.frame_wait_timeout_s)
     except TimeoutError:
@@ -130,6 +144,7 @@ async def set_initial_pose(body: InitialPose, live: LiveSessionDep, ctx: Ctx) ->
 
 
 async def _control(ctx, session_id: str, op: str, **kwargs) -> None:
+    await ctx.runtime.queued_before()  # in order after the frames already accepted
     try:
         await asyncio.wrap_future(ctx.engine.control(session_id, op, **kwargs))
     except ValueError as exc:

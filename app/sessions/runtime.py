@@ -2,25 +2,28 @@
 
 Threads and the loop:
 
-- the event loop accepts frames (no awaits between the sequence check and the submission,
-  so two requests of one session cannot take the same number) and publishes messages;
+- the event loop accepts frames: it numbers each (no awaits between the sequence check and
+  the queueing, so two requests of one session cannot take the same number) and queues
+  its record for the writer, and publishes messages;
+- one writer thread (:mod:`app.sessions.writer`) stores, in batches and in order, the
+  records of accepted frames (:class:`~app.sessions.models.Frame`) and the outcomes
+  (poses, counters, checkpoints), then has the loop settle them. A frame goes to its worker only once its record is
+  stored, so that a frame accepted by a server that then dies is reported after the
+  restart and its ``seq`` never reused; a request is answered ``202`` only then too;
 - the engine's reader thread hands each outcome to :meth:`SessionRuntime.on_outcome`, which
   turns it into its stream message, has the loop publish it at once and queues it for
-  storage: the stream never waits for the database;
-- one writer thread stores outcomes in batches (poses, counters, checkpoints) and then has
-  the loop settle them: a ``?wait=true`` request is answered only once its pose is stored,
-  so what it returns can be read back.
+  storage: the stream never waits for the database. A ``?wait=true`` request is answered
+  only once its pose is stored, so what it returns can be read back; a pose the database
+  refuses is reported as a ``frame_error`` of kind ``not_stored``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import queue
 import threading
 import time
 import uuid
-from collections import defaultdict
 from dataclasses import dataclass, field
 from datetime import datetime
 
@@ -30,8 +33,11 @@ from app.config import Settings
 from app.db import utcnow
 from app.metrics import Metrics
 from app.problems import Problem
-from app.sessions.models import LocalisationSession, Pose
-from app.sessions.schemas import FrameError, PoseEstimate
+from app.sessions import store
+from app.sessions.models import LocalisationSession
+from app.sessions.schemas import MAX_SEQ, FrameError, PoseEstimate
+from app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
+from app.sessions.writer import Accepted, Barrier, Writer
 from app.stream.hub import LocalHub
 from workers.engine import (
     Checkpoint,
@@ -46,8 +52,6 @@ from workers.engine import (
 
 log = logging.getLogger(__name__)
 
-_STOP = object()
-_BATCH = 512
 OPEN_TIMEOUT_S = 120.0
 
 
@@ -57,6 +61,12 @@ class Arrival:
     """``time.perf_counter()`` when the frame arrived."""
     received_at: datetime
     captured_at: datetime | None
+    data: bytes | None
+    """The frame, until it goes to the engine."""
+    queued: asyncio.Future
+    """Resolves with the seq once the frame is recorded and queued in the engine."""
+    previous_seq: int | None
+    """The session's last seq before this frame: restored if the record fails."""
 
 
 @dataclass(eq=False)
@@ -65,7 +75,7 @@ class LiveSession:
     token_hash: str
     spec: SessionSpec
     last_seq: int | None
-    """Highest sequence number accepted (processed or still queued)."""
+    """Highest sequence number accepted (processed, queued, or recorded before a restart)."""
     arrivals: dict[int, Arrival] = field(default_factory=dict)
     """Frames accepted and not yet answered, by sequence number."""
 
@@ -77,6 +87,28 @@ def spec_for(row: LocalisationSession, settings: Settings) -> SessionSpec:
                        params=dict(row.params), seed=int(row.seed))
 
 
+def next_seq(last_seq: int | None, seq: int | None) -> int:
+    """The frame's sequence number: ``seq`` when it is after ``last_seq``, else the next one.
+
+    Raises
+    ------
+    Problem
+        409 for a duplicate or stale ``seq``, or when the session has used the last one.
+    """
+    if seq is None:
+        if last_seq is None:
+            return 0
+        if last_seq >= MAX_SEQ:
+            raise Problem(409, f"the session has used every seq up to {MAX_SEQ}",
+                          kind="seq-exhausted", last_seq=last_seq)
+        return last_seq + 1
+    if last_seq is not None and seq <= last_seq:
+        kind = "duplicate-seq" if seq == last_seq else "stale-seq"
+        raise Problem(409, f"seq {seq} is not after the last accepted seq {last_seq}",
+                      kind=kind, last_seq=last_seq)
+    return seq
+
+
 class SessionRuntime:
     def __init__(self, *, settings: Settings, db_sessions: sessionmaker[Session],
                  engine: LocalEngine, hub: LocalHub, metrics: Metrics) -> None:
@@ -85,25 +117,29 @@ class SessionRuntime:
         self.engine = engine
         self.hub = hub
         self.metrics = metrics
+        self.owner = settings.instance_name
+        self.store = FrameStore(db_sessions, owner=self.owner)
         self.loop: asyncio.AbstractEventLoop | None = None
         self._live: dict[str, LiveSession] = {}
         self._opening: dict[str, asyncio.Future] = {}
         self._waiters: dict[tuple[str, int], asyncio.Future] = {}
+        self._seq_floor: dict[str, int] = {}
+        """Last seq of a live session dropped for a reload, until the reload reads it."""
         self._lock = threading.Lock()
-        self._outcomes: queue.SimpleQueue = queue.SimpleQueue()
-        self._writer: threading.Thread | None = None
+        self._writer = Writer(self.store, metrics, self._settle)
         self._idle = asyncio.Event()
+        self._closing = False
 
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
-        self._writer = threading.Thread(target=self._write_loop, name="pose-writer",
-                                        daemon=True)
-        self._writer.start()
+        self._writer.start(loop)
 
     async def drain(self, timeout: float) -> None:
-        """Wait (up to ``timeout``) until every accepted frame has been answered."""
+        """Refuse new frames, then wait (up to ``timeout``) until every accepted frame has
+        been answered and stored."""
+        self._closing = True
         deadline = time.monotonic() + timeout
         while self.pending_total() and time.monotonic() < deadline:
             self._idle.clear()
@@ -114,9 +150,7 @@ class SessionRuntime:
 
     def stop(self) -> None:
         """Store what the engine has reported; call after the engine has stopped."""
-        if self._writer is not None:
-            self._outcomes.put(_STOP)
-            self._writer.join(30.0)
+        self._writer.stop(30.0)
 
     def pending_total(self) -> int:
         return sum(len(live.arrivals) for live in list(self._live.values()))
@@ -163,7 +197,7 @@ class SessionRuntime:
             del self._opening[key]
 
     async def _load(self, session_id: uuid.UUID) -> LiveSession | None:
-        row = await asyncio.to_thread(self._read_row, session_id)
+        row, recorded = await asyncio.to_thread(self._read_row, session_id)
         if row is None:
             return None
         spec = spec_for(row, self.settings)
@@ -172,15 +206,24 @@ class SessionRuntime:
         except Exception as exc:
             raise Problem(503, f"the session could not be restored: {exc}",
                           kind="session-unavailable") from None
-        live = LiveSession(spec.session_id, row.token_hash, spec, row.last_seq)
+        # Never reuse a seq: the highest ever accepted, answered or not, counts.
+        known = [s for s in (row.last_seq, recorded, self._seq_floor.pop(spec.session_id, None))
+                 if s is not None]
+        live = LiveSession(spec.session_id, row.token_hash, spec, max(known, default=None))
         with self._lock:
             self._live[live.id] = live
         self.metrics.live_sessions.set(len(self._live))
         return live
 
-    def _read_row(self, session_id: uuid.UUID) -> LocalisationSession | None:
+    def _read_row(self, session_id: uuid.UUID) -> tuple[LocalisationSession | None, int | None]:
         with self.db_sessions() as db:
-            return db.get(LocalisationSession, session_id)
+            row = db.get(LocalisationSession, session_id)
+            if row is None:
+                return None, None
+            if (n := store.interrupt_orphans(db, session_id=session_id, owner=self.owner)):
+                log.warning("session %s: %d frame(s) left queued by another server "
+                            "reported interrupted", session_id, n)
+            return row, store.last_recorded_seq(db, session_id=session_id)
 
     def forget(self, session_id: uuid.UUID) -> None:
         """Drop a deleted session: close it in the engine and end its streams."""
@@ -195,41 +238,56 @@ class SessionRuntime:
         live = self._live.get(str(session_id))
         return len(live.arrivals) if live is not None else 0
 
+    async def interrupted(self, live: LiveSession) -> list[dict]:
+        """``frame_error`` messages (kind ``interrupted``) for the frames a stopped server
+        left unanswered, each given once: the caller sends them on a stream."""
+        frames = await asyncio.to_thread(self._take_interrupted, uuid.UUID(live.id))
+        return [FrameError(session_id=live.id, seq=f.seq, captured_at=f.captured_at,
+                           kind=f.error_kind, reason=f.error_reason, latency_ms=None)
+                .model_dump(mode="json") for f in frames]
+
+    def _take_interrupted(self, session_id: uuid.UUID) -> list:
+        with self.db_sessions() as db:
+            return store.take_interrupted(db, session_id=session_id)
+
     # -- frames (event loop) ----------------------------------------------------------------
 
     def accept(self, live: LiveSession, data: bytes, *, seq: int | None,
-               captured_at: datetime | None, t0: float) -> int:
-        """Number and queue a frame whose bytes passed the header checks.
+               captured_at: datetime | None, t0: float) -> tuple[int, asyncio.Future]:
+        """Number a frame whose bytes passed the header checks and queue its record.
+
+        Returns the frame's seq and a future that resolves (with the seq) once the frame is
+        recorded and queued in the engine, or fails with a 503 :class:`Problem` when it
+        could not be recorded (nothing was done with it then).
 
         Raises
         ------
         Problem
-            409 for a duplicate or stale ``seq``, 429 when the session has too many frames
-            queued, 503 when the engine cannot take it.
+            409 for a duplicate, stale or exhausted ``seq``, 429 when the session has too
+            many frames queued, 503 while the server shuts down.
         """
-        if seq is None:
-            seq = 0 if live.last_seq is None else live.last_seq + 1
-        elif live.last_seq is not None and seq <= live.last_seq:
-            kind = "duplicate-seq" if seq == live.last_seq else "stale-seq"
-            raise Problem(409, f"seq {seq} is not after the last accepted seq {live.last_seq}",
-                          kind=kind, last_seq=live.last_seq)
+        if self._closing:
+            raise Problem(503, "the server is shutting down; send the frame again later",
+                          kind="shutting-down", headers={"Retry-After": "5"})
+        seq = next_seq(live.last_seq, seq)
         if len(live.arrivals) >= self.settings.max_pending_frames:
             raise Problem(429, f"{len(live.arrivals)} frames of this session are still queued",
                           kind="too-many-pending", headers={"Retry-After": "1"})
-        captured = captured_at.timestamp() if captured_at is not None else None
-        live.arrivals[seq] = Arrival(t0, utcnow(), captured_at)
-        try:
-            self.engine.submit_frame(live.id, seq, data, captured_at=captured)
-        except (KeyError, EngineClosed, WorkerDied) as exc:
-            del live.arrivals[seq]
-            with self._lock:
-                # Reloaded from its checkpoint on the next request.
-                self._live.pop(live.id, None)
-            raise Problem(503, f"the session is not available in the engine ({exc}); retry",
-                          kind="session-unavailable", headers={"Retry-After": "1"}) from None
+        arrival = Arrival(t0, utcnow(), captured_at, data, self.loop.create_future(),
+                          live.last_seq)
+        live.arrivals[seq] = arrival
         live.last_seq = seq
+        self._writer.put(Accepted(live, FrameRecord(live.id, seq, arrival.received_at,
+                                                    captured_at)))
         self.metrics.frames_accepted.inc()
-        return seq
+        return seq, arrival.queued
+
+    async def queued_before(self) -> None:
+        """Return once every frame accepted so far has gone to the engine (or failed), so
+        that a control sent now runs after them."""
+        done = self.loop.create_future()
+        self._writer.put(Barrier(done))
+        await done
 
     def waiter(self, live: LiveSession, seq: int) -> asyncio.Future:
         """A future for the frame's message (pose or frame_error); take it right after
@@ -241,6 +299,36 @@ class SessionRuntime:
     def drop_waiter(self, live: LiveSession, seq: int) -> None:
         self._waiters.pop((live.id, seq), None)
 
+    def _to_engine(self, item: Accepted, error: Exception | None) -> None:
+        """Event loop: the frame's record is stored (or refused); hand it to its worker."""
+        live, seq = item.live, item.record.seq
+        arrival = live.arrivals.get(seq)
+        if arrival is None:
+            return
+        if error is not None:
+            del live.arrivals[seq]
+            if live.last_seq == seq:
+                live.last_seq = arrival.previous_seq
+            _resolve(arrival.queued, exception=Problem(
+                503, "the frame could not be recorded, so it was not processed; retry",
+                kind="storage-unavailable", headers={"Retry-After": "1"}))
+            return
+        data, arrival.data = arrival.data, None
+        captured = arrival.captured_at.timestamp() if arrival.captured_at is not None else None
+        try:
+            self.engine.submit_frame(live.id, seq, data, captured_at=captured)
+        except (KeyError, EngineClosed, WorkerDied) as exc:
+            if isinstance(exc, KeyError):
+                with self._lock:
+                    # Reloaded from its checkpoint on the next request.
+                    if self._live.get(live.id) is live:
+                        del self._live[live.id]
+                        self._seq_floor[live.id] = live.last_seq
+            kind = "worker_died" if isinstance(exc, WorkerDied) else "not_open"
+            self.on_outcome(FrameFailed(live.id, seq, kind,
+                                        f"the engine could not take the frame: {exc}"))
+        _resolve(arrival.queued, seq)
+
     # -- outcomes ---------------------------------------------------------------------------
 
     def on_outcome(self, outcome: Outcome) -> None:
@@ -248,32 +336,7 @@ class SessionRuntime:
         msg = self._message(outcome, time.perf_counter())
         if msg is not None and self.loop is not None and not self.loop.is_closed():
             self.loop.call_soon_threadsafe(self.hub.publish, msg[0], msg[2])
-        self._outcomes.put((outcome, msg))
-
-    def _write_loop(self) -> None:
-        while True:
-            item = self._outcomes.get()
-            stop = item is _STOP
-            batch = [] if stop else [item]
-            while len(batch) < _BATCH:
-                try:
-                    nxt = self._outcomes.get_nowait()
-                except queue.Empty:
-                    break
-                if nxt is _STOP:
-                    stop = True
-                    break
-                batch.append(nxt)
-            if batch:
-                try:
-                    self._store(batch)
-                except Exception:  # noqa: BLE001 - keep writing later outcomes
-                    log.exception("storing %d outcomes failed", len(batch))
-                messages = [m for _, m in batch if m is not None]
-                if self.loop is not None and not self.loop.is_closed():
-                    self.loop.call_soon_threadsafe(self._settle, messages)
-            if stop:
-                return
+        self._writer.put(OutcomeRecord(outcome, msg[2] if msg is not None else None))
 
     def _message(self, outcome: Outcome, t_back: float) -> tuple[str, int, dict] | None:
         if isinstance(outcome, Checkpoint):
@@ -300,59 +363,34 @@ class SessionRuntime:
                              latency_ms=latency_ms)
         return outcome.session_id, outcome.seq, msg.model_dump(mode="json")
 
-    def _store(self, batch: list[tuple[Outcome, tuple | None]]) -> None:
-        by_session: dict[str, list[tuple[Outcome, tuple | None]]] = defaultdict(list)
-        for outcome, msg in batch:
-            by_session[outcome.session_id].append((outcome, msg))
-        with self.db_sessions() as db:
-            for session_id, items in by_session.items():
-                row = db.get(LocalisationSession, uuid.UUID(session_id))
-                if row is None:
-                    continue  # deleted meanwhile
-                for outcome, msg in items:
-                    self._apply(db, row, outcome, msg[2] if msg else None)
-            db.commit()
-        for _, _, m in (msg for _, msg in batch if msg is not None):
-            if m["type"] == "pose":
-                self.metrics.frames_processed.labels(m["feature"]).inc()
-                self.metrics.step_seconds.labels(m["feature"]).observe(m["processing_ms"] / 1e3)
-                self.metrics.frame_latency.observe(m["latency_ms"] / 1e3)
-            else:
-                self.metrics.frames_failed.labels(m["kind"]).inc()
-
-    @staticmethod
-    def _apply(db: Session, row: LocalisationSession, outcome: Outcome, msg: dict | None) -> None:
-        if isinstance(outcome, Checkpoint):
-            row.state = outcome.state
-            return
-        row.last_seq = outcome.seq if row.last_seq is None else max(row.last_seq, outcome.seq)
-        if isinstance(outcome, FrameFailed):
-            row.frames_failed += 1
-            return
-        row.frames_processed += 1
-        if outcome.state is not None:
-            row.state, row.state_seq = outcome.state, outcome.seq
-        cov = msg["cov"]
-        db.add(Pose(session_id=row.id, seq=outcome.seq,
-                    captured_at=datetime.fromisoformat(msg["captured_at"])
-                    if msg["captured_at"] else None,
-                    received_at=datetime.fromisoformat(msg["received_at"]),
-                    x=msg["x"], y=msg["y"], lat=msg["lat"], lon=msg["lon"],
-                    sigma_x=msg["sigma_x"], sigma_y=msg["sigma_y"], cov_xx=cov[0],
-                    cov_xy=cov[1], cov_yx=cov[2], cov_yy=cov[3], feature=msg["feature"],
-                    next_feature=msg["next_feature"], n_particles=msg["n_particles"],
-                    status=msg["status"], best_image=msg["best_image"],
-                    decode_ms=msg["decode_ms"], processing_ms=msg["processing_ms"],
-                    latency_ms=msg["latency_ms"]))
-
-    def _settle(self, messages: list[tuple[str, int, dict]]) -> None:
-        """Event loop: the frames are stored; wake their waiters, forget their arrivals."""
-        for session_id, seq, msg in messages:
-            live = self._live.get(session_id)
-            if live is not None:
-                live.arrivals.pop(seq, None)
-            fut = self._waiters.pop((session_id, seq), None)
-            if fut is not None and not fut.done():
-                fut.set_result(msg)
+    def _settle(self, done: list[tuple[object, Exception | None]]) -> None:
+        """Event loop: the items are stored (or refused). Frames go to the engine; answered
+        frames wake their waiters and leave the arrivals."""
+        for item, error in done:
+            if isinstance(item, Accepted):
+                self._to_engine(item, error)
+            elif isinstance(item, Barrier):
+                _resolve(item.done, None)
+            elif item.message is not None:
+                session_id, seq, msg = item.outcome.session_id, item.outcome.seq, item.message
+                if error is not None:
+                    self.hub.publish(session_id, msg)  # the not_stored report
+                live = self._live.get(session_id)
+                if live is not None:
+                    live.arrivals.pop(seq, None)
+                fut = self._waiters.pop((session_id, seq), None)
+                if fut is not None and not fut.done():
+                    fut.set_result(msg)
         if not self.pending_total():
             self._idle.set()
+
+
+def _resolve(fut: asyncio.Future, value=None, *, exception: BaseException | None = None) -> None:
+    """Settle a future nobody may be waiting on any more (its request was cancelled)."""
+    if fut.done():
+        return
+    if exception is not None:
+        fut.set_exception(exception)
+        fut.exception()  # retrieved: a WebSocket frame's refusal is reported elsewhere
+    else:
+        fut.set_result(value)

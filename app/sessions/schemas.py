@@ -5,9 +5,15 @@ from __future__ import annotations
 import math
 import uuid
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, model_validator
+
+MAX_SEQ = 2**63 - 1
+"""The largest frame sequence number: the database stores it as a signed 64-bit integer."""
+
+Seq = Annotated[int, Field(ge=0, le=MAX_SEQ, strict=True,
+                           description=f"Frame sequence number, 0 to {MAX_SEQ}")]
 
 
 class SessionCreate(BaseModel):
@@ -59,9 +65,11 @@ class FrameError(BaseModel):
     session_id: uuid.UUID
     seq: int
     captured_at: datetime | None
-    kind: str = Field(description="bad_image, error, not_open or worker_died")
+    kind: str = Field(description="bad_image, error, not_open, worker_died, not_stored or "
+                                  "interrupted")
     reason: str
-    latency_ms: float
+    latency_ms: float | None = Field(
+        description="Frame arrival to its failure back in the API; null when interrupted")
 
 
 class SessionRead(BaseModel):

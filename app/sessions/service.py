@@ -13,9 +13,15 @@ from app.db import new_id
 from app.maps.models import Map
 from app.problems import Problem, not_found
 from app.security import hash_secret, new_token
-from app.sessions.models import LocalisationSession, Pose
+from app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
 from app.sessions.runtime import SessionRuntime
-from app.sessions.schemas import PoseEstimate, SessionCreate, SessionRead, SessionStats
+from app.sessions.schemas import (
+    FrameError,
+    PoseEstimate,
+    SessionCreate,
+    SessionRead,
+    SessionStats,
+)
 from workers.engine import WorkerDied
 
 LATENCY_WINDOW = 1000
@@ -117,11 +123,16 @@ def read_session(db: Session, *, row: LocalisationSession,
 
 
 def list_poses(db: Session, *, row: LocalisationSession, after_seq: int | None,
-               limit: int) -> list[PoseEstimate]:
-    q = select(Pose).where(Pose.session_id == row.id)
+               limit: int) -> list[PoseEstimate | FrameError]:
+    """Estimates and frame errors after ``after_seq``, merged in sequence order."""
+    poses = select(Pose).where(Pose.session_id == row.id)
+    errors = select(Frame).where(Frame.session_id == row.id, Frame.status.in_(
+        (FrameStatus.FAILED, FrameStatus.INTERRUPTED)))
     if after_seq is not None:
-        q = q.where(Pose.seq > after_seq)
-    return [pose_read(p) for p in db.scalars(q.order_by(Pose.seq).limit(limit))]
+        poses, errors = poses.where(Pose.seq > after_seq), errors.where(Frame.seq > after_seq)
+    found = [pose_read(p) for p in db.scalars(poses.order_by(Pose.seq).limit(limit))]
+    found += [frame_error_read(f) for f in db.scalars(errors.order_by(Frame.seq).limit(limit))]
+    return sorted(found, key=lambda m: m.seq)[:limit]
 
 
 def delete_session(db: Session, *, row: LocalisationSession, runtime: SessionRuntime) -> None:
@@ -139,6 +150,12 @@ def pose_read(p: Pose) -> PoseEstimate:
         next_feature=p.next_feature, n_particles=p.n_particles, status=p.status,
         best_image=p.best_image, decode_ms=p.decode_ms, processing_ms=p.processing_ms,
         latency_ms=p.latency_ms)
+
+
+def frame_error_read(f: Frame) -> FrameError:
+    return FrameError(session_id=f.session_id, seq=f.seq, captured_at=f.captured_at,
+                      kind=f.error_kind or "error", reason=f.error_reason or "",
+                      latency_ms=f.latency_ms)
 
 
 def _quantile(sorted_values: list[float], q: float) -> float | None:

@@ -1,16 +1,19 @@
 """``WS /v1/sessions/{id}/stream``: estimates out, and optionally frames in.
 
-Out: a ``hello`` message once the subscription is live, then one ``pose`` or
-``frame_error`` message per accepted frame, in sequence order; ``error`` (with a ``problem``
-object) for a frame sent on the socket that was refused (it gets no sequence number); ``closed`` when the session
-is deleted.
+Out: a ``hello`` message once the subscription is live, then a ``frame_error`` (kind
+``interrupted``) for each frame that a stopped server left unanswered and no stream has
+reported yet, then one ``pose`` or ``frame_error`` message per accepted frame, in sequence
+order; ``error`` (with a ``problem`` object) for a frame sent on the socket that was refused
+(it gets no sequence number) or a message that could not be read; ``closed`` when the
+session is deleted.
 
 In: binary messages are frames (JPEG or PNG bytes). A text message
 ``{"type": "frame_meta", "seq": 12, "captured_at": "..."}`` sets the sequence number and
 capture time of the next binary frame; ``{"type": "ping"}`` is answered with ``pong``.
 
 Close codes: 4401 no token, 4403 wrong token, 4404 unknown session, 1011 the session
-could not be restored, 1013 the client read too slowly.
+could not be restored, 1013 the client read too slowly, 1001 the server shuts down (after
+the messages of every frame it had accepted).
 """
 
 from __future__ import annotations
@@ -31,14 +34,15 @@ from app.limits import too_large
 from app.problems import Problem
 from app.security import matches, presented_secret
 from app.sessions.runtime import LiveSession
-from app.stream.hub import CLOSED, OVERFLOW, Subscription
+from app.sessions.schemas import Seq
+from app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
 
 router = APIRouter(tags=["stream"])
 
 
 class FrameMeta(BaseModel):
     type: str
-    seq: int | None = None
+    seq: Seq | None = None
     captured_at: datetime | None = None
 
 
@@ -50,12 +54,16 @@ async def stream(websocket: WebSocket, session_id: str) -> None:
     live = await _authorise(websocket, ctx, session_id, secret)
     if live is None:
         return
+    # Taken before subscribing: they come before any frame this stream will see.
+    interrupted = await ctx.runtime.interrupted(live)
     sub = ctx.hub.subscribe(live.id)
     ctx.metrics.stream_subscribers.inc()
     sender = asyncio.create_task(_send_loop(websocket, sub))
     try:
         await ctx.hub.ready(live.id)
         sub.put({"type": "hello", "session_id": live.id, "last_seq": live.last_seq})
+        for msg in interrupted:
+            sub.put(msg)
         await _receive_loop(websocket, ctx, live, sub)
     except WebSocketDisconnect:
         pass
@@ -95,6 +103,9 @@ async def _send_loop(websocket: WebSocket, sub: Subscription) -> None:
         if msg is OVERFLOW:
             await websocket.close(1013, "the client reads too slowly")
             return
+        if msg is GOING_AWAY:
+            await websocket.close(1001, "the server is shutting down")
+            return
         await websocket.send_text(json.dumps(msg))
         if msg.get("type") == CLOSED["type"]:
             await websocket.close(1000, "session deleted")
@@ -125,9 +136,17 @@ def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: bytes,
         captured = meta.captured_at
         if captured is not None and captured.tzinfo is None:
             captured = captured.replace(tzinfo=UTC)
-        ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured, t0=t0)
+        _, queued = ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured, t0=t0)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
+        sub.put({"type": "error", "problem": p.body()})
+        return
+    queued.add_done_callback(lambda f: _report_refusal(sub, f))
+
+
+def _report_refusal(sub: Subscription, queued: asyncio.Future) -> None:
+    """A frame whose record failed was not processed: say so as for any refused frame."""
+    if (p := queued.exception()) is not None:
         sub.put({"type": "error", "problem": p.body()})
 
 

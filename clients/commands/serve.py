@@ -24,7 +24,8 @@ def serve_cmd(host: str, port: int, workers: int | None, log_level: str | None) 
     import uvicorn
 
     from app.config import Settings
-    from app.main import create_app
+    from app.main import create_app, drain
+    from app.server import DrainingServer
 
     overrides = {}
     if workers is not None:
@@ -33,7 +34,8 @@ def serve_cmd(host: str, port: int, workers: int | None, log_level: str | None) 
         overrides["log_level"] = log_level
     settings = Settings(**overrides)
     app = create_app(settings, configure_logging=True)
-    uvicorn.run(app, host=host, port=port, log_config=None,
-                log_level=settings.log_level.lower(),
-                ws_max_size=settings.max_frame_bytes + 4096,
-                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S)
+    config = uvicorn.Config(app, host=host, port=port, log_config=None,
+                            log_level=settings.log_level.lower(),
+                            ws_max_size=settings.max_frame_bytes + 4096,
+                            timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S)
+    DrainingServer(config, drain=lambda: drain(app)).run()

@@ -20,7 +20,7 @@ from ._client import (
     stream_url,
 )
 from ._exceptions import JobFailed, TransportError, VlocError, WaitTimeout
-from ._models import FrameAccepted, Job, Map, MapImage, Pose, Session, UploadResult
+from ._models import FrameAccepted, FrameError, Job, Map, MapImage, Pose, Session, UploadResult
 from ._requests import Call, ImageSource, RetryPolicy
 from ._stream import AsyncConnect, AsyncPoseStream, async_websockets_connect
 
@@ -190,7 +190,7 @@ class AsyncClient:
         await self._call(rq.delete_session(*session_ref(session, token)))
 
     async def list_poses(self, session: SessionRef, *, after_seq: int | None = None,
-                         limit: int = 1000, token: str | None = None) -> list[Pose]:
+                         limit: int = 1000, token: str | None = None) -> list[Pose | FrameError]:
         return await self._call(rq.list_poses(*session_ref(session, token),
                                               after_seq=after_seq, limit=limit))
 

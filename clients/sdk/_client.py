@@ -12,7 +12,7 @@ import httpx
 
 from . import _requests as rq
 from ._exceptions import JobFailed, TransportError, VlocError, WaitTimeout
-from ._models import FrameAccepted, Job, Map, MapImage, Pose, Session, UploadResult
+from ._models import FrameAccepted, FrameError, Job, Map, MapImage, Pose, Session, UploadResult
 from ._requests import Call, ImageSource, RetryPolicy
 from ._stream import Connect, PoseStream, websockets_connect
 
@@ -258,8 +258,9 @@ class Client:
         self._call(rq.delete_session(*session_ref(session, token)))
 
     def list_poses(self, session: SessionRef, *, after_seq: int | None = None,
-                   limit: int = 1000, token: str | None = None) -> list[Pose]:
-        """Stored estimates in sequence order, after ``after_seq``."""
+                   limit: int = 1000, token: str | None = None) -> list[Pose | FrameError]:
+        """Stored outcomes in sequence order, after ``after_seq``: the estimates, and a
+        :class:`FrameError` for each frame that gave none."""
         return self._call(rq.list_poses(*session_ref(session, token), after_seq=after_seq,
                                         limit=limit))
 

@@ -161,9 +161,10 @@ class FrameError(_Model):
     session_id: str = ""
     seq: int
     captured_at: datetime | None = None
-    kind: str = Field(description="bad_image, error, not_open or worker_died")
+    kind: str = Field(description="bad_image, error, not_open, worker_died, not_stored or "
+                                  "interrupted")
     reason: str = ""
-    latency_ms: float = 0.0
+    latency_ms: float | None = Field(0.0, description="None for an interrupted frame")
 
     _ids = field_validator("session_id", mode="before")(_str_id)
 

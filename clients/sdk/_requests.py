@@ -15,7 +15,16 @@ from typing import Any
 import httpx
 
 from ._exceptions import APIError, error_for_response
-from ._models import FrameAccepted, Job, Map, MapImage, Pose, Session, UploadResult
+from ._models import (
+    FrameAccepted,
+    Job,
+    Map,
+    MapImage,
+    Pose,
+    Session,
+    UploadResult,
+    parse_message,
+)
 
 ImageSource = str | PathLike | bytes | tuple[str, bytes]
 """A file path, raw JPEG/PNG bytes, or ``(filename, bytes)``."""
@@ -186,7 +195,8 @@ def list_poses(session_id: str, token: str | None, *, after_seq: int | None,
     params: dict[str, Any] = {"limit": limit}
     if after_seq is not None:
         params["after_seq"] = after_seq
-    return Call("GET", f"/v1/sessions/{session_id}/poses", _models(Pose), params=params,
+    return Call("GET", f"/v1/sessions/{session_id}/poses",
+                lambda r: [parse_message(item) for item in r.json()], params=params,
                 idempotent=True, token=token)
 
 

@@ -25,6 +25,37 @@ def test_readyz_fails_when_the_engine_is_down(tmp_path):
         assert r.status_code == 503 and r.headers["content-type"] == PROBLEM
 
 
+def test_readyz_fails_while_a_worker_is_stopped(tmp_path):
+    import os
+    import signal
+    import time
+
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+    from tests.app.conftest import service_settings
+
+    app = create_app(service_settings(tmp_path / "d", f"sqlite:///{tmp_path}/x.db",
+                                      worker_stall_s=1.0))
+
+    def readiness_becomes(status: int) -> bool:
+        deadline = time.monotonic() + 30
+        while (r := c.get("/readyz")).status_code != status and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return r.status_code == status
+
+    with TestClient(app) as c:
+        (pid,) = app.state.ctx.engine.worker_pids()
+        assert c.get("/readyz").status_code == 200
+        os.kill(pid, signal.SIGSTOP)  # the process exists, but runs nothing
+        try:
+            assert readiness_becomes(503)
+            assert c.get("/readyz").json()["type"] == "urn:vloc:problem:not-ready"
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert readiness_becomes(200)
+
+
 def test_metrics_count_requests_by_route_template(module_client):
     c = module_client
     for _ in range(3):

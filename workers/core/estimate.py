@@ -39,8 +39,13 @@ class Estimate:
         Index of the best-matching map image this step (-1 if none).
     measurement : str
         Kind of measurement the step weighed the estimate by: ``"sift"`` or ``"global"``
-        (an image similarity under that feature type); several kinds in one step are
-        joined by ``"+"``. Empty where not known.
+        (an image similarity under that feature type), ``"registered"`` (a camera pose
+        solved against the map's geometry) or ``"interpolated"`` (a match-weighted position
+        between the best map images); several kinds in one step are joined by ``"+"``.
+        Empty where not known.
+    heading_deg, heading_sigma_deg : float or None
+        Compass bearing (degrees clockwise from north) of the top edge of the frame and its
+        standard deviation, where camera geometry gave one this step; None otherwise.
     """
 
     x: float
@@ -57,6 +62,8 @@ class Estimate:
     processing_ms: float
     best_image: int = -1
     measurement: str = ""
+    heading_deg: float | None = None
+    heading_sigma_deg: float | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)

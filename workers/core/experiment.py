@@ -14,7 +14,7 @@ import numpy as np
 
 from .datasets import Dataset, DatasetImage, load_dataset, load_frames, split
 from .image import prepare
-from .mapbuild import assemble_map, extract_image_features
+from .mapbuild import assemble_map, extract_image_features, typical_focal_px
 from .mapdata import MapData
 from .query import QueryFrame
 
@@ -37,10 +37,11 @@ def _timestamp(img: DatasetImage) -> float | None:
 def build_map(images: list[DatasetImage], frames, *, map_id: str = "") -> MapData:
     """Extract every feature of the map images and pack the map."""
     feats = [extract_image_features(f) for f in frames]
+    focal = typical_focal_px([im.path.read_bytes for im in images])
     return assemble_map(names=[im.name for im in images], lats=[im.lat for im in images],
                         lons=[im.lon for im in images], alts=[im.alt for im in images],
                         features=feats, captured_at=[_timestamp(im) for im in images],
-                        map_id=map_id)
+                        map_id=map_id, focal_px=focal)
 
 
 def truth_positions(images: list[DatasetImage], map_data: MapData) -> np.ndarray:

@@ -13,7 +13,10 @@ import numpy as np
 
 from .features import FEATURE_NAMES, extract_many
 from .geo import GeoOrigin
-from .image import Frame
+from .geometry import build_geometry, focal_from_fov
+from .geometry.camera import DEFAULT_HFOV_DEG, Intrinsics
+from .image import WORK_SIZE, Frame
+from .lens import read_focal_px
 from .mapdata import MapData
 from .sift import RATIO, SiftFeatures, extract_sift, reduction_masks
 
@@ -42,7 +45,8 @@ def extract_image_features(frame: Frame, *,
 def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  captured_at=None, map_id: str = "", revision: int = 0,
                  origin: GeoOrigin | None = None, reduce_sift: bool = True,
-                 ratio: float = RATIO) -> MapData:
+                 ratio: float = RATIO, geometry: bool = True,
+                 focal_px: float | None = None, seed: int = 0) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
     Parameters
@@ -57,6 +61,15 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     reduce_sift : bool
         Mark the keypoints matching one of the two GPS-nearest map images (Weiss III);
         all keypoints are kept, the mark lets localisers match the reduced set.
+    geometry : bool
+        Reconstruct the map cameras over the ground plane (metric refinement); maps that
+        are not a plane seen from above get none, whatever this says.
+    focal_px : float or None
+        The map camera's focal length in pixels at the working resolution (from EXIF,
+        :func:`workers.core.lens.read_focal_px`); None assumes a typical field of view
+        and lets the reconstruction refine it.
+    seed : int
+        Seeds the reconstruction's RANSAC.
 
     Returns
     -------
@@ -83,6 +96,40 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     times = None
     if captured_at is not None:
         times = np.array([np.nan if t is None else t for t in captured_at], np.float64)
-    return MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
+    data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
                               global_features=glob, sift=sift, map_id=map_id,
                               revision=revision, captured_at=times, sift_keep=keep)
+    if geometry:
+        data.geometry = map_geometry(data, focal_px=focal_px, seed=seed)
+    return data
+
+
+def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0):
+    """The map's camera geometry with every stored SIFT keypoint on the ground, or None."""
+    width, height = WORK_SIZE
+    f = focal_px if focal_px else focal_from_fov(DEFAULT_HFOV_DEG, width)
+    n = len(data)
+    kps = [data.sift(i).keypoints for i in range(n)]
+    desc = [data.sift(i).descriptors for i in range(n)]
+    geo = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
+                         Intrinsics.centred(f, width, height), rng=np.random.default_rng(seed))
+    if geo is not None:
+        geo.add_ground("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets))
+    return geo
+
+
+def typical_focal_px(files, width: int = WORK_SIZE[0], *, sample: int = 25) -> float | None:
+    """Median EXIF focal length (pixels at ``width``) over up to ``sample`` image files.
+
+    Parameters
+    ----------
+    files : sequence of callables returning bytes, or of bytes
+    """
+    files = list(files)
+    step = max(1, len(files) // sample)
+    focals = []
+    for f in files[::step]:
+        value = read_focal_px(f() if callable(f) else f, width)
+        if value is not None:
+            focals.append(value)
+    return float(np.median(focals)) if focals else None

@@ -20,6 +20,10 @@ sift_keep : (K,) bool
 captured_at : (N,) float64
     Capture times of the map images in seconds since the epoch, NaN where unknown; the
     motion model derives the platform's typical speed from them.
+geometry : MapGeometry or None
+    The map cameras reconstructed over the ground plane and the ground position of every
+    stored keypoint (:mod:`workers.core.geometry`); None where the map is not a plane seen
+    from above.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .geo import GeoOrigin
+from .geometry import MapGeometry
 from .sift import SiftFeatures
 
 
@@ -49,6 +54,7 @@ class MapData:
     revision: int = 0
     captured_at: np.ndarray | None = None
     sift_keep: np.ndarray | None = None
+    geometry: MapGeometry | None = None
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
     _reduced: tuple | None = field(default=None, repr=False, compare=False)
 
@@ -186,6 +192,8 @@ class MapData:
                 "names": list(self.names), "features": sorted(self.global_features),
                 "map_id": self.map_id, "revision": self.revision}
         (tmp / "meta.json").write_text(json.dumps(meta))
+        if self.geometry is not None:
+            self.geometry.save(tmp)
         if folder.exists():
             import shutil
             shutil.rmtree(folder)
@@ -207,4 +215,5 @@ class MapData:
                    sift_offsets=ld("sift_offsets.npy"), sift_keypoints=ld("sift_keypoints.npy"),
                    sift_descriptors=ld("sift_descriptors.npy"), map_id=meta["map_id"],
                    revision=int(meta["revision"]), captured_at=ld("captured_at.npy"),
-                   sift_keep=ld("sift_keep.npy"))
+                   sift_keep=ld("sift_keep.npy"),
+                   geometry=MapGeometry.load(folder, mmap=mmap))

@@ -78,8 +78,17 @@ def extract_image(database_url: str, image_id: int, path: str, *, max_pixels: in
     return len(feats.sift)
 
 
-def pack_map(database_url: str, map_id: str, revision: int, folder: str) -> dict:
+def _readers(paths: list[str]):
+    """A reader per file that still exists (an image may be deleted during a build)."""
+    return [Path(p).read_bytes for p in paths if Path(p).is_file()]
+
+
+def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
+             lens_files: list[str] | None = None) -> dict:
     """Assemble every extracted image of a map into a MapData folder.
+
+    ``lens_files`` are some of the map's image files, read for the camera's focal length
+    (EXIF) that the map's camera geometry starts from.
 
     Returns
     -------
@@ -92,7 +101,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str) -> dict
     from sqlalchemy import select
 
     from app.maps.models import ImageGlobalFeature, ImageSift, MapImage
-    from workers.core.mapbuild import ImageFeatures, assemble_map
+    from workers.core.mapbuild import ImageFeatures, assemble_map, typical_focal_px
 
     with _sessions(database_url)() as db:
         rows = db.execute(
@@ -113,7 +122,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str) -> dict
     data = assemble_map(names=[img.filename for img in images],
                         lats=[img.lat for img in images], lons=[img.lon for img in images],
                         alts=[img.alt for img in images], features=features,
-                        captured_at=times, map_id=map_id, revision=revision)
+                        captured_at=times, map_id=map_id, revision=revision,
+                        focal_px=typical_focal_px(_readers(lens_files or [])))
     data.save(folder)
     o = data.origin
     return {"origin": (o.lat, o.lon, o.alt), "image_ids": ids,

@@ -8,6 +8,11 @@ worker's in-flight frames are reported as failed.
 Threads: callers submit from any thread (the event loop, request threads); one reader
 thread waits on every result pipe and every process sentinel, dispatches outcomes, and
 replaces dead workers.
+
+Workers die with the API process: each holds the read end of a lifeline pipe whose write end
+only this process has, and exits when it reports end-of-file (see
+:func:`~workers.engine.worker.worker_main`). Each also stamps a heartbeat in shared memory,
+so that a worker that exists but does not run (stopped, starved) shows in :meth:`alive`.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import logging
 import multiprocessing as mp
 import os
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from multiprocessing.connection import wait
@@ -37,12 +43,15 @@ from .messages import (
     Stop,
 )
 from .slots import EngineClosed, Slot, WorkerDied, remote_error
-from .worker import THREAD_ENV, worker_main
+from .worker import HEARTBEAT_S, THREAD_ENV, worker_main
 
 log = logging.getLogger(__name__)
 
 RESPAWN_RETRY_S = 1.0
 """How soon a worker that could not be replaced is tried again."""
+
+STALL_S = 5.0
+"""A worker whose heartbeat is older than this is not counted as alive."""
 
 PRELOAD = ["workers.engine.worker", "workers.core.localisers", "workers.core.mapbuild"]
 
@@ -64,13 +73,18 @@ class LocalEngine:
     start_method : str or None
         ``"forkserver"`` (default where available) or ``"spawn"``; never ``"fork"``, which
         copies the parent's threads' locks in whatever state they are in.
+    stall_s : float
+        A worker whose heartbeat (stamped every ``HEARTBEAT_S`` while it can run) is older
+        than this does not count as alive.
     """
 
     def __init__(self, n_workers: int, *, on_outcome: Callable[[Outcome], None] | None = None,
                  checkpoint_every: int = 1, max_pixels: int = 50_000_000,
-                 start_method: str | None = None) -> None:
+                 start_method: str | None = None, stall_s: float = STALL_S) -> None:
         if n_workers < 1:
             raise ValueError("n_workers must be at least 1")
+        if stall_s <= HEARTBEAT_S:
+            raise ValueError(f"stall_s must be longer than the heartbeat ({HEARTBEAT_S} s)")
         if start_method is None:
             start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         if start_method == "fork":
@@ -79,6 +93,7 @@ class LocalEngine:
         self.on_outcome = on_outcome
         self.checkpoint_every = checkpoint_every
         self.max_pixels = max_pixels
+        self.stall_s = stall_s
         self.restarts = 0
         self._ctx = mp.get_context(start_method)
         if start_method == "forkserver":
@@ -93,6 +108,7 @@ class LocalEngine:
         self._running = False
         self._reader: threading.Thread | None = None
         self._wakeup_r, self._wakeup_w = self._ctx.Pipe(duplex=False)
+        self._lifeline_r, self._lifeline_w = None, None
 
     # -- life cycle -------------------------------------------------------------------------
 
@@ -101,6 +117,9 @@ class LocalEngine:
         for var in THREAD_ENV:
             # Inherited by the workers; the API process itself runs no numerics.
             os.environ.setdefault(var, "1")
+        # The write end never leaves this process (descriptors are not inheritable and only
+        # the read end is handed to the workers), so it closes exactly when we end.
+        self._lifeline_r, self._lifeline_w = self._ctx.Pipe(duplex=False)
         with self._lock:
             self._slots = [self._spawn(i) for i in range(self.n_workers)]
             self._running = True
@@ -136,6 +155,9 @@ class LocalEngine:
             slot.tasks.cancel_join_thread()
             slot.tasks.close()
             slot.conn.close()
+        # Whatever worker is still there (a replacement started during the stop) goes now.
+        self._lifeline_w.close()
+        self._lifeline_r.close()
         with self._lock:
             # Dropping the queues releases their semaphores now rather than at exit, which
             # a server stopped by a signal never reaches.
@@ -157,9 +179,12 @@ class LocalEngine:
             return sum(1 for s in self._slots if not s.broken and s.process.is_alive())
 
     def alive(self) -> bool:
+        """Every worker process exists and has stamped its heartbeat within ``stall_s``."""
+        now = time.monotonic()
         with self._lock:
-            return self._running and all(not s.broken and s.process.is_alive()
-                                         for s in self._slots)
+            return self._running and all(
+                not s.broken and s.process.is_alive() and now - s.heartbeat.value < self.stall_s
+                for s in self._slots)
 
     # -- sessions ---------------------------------------------------------------------------
 
@@ -275,12 +300,15 @@ class LocalEngine:
     def _spawn(self, index: int) -> Slot:
         tasks = self._ctx.Queue()
         reader, writer = self._ctx.Pipe(duplex=False)
-        process = self._ctx.Process(target=worker_main, name=f"vloc-worker-{index}",
-                                    args=(index, tasks, writer, self.max_pixels), daemon=True)
+        # Counted from the start, so that a worker still importing is not taken for stalled.
+        heartbeat = self._ctx.RawValue("d", time.monotonic())
+        process = self._ctx.Process(
+            target=worker_main, name=f"vloc-worker-{index}", daemon=True,
+            args=(index, tasks, writer, self.max_pixels, self._lifeline_r, heartbeat))
         process.start()
         # Our copy of the write end must go, or the pipe never reports EOF when the worker dies.
         writer.close()
-        return Slot(index, process, tasks, reader)
+        return Slot(index, process, tasks, reader, heartbeat)
 
     def _read_loop(self) -> None:
         while True:

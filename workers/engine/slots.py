@@ -26,6 +26,8 @@ class Slot:
     process: mp.process.BaseProcess
     tasks: object
     conn: Connection
+    heartbeat: object
+    """Shared double: ``time.monotonic()`` when the worker last ran its heartbeat."""
     ready: threading.Event = field(default_factory=threading.Event)
     broken: bool = False
     """Dead and not yet replaced: nothing may be queued on it."""

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import importlib
 import os
-import queue
 import signal
+import threading
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
@@ -30,7 +30,10 @@ from .messages import (
     Stop,
 )
 
-ORPHAN_CHECK_S = 1.0
+HEARTBEAT_S = 0.25
+"""How often a worker stamps its heartbeat and looks at its lifeline."""
+EXIT_ORPHANED = 70
+"""Exit status of a worker whose API process is gone."""
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -164,30 +167,52 @@ def _describe(exc: BaseException) -> str:
     return str(exc) if name == _builtin_base(exc) else f"{name}: {exc}"
 
 
-def worker_main(index: int, tasks, results: Connection, max_pixels: int) -> None:
-    """Entry point of a worker process."""
+def worker_main(index: int, tasks, results: Connection, max_pixels: int,
+                lifeline: Connection, heartbeat) -> None:
+    """Entry point of a worker process.
+
+    ``lifeline`` is the read end of a pipe whose only write end the API process holds: it
+    reports end-of-file the moment that process is gone, however it died. ``heartbeat`` is
+    a shared double where the worker stamps ``time.monotonic()`` while it can run.
+    """
     # The parent stops the workers in order (after the frames already queued) on Ctrl-C or
     # SIGTERM; a worker that died of a signal sent to the whole process group first would
     # lose its frames.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _single_threaded()
-    parent = os.getppid()
+    _watch(lifeline, heartbeat)
     state = WorkerState(max_pixels=max_pixels)
     results.send(Ready(os.getpid()))
     while True:
-        try:
-            task = tasks.get(timeout=ORPHAN_CHECK_S)
-        except queue.Empty:
-            if os.getppid() != parent:
-                break  # the pool is gone (killed without stopping us): nobody will ask
-            continue
+        task = tasks.get()
         if isinstance(task, Stop):
             break
         out = state.handle(task)
         if out is not None:
             results.send(out)
     results.close()
+
+
+def _watch(lifeline: Connection, heartbeat) -> None:
+    """Beat the heartbeat, and end the process as soon as the API process is gone.
+
+    A thread of its own, because the main thread may be anywhere when the API process dies:
+    in a long step, or blocked for good on a task the dead process had half written into
+    the queue. Exiting at once also releases the forkserver and the resource tracker,
+    which stay up while any worker holds their pipes.
+    """
+    def run() -> None:
+        while True:
+            heartbeat.value = time.monotonic()
+            try:
+                gone = lifeline.poll(HEARTBEAT_S)  # readable only at end-of-file
+            except (EOFError, OSError):
+                gone = True
+            if gone:
+                os._exit(EXIT_ORPHANED)
+
+    threading.Thread(target=run, name="lifeline", daemon=True).start()
 
 
 def _single_threaded() -> None:

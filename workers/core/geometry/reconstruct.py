@@ -2,7 +2,7 @@
 
 Aerial map images over nearly flat ground see one plane, so two overlapping images are
 related by a homography and each camera by its pose above the plane. The reconstruction is a
-plane-based bundle adjustment (``scipy.optimize.least_squares``, robust Huber loss, sparse
+plane-based bundle adjustment (``scipy.optimize.least_squares``, robust soft-L1 loss, sparse
 Jacobian):
 
 - unknowns: each reconstructed camera's rotation (a rotation vector) and centre (east,
@@ -82,7 +82,7 @@ class PlaneReconstruction:
 
 def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
                 positions: np.ndarray, *, max_distance: float, neighbours: int = 8,
-                ratio: float = 0.8, min_inliers: int = 15, max_per_pair: int = 80,
+                ratio: float = 0.8, min_inliers: int = 10, max_per_pair: int = 30,
                 ransac_px: float = 3.0, rng: np.random.Generator) -> list[PairMatches]:
     """Verified matches between each map image and its GPS neighbours.
 
@@ -165,6 +165,18 @@ def _initial_headings(pairs: list[PairMatches], positions: np.ndarray, K: Intrin
     return theta, height
 
 
+def _unrobust(r: np.ndarray, scale: float) -> np.ndarray:
+    """Residuals whose soft-L1 cost equals their plain squared cost.
+
+    ``least_squares`` applies its robust loss to every residual; the GPS and focal priors
+    must stay quadratic, or a camera far from its tag would count as an outlier and drift.
+    With ``z = (r / scale)^2``, soft-L1 gives ``2 (sqrt(1 + z') - 1)``, which equals ``z``
+    for ``z' = z + z^2 / 4``.
+    """
+    z = (r / scale) ** 2
+    return r * np.sqrt(1.0 + z / 4.0)
+
+
 def _rotations(rvecs: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(rvecs).as_matrix()
 
@@ -180,9 +192,9 @@ def _transfer(Ra, Ca, Rb, Cb, f, c, p):
 
 
 def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes: np.ndarray,
-                      K0: Intrinsics, *, gps_sigma: float = 3.5, alt_sigma: float = 5.0,
-                      focal_sigma: float = 0.15, huber_px: float = 2.0,
-                      max_nfev: int = 200) -> PlaneReconstruction:
+                      K0: Intrinsics, *, gps_sigma: float = 1.0, alt_sigma: float = 5.0,
+                      focal_sigma: float = 0.15, robust_px: float = 2.0,
+                      max_nfev: int = 100) -> PlaneReconstruction:
     """Bundle-adjust the map cameras over the ground plane (see the module docstring).
 
     Parameters
@@ -239,10 +251,11 @@ def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes
         R, C, f, g = unpack(x)
         ab = _transfer(R[a], C[a], R[b], C[b], f, c, pa) - pb
         ba = _transfer(R[b], C[b], R[a], C[a], f, c, pb) - pa
-        r_xy = (C[:, :2] - gps) / gps_sigma * huber_px
-        r_z = np.where(has_alt, (C[:, 2] - (alt[cams] - g)) / alt_sigma * huber_px, 0.0)
-        r_f = np.array([(x[i_f] - math.log(K0.f)) / focal_sigma * huber_px])
-        out = np.concatenate([ab.ravel(), ba.ravel(), r_xy.ravel(), r_z, r_f])
+        r_xy = (C[:, :2] - gps) / gps_sigma * robust_px
+        r_z = np.where(has_alt, (C[:, 2] - (alt[cams] - g)) / alt_sigma * robust_px, 0.0)
+        r_f = np.array([(x[i_f] - math.log(K0.f)) / focal_sigma * robust_px])
+        priors = _unrobust(np.concatenate([r_xy.ravel(), r_z, r_f]), robust_px)
+        out = np.concatenate([ab.ravel(), ba.ravel(), priors])
         return np.nan_to_num(out, nan=1e3, posinf=1e3, neginf=-1e3)
 
     n_res = 4 * n_obs + 3 * m + 1
@@ -265,8 +278,13 @@ def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes
     sparsity[base + np.arange(m), i_g] = 1
     sparsity[n_res - 1, i_f] = 1
 
-    sol = least_squares(residuals, x0, jac_sparsity=sparsity, loss="huber", f_scale=huber_px,
-                        max_nfev=max_nfev, method="trf")
+    # Variables in comparable units: a pixel of transfer error is about 1/f radians of
+    # rotation or height/f metres of position. Unscaled, the sparse solver (LSMR) needs
+    # hundreds of inner iterations per step on this badly conditioned problem.
+    scale = np.concatenate([np.full(3 * m, 1.0 / K0.f), np.full(3 * m, max(height, 1.0) / K0.f),
+                            [1.0 / K0.f, max(height, 1.0) / K0.f]])
+    sol = least_squares(residuals, x0, jac_sparsity=sparsity, loss="soft_l1", f_scale=robust_px,
+                        max_nfev=max_nfev, method="trf", ftol=1e-4, x_scale=scale)
     R, C, f, g = unpack(sol.x)
     K = Intrinsics(f, K0.cx, K0.cy)
     r = residuals(sol.x)[: 4 * n_obs].reshape(-1, 2)

@@ -103,7 +103,7 @@ class Localiser(ABC):
 
     def _estimate(self, mean: np.ndarray, cov: np.ndarray, *, feature: str, next_feature: str,
                   measurement: str, n_particles: int, status: Status, processing_ms: float,
-                  best_image: int) -> Estimate:
+                  best_image: int, heading: tuple[float, float] | None = None) -> Estimate:
         lat, lon = self.map.origin.to_wgs84(mean[0], mean[1])
         return Estimate(
             x=float(mean[0]), y=float(mean[1]), lat=float(lat), lon=float(lon),
@@ -112,7 +112,9 @@ class Localiser(ABC):
             cov=(float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 0]), float(cov[1, 1])),
             feature=feature, next_feature=next_feature, n_particles=n_particles,
             status=status, processing_ms=float(processing_ms), best_image=int(best_image),
-            measurement=measurement)
+            measurement=measurement,
+            heading_deg=None if heading is None else float(heading[0]),
+            heading_sigma_deg=None if heading is None else float(heading[1]))
 
     def get_state(self) -> bytes:
         """Everything needed to resume bit-for-bit, as bytes."""

@@ -18,12 +18,13 @@ from ..mapdata import MapData
 from ..pf import switching
 from ..pf.config import config_from_params
 from ..pf.filter import ParticleFilter, StepResult
-from ..pf.measurement import ImageSimilarity
+from ..pf.measurement import ImageSimilarity, Likelihood, Position
 from ..pf.motion import MotionModel
 from ..pf.switching import GLOBAL, SIFT, StepEvidence, SwitchState
 from ..query import QueryFrame
 from ..sift import SiftFeatures
 from .base import Localiser
+from .refine import Refinement, refine_sift
 from .scoring import global_similarity, sift_similarity
 
 MIN_REDUCED_KEYPOINTS = 20
@@ -77,8 +78,10 @@ class FilterLocaliser(Localiser):
             dt = query.captured_at - self.last_time
         used = self.switch.next
         measurement, feat_ms = self._measurement(query, used)
+        fixes: list[Refinement] = []
+        refine = self._refiner(query, fixes) if used == SIFT else None
         t_filter = time.perf_counter()
-        result = self.pf.step([measurement], dt)
+        result = self.pf.step([measurement], dt, refine=refine)
         evidence = StepEvidence(used, result.stats.spread, self._global_gap(used, result))
         filter_ms = (time.perf_counter() - t_filter) * 1e3
         if switching.judges_trust(self.config.switching, used, self.pinned):
@@ -98,9 +101,32 @@ class FilterLocaliser(Localiser):
             self.prev_sift, self.prev_key = None, None
         if query.captured_at is not None:
             self.last_time = query.captured_at
-        return self._result(result, used, feat_ms + filter_ms)
+        fix = fixes[0] if fixes else None
+        heading = None if fix is None or fix.heading_deg is None \
+            else (fix.heading_deg, fix.heading_sigma_deg)
+        return self._result(result, used, feat_ms + filter_ms, heading)
 
-    def _result(self, result: StepResult, used: str, processing_ms: float) -> Estimate:
+    def _refiner(self, query: QueryFrame, fixes: list[Refinement]):
+        """The step's metric refinement (None when off): it solves the frame's pose against
+        the map images the SIFT measurement scored best and records what it found."""
+        cfg = self.config.refine
+        if not cfg.enabled:
+            return None
+
+        def refine(likelihoods: tuple[Likelihood, ...]) -> Position | None:
+            images = likelihoods[0]
+            order = np.argsort(-images.similarities, kind="stable")
+            fix = refine_sift(query.sift()[0], self.map, images.scored[order],
+                              images.similarities[order], frame_shape=query.frame.grey.shape)
+            if fix is None:
+                return None
+            fixes.append(fix)
+            return Position(fix.kind, fix.xy, fix.sigma, cfg.outlier)
+
+        return refine
+
+    def _result(self, result: StepResult, used: str, processing_ms: float,
+                heading: tuple[float, float] | None = None) -> Estimate:
         stats = result.stats
         if stats.spread < self.thresholds[1]:
             status = Status.TRACKING
@@ -112,7 +138,8 @@ class FilterLocaliser(Localiser):
         best = int(images.scored[np.argmax(images.similarities)]) if len(images.scored) else -1
         return self._estimate(stats.mean, stats.cov, feature=used, next_feature=self.switch.next,
                               measurement="+".join(result.kinds), n_particles=len(self.pf.w),
-                              status=status, processing_ms=processing_ms, best_image=best)
+                              status=status, processing_ms=processing_ms, best_image=best,
+                              heading=heading)
 
     # -- measurements ----------------------------------------------------------------------
 
@@ -144,9 +171,17 @@ class FilterLocaliser(Localiser):
             feat_ms += g_ms
             candidates = np.argsort(-g, kind="stable")[: cfg.sift.candidates]
 
+        known: dict[int, float] = {}
+
         def similarity(idx: np.ndarray) -> np.ndarray:
-            return sift_similarity(q_sift, self.map, idx, ratio=cfg.sift.ratio,
-                                   verify=cfg.sift.verify, reduced=reduced_map)
+            # Memoised: a refined step weighs the particles twice (before and after some
+            # are drawn around the solved position), and SIFT matching is the step's cost.
+            new = np.array([i for i in np.asarray(idx).tolist() if i not in known], np.int64)
+            if len(new):
+                sims = sift_similarity(q_sift, self.map, new, ratio=cfg.sift.ratio,
+                                       verify=cfg.sift.verify, reduced=reduced_map)
+                known.update(zip(new.tolist(), sims.tolist(), strict=True))
+            return np.array([known[i] for i in np.asarray(idx).tolist()], np.float64)
 
         return ImageSimilarity(SIFT, similarity, m.sift_power, self.pf.distance_scale,
                                candidates=candidates), feat_ms

@@ -14,13 +14,16 @@ A step, in the paper's order:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from .config import FilterConfig
-from .measurement import Likelihood, Measurement, normalise_log
+from .measurement import Likelihood, Measurement, Position, normalise_log
+
+RefineFn = Callable[[tuple[Likelihood, ...]], "Position | None"]
+"""What the measurements said -> a metric position of the frame, or None."""
 from .motion import MotionModel
 from .resampling import RESAMPLERS
 
@@ -135,7 +138,8 @@ class ParticleFilter:
 
     # -- one step ------------------------------------------------------------------------
 
-    def step(self, measurements: Sequence[Measurement], dt: float | None) -> StepResult:
+    def step(self, measurements: Sequence[Measurement], dt: float | None, *,
+             refine: RefineFn | None = None) -> StepResult:
         """Run one filter step.
 
         Parameters
@@ -144,6 +148,12 @@ class ParticleFilter:
             What was measured of the current frame; their likelihoods multiply.
         dt : float or None
             Seconds since the previous frame.
+        refine : callable or None
+            Given the measurements' likelihoods, a metric position of the frame (or None).
+            A position is a further measurement, and a share of the particles
+            (``config.refine.inject``) is first drawn around it: sensor resetting
+            (Lenser and Veloso 2000), so the posterior has particles where the position
+            says the platform is even when the motion spread the cloud thin.
 
         Returns
         -------
@@ -160,6 +170,15 @@ class ParticleFilter:
                                            self.rng)
         # 3. weight
         likelihoods = tuple(m.likelihood(self.xy, self.tree) for m in measurements)
+        position = refine(likelihoods) if refine is not None else None
+        if position is not None:
+            k = int(round(cfg.refine.inject * len(self.xy)))
+            if k:
+                drawn = self.rng.choice(len(self.xy), size=k, replace=False)
+                self.xy[drawn] = position.xy + self.rng.normal(0.0, position.sigma,
+                                                               size=(k, 2))
+                likelihoods = tuple(m.likelihood(self.xy, self.tree) for m in measurements)
+            likelihoods = likelihoods + (position.likelihood(self.xy, self.tree),)
         logw = likelihoods[0].log
         for other in likelihoods[1:]:
             logw = logw + other.log

@@ -141,3 +141,53 @@ class ImageSimilarity:
             per_particle = sims[np.searchsorted(scored, nearest)]
         log = log_likelihoods(per_particle, dist, power=self.power, scale=self.scale)
         return Likelihood(self.kind, log, scored, sims, self.power)
+
+
+def position_log_likelihoods(xy: np.ndarray, position: np.ndarray, sigma: float, *,
+                             outlier: float) -> np.ndarray:
+    """Log-likelihood of a metric position measurement for each particle.
+
+    A Gaussian of ``sigma`` metres per axis around the measured position, mixed with a
+    constant floor: with probability ``outlier`` the measurement is wrong (a pose solved on
+    the wrong place), and then it says nothing about the particle. The floor keeps one bad
+    registration from wiping out a cloud that is right.
+
+    Parameters
+    ----------
+    xy : (m, 2) float ndarray
+    position : (2,) float ndarray
+    sigma : float
+    outlier : float in (0, 1)
+
+    Returns
+    -------
+    (m,) float64 ndarray
+    """
+    d2 = np.sum((np.asarray(xy, np.float64) - np.asarray(position, np.float64)) ** 2, axis=1)
+    return np.log((1.0 - outlier) * np.exp(-0.5 * d2 / sigma ** 2) + outlier)
+
+
+@dataclass(frozen=True)
+class Position:
+    """A metric position of the frame: a solved camera pose, or a position between the best
+    verified map images (:mod:`workers.core.localisers.refine`).
+
+    Attributes
+    ----------
+    kind : str
+        ``"registered"`` or ``"interpolated"``.
+    xy : (2,) float ndarray
+    sigma : float
+        Standard deviation per axis (m).
+    outlier : float
+        Probability that the position is wrong.
+    """
+
+    kind: str
+    xy: np.ndarray
+    sigma: float
+    outlier: float
+
+    def likelihood(self, xy: np.ndarray, tree: cKDTree) -> Likelihood:
+        return Likelihood(self.kind, position_log_likelihoods(xy, self.xy, self.sigma,
+                                                              outlier=self.outlier))

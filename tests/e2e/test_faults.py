@@ -1,0 +1,166 @@
+"""The real server stopped the hard way (SIGKILL) and the graceful way (SIGTERM) with frames
+queued: every accepted frame is answered or reported, no seq is reused, no process of the
+server outlives it, and the streams end with 1001 after their last pose."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+
+import httpx
+import pytest
+from sqlalchemy import create_engine, text
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+from tests.app.imagery import map_and_queries
+from tests.conftest import postgres_schema_url
+from tests.e2e.conftest import Server, start_server
+from tests.e2e.test_server import _build_map
+from tests.procs import descendants, pool_workers, wait_gone
+
+QUEUED = 25
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
+def database_env(request) -> dict:
+    """Server environment: the embedded SQLite file, or a fresh PostgreSQL schema."""
+    if request.param == "sqlite":
+        yield {}
+        return
+    with postgres_schema_url() as url:
+        yield {"VLOC_DATABASE_URL": url}
+
+
+async def _session(http: httpx.AsyncClient, map_id: str) -> tuple[str, str]:
+    r = await http.post("/v1/sessions", json={
+        "map_id": map_id, "mode": "hybrid", "params": {"n_particles": 100}, "seed": 4})
+    assert r.status_code == 201, r.text
+    return r.json()["id"], r.json()["token"]
+
+
+async def _post(http, sid, token, data, **params) -> httpx.Response:
+    return await http.post(f"/v1/sessions/{sid}/frames", content=data, params=params,
+                           headers={"Authorization": f"Bearer {token}",
+                                    "Content-Type": "image/jpeg"})
+
+
+def _signal_all(pids, sig) -> None:
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, sig)
+
+
+def test_killed_server_reports_every_accepted_frame_and_never_reuses_a_seq(
+        tmp_path, database_env):
+    maps, queries = map_and_queries(10)
+    data_dir = tmp_path / "data"
+    server = start_server(data_dir, workers=1, env=database_env)
+    admin = {"Authorization": f"Bearer {server.admin_key()}"}
+
+    async def before_the_kill() -> tuple[str, str, list[int]]:
+        async with httpx.AsyncClient(base_url=server.base_url, headers=admin,
+                                     timeout=60) as http:
+            sid, token = await _session(http, await _build_map(http, maps))
+            for q in queries[:2]:
+                assert (await _post(http, sid, token, q.jpeg, wait="true")).status_code == 200
+            # The worker runs nothing from here on: the frames accepted next stay queued.
+            _signal_all(pool_workers(server.process.pid), signal.SIGSTOP)
+            accepted = []
+            for i in range(QUEUED):
+                r = await _post(http, sid, token, queries[i % len(queries)].jpeg)
+                assert r.status_code == 202, r.text
+                accepted.append(r.json()["seq"])
+        return sid, token, accepted
+
+    try:
+        sid, token, accepted = asyncio.run(before_the_kill())
+    finally:
+        below = descendants(server.process.pid)
+        server.process.kill()
+        server.process.wait(30)
+        _signal_all(below, signal.SIGCONT)
+    # Workers, forkserver and resource tracker go with the server, including the worker
+    # that finds a task half written into its queue.
+    assert wait_gone(below) == set()
+    assert accepted == list(range(2, 2 + QUEUED))
+
+    server = start_server(data_dir, workers=1, env=database_env)
+    bearer = {"Authorization": f"Bearer {token}"}
+
+    async def after_the_restart():
+        async with httpx.AsyncClient(base_url=server.base_url, headers=bearer,
+                                     timeout=60) as http:
+            listed = (await http.get(f"/v1/sessions/{sid}/poses")).json()
+            url = f"{server.ws_url}/v1/sessions/{sid}/stream?token={token}"
+            async with connect(url) as ws:
+                hello = json.loads(await ws.recv())
+                reported = [json.loads(await asyncio.wait_for(ws.recv(), 60))
+                            for _ in range(QUEUED)]
+                r = await _post(http, sid, token, queries[0].jpeg, wait="true")
+            session = (await http.get(f"/v1/sessions/{sid}")).json()
+        return listed, hello, reported, r, session
+
+    try:
+        listed, hello, reported, r, session = asyncio.run(after_the_restart())
+    finally:
+        server.stop()
+    # Every accepted frame is there once: answered before the kill, or reported.
+    assert [m["seq"] for m in listed] == list(range(2 + QUEUED))
+    assert [m["type"] for m in listed[:2]] == ["pose", "pose"]
+    assert {(m["type"], m["kind"]) for m in listed[2:]} == {("frame_error", "interrupted")}
+    assert hello["last_seq"] == 1 + QUEUED
+    assert [(m["type"], m["seq"], m["kind"]) for m in reported] == [
+        ("frame_error", seq, "interrupted") for seq in accepted]
+    # The next frame continues after the last accepted seq.
+    assert r.status_code == 200 and r.json()["seq"] == 2 + QUEUED
+    assert (session["frames_processed"], session["frames_failed"]) == (3, QUEUED)
+
+
+def test_sigterm_answers_queued_frames_streams_them_then_closes_with_1001(tmp_path):
+    maps, queries = map_and_queries(10)
+    server = start_server(tmp_path / "data", workers=1)
+    admin = {"Authorization": f"Bearer {server.admin_key()}"}
+
+    async def scenario(server: Server):
+        async with httpx.AsyncClient(base_url=server.base_url, headers=admin,
+                                     timeout=60) as http:
+            sid, token = await _session(http, await _build_map(http, maps))
+            url = f"{server.ws_url}/v1/sessions/{sid}/stream?token={token}"
+            async with connect(url) as ws:
+                assert json.loads(await ws.recv())["type"] == "hello"
+                workers = pool_workers(server.process.pid)
+                _signal_all(workers, signal.SIGSTOP)
+                try:
+                    accepted = [(await _post(http, sid, token, q.jpeg)).json()["seq"]
+                                for q in queries]
+                    server.process.send_signal(signal.SIGTERM)
+                finally:
+                    _signal_all(workers, signal.SIGCONT)
+                got = []
+                with contextlib.suppress(ConnectionClosed):
+                    async for raw in ws:
+                        got.append(json.loads(raw))
+                return sid, accepted, got, ws.close_code
+
+    try:
+        sid, accepted, got, code = asyncio.run(scenario(server))
+        returncode = server.process.wait(60)
+    finally:
+        if server.process.poll() is None:
+            server.process.kill()
+    assert returncode in (0, -signal.SIGTERM)
+    assert accepted == list(range(len(queries)))
+    assert [(m["type"], m["seq"]) for m in got] == [("pose", seq) for seq in accepted]
+    assert code == 1001
+    log = server.stderr_path.read_text()
+    assert '"msg": "vloc stopped"' in log and "Traceback" not in log
+    db = create_engine(f"sqlite:///{server.data_dir / 'vloc.sqlite3'}")
+    with db.connect() as conn:
+        stored = conn.execute(text("SELECT seq FROM pose_estimates WHERE session_id = :s "
+                                   "ORDER BY seq"), {"s": sid.replace("-", "")}).scalars()
+        assert list(stored) == accepted
+    db.dispose()

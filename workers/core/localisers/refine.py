@@ -1,0 +1,122 @@
+"""Metric refinement: a frame's position from camera geometry, beyond the nearest map image.
+
+Where the map has camera geometry (a nadir map reconstructed over its ground plane, see
+:mod:`workers.core.geometry`), the frame's keypoints are matched to those of the few best
+map images, each matched map keypoint has a place on the ground, and a perspective-n-point
+solve gives the frame's camera pose: a position in metres with its uncertainty, and the
+camera's heading.
+
+Where it has none (street-level robots and phones), the best verified map images vote for
+the position with their match counts: a position between them rather than on one of them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import Registration, register_against
+from ..mapdata import MapData
+from ..sift import SiftFeatures, ratio_matches
+
+REFINE_RATIO: float = 0.8
+"""Ratio test for the correspondences fed to the pose solver: its RANSAC removes outliers,
+so the looser test of Lowe's paper keeps more true matches than the scoring's 0.7."""
+
+MIN_MATCHES: int = 8
+"""A map image with fewer ratio-test matches adds nothing to the pose."""
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """A position measurement from local-feature geometry.
+
+    Attributes
+    ----------
+    xy : (2,) float ndarray
+        East/north (m).
+    sigma : float
+        Standard deviation per axis (m).
+    kind : {"registered", "interpolated"}
+        Camera-geometry pose, or a match-weighted position between map images.
+    heading_deg, heading_sigma_deg : float or None
+        Compass bearing of the image's top edge and its standard deviation, where the
+        geometry gives them.
+    inliers : int
+    images : tuple of int
+        Map images that contributed.
+    """
+
+    xy: np.ndarray
+    sigma: float
+    kind: str
+    heading_deg: float | None = None
+    heading_sigma_deg: float | None = None
+    inliers: int = 0
+    images: tuple[int, ...] = ()
+
+    @classmethod
+    def from_registration(cls, reg: Registration) -> Refinement:
+        return cls(np.asarray(reg.xy, np.float64), float(reg.sigma), "registered",
+                   float(reg.heading_deg), float(reg.heading_sigma_deg), int(reg.inliers),
+                   reg.images)
+
+
+def refine_sift(query: SiftFeatures, map_data: MapData, ranked: np.ndarray,
+                scores: np.ndarray, *, frame_shape: tuple[int, int],
+                max_images: int = 3) -> Refinement | None:
+    """Refine with SIFT: register against the best-scored map images.
+
+    Parameters
+    ----------
+    query : SiftFeatures
+        The frame's (full) SIFT features.
+    map_data : MapData
+    ranked : (k,) int ndarray
+        Map images, best first (e.g. by verified SIFT similarity).
+    scores : (k,) float ndarray
+        Their scores; images scoring zero are not used.
+    frame_shape : (height, width)
+    max_images : int
+        Map images to match against.
+    """
+    ranked = np.asarray(ranked)[np.asarray(scores) > 0][:max_images]
+    if len(query) == 0 or len(ranked) == 0:
+        return None
+    geometry = map_data.geometry
+    q_desc = np.asarray(query.descriptors, dtype=np.float32)
+    offsets = np.asarray(map_data.sift_offsets)
+    matches = []
+    for i in ranked:
+        ref = map_data.sift(int(i))
+        m = ratio_matches(q_desc, ref.descriptors, ratio=REFINE_RATIO)
+        if len(m) >= MIN_MATCHES:
+            matches.append((int(i), m[:, 0], m[:, 1] + int(offsets[int(i)])))
+    if not matches:
+        return None
+    if geometry is not None:
+        reg = register_against(geometry, "sift", np.asarray(query.keypoints), matches,
+                               frame_shape=frame_shape)
+        return None if reg is None else Refinement.from_registration(reg)
+    return interpolate(map_data, ranked, np.asarray(scores)[: len(ranked)])
+
+
+def interpolate(map_data: MapData, images: np.ndarray, scores: np.ndarray) -> Refinement | None:
+    """A position between the best verified map images, weighted by their scores.
+
+    The uncertainty is the weighted spread of the images about that position, floored at a
+    third of the map's spacing: with one dominant image the frame is near it, not on it.
+    """
+    scores = np.asarray(scores, np.float64)
+    ok = scores > 0
+    if not ok.any():
+        return None
+    xy = np.asarray(map_data.positions)[np.asarray(images)[ok]]
+    w = scores[ok] / scores[ok].sum()
+    mean = w @ xy
+    spread = math.sqrt(float(w @ np.sum((xy - mean) ** 2, axis=1)) / 2.0)
+    sigma = max(spread, map_data.median_spacing() / 3.0)
+    return Refinement(mean, sigma, "interpolated",
+                      images=tuple(int(i) for i in np.asarray(images)[ok]))
