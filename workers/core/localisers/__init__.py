@@ -12,7 +12,7 @@ retrieval      Flyphone: nearest map image under a chosen feature and measure
 
 from __future__ import annotations
 
-from ..features import FEATURE_NAMES
+from ..features import ALL_FEATURE_NAMES
 from ..mapdata import MapData
 from ..pf.config import VERIFICATIONS, config_from_params
 from ..similarity import MEASURES
@@ -56,8 +56,9 @@ def validate_params(mode: str, params: dict | None = None) -> dict:
     elif mode == "retrieval":
         _check_keys(mode, params, _RETRIEVAL_DEFAULTS)
         out = {**_RETRIEVAL_DEFAULTS, **params}
-        if out["feature"] not in FEATURE_NAMES:
-            raise ValueError(f"unknown feature {out['feature']!r}; valid: {', '.join(FEATURE_NAMES)}")
+        if out["feature"] not in ALL_FEATURE_NAMES:
+            raise ValueError(f"unknown feature {out['feature']!r}; "
+                             f"valid: {', '.join(ALL_FEATURE_NAMES)}")
         if out["measure"] not in MEASURES:
             raise ValueError(f"unknown measure {out['measure']!r}; valid: {', '.join(MEASURES)}")
     else:

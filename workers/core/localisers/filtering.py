@@ -7,6 +7,7 @@ import time
 import numpy as np
 
 from ..estimate import Estimate, Status
+from ..features import DESCRIPTORS
 from ..mapdata import MapData
 from ..pf.config import config_from_params
 from ..pf.filter import GLOBAL, SIFT, ParticleFilter
@@ -14,7 +15,7 @@ from ..pf.motion import MotionModel
 from ..query import QueryFrame
 from ..sift import SiftFeatures
 from .base import Localiser
-from .similarity_models import global_similarity, sift_similarity
+from .similarity_models import check_map_features, global_similarity, sift_similarity
 
 TRUST_RATE = 0.3
 """Weight of the newest SIFT step in the running agreement of global features with SIFT."""
@@ -42,6 +43,10 @@ class FilterLocaliser(Localiser):
         super().__init__(map_data, params, seed)
         self.mode = mode
         self.config = cfg = config_from_params(params)
+        if mode != "sift" or cfg.sift_candidates:
+            # only the place descriptors: maps have always carried every histogram feature
+            check_map_features(map_data, tuple(n for n in cfg.global_features
+                                               if n in DESCRIPTORS))
         speed = map_data.typical_speed() if cfg.speed == "auto" else cfg.speed
         self.motion = MotionModel(sigma_floor=cfg.motion_sigma, speed=speed, pull=cfg.pull,
                                   velocity=cfg.velocity,
@@ -72,7 +77,7 @@ class FilterLocaliser(Localiser):
         kind = self.pf.mode
         candidates = None
         if kind == GLOBAL:
-            q, feat_ms = query.global_features(cfg.global_features)
+            q, feat_ms = query.global_features(cfg.global_features, self.map.vocabularies)
 
             def similarity(idx: np.ndarray) -> np.ndarray:
                 return global_similarity(q, self.map, idx, features=cfg.global_features,
@@ -87,7 +92,8 @@ class FilterLocaliser(Localiser):
             reduced_map = cfg.sift_reduce in ("both", "map")
             if cfg.sift_candidates:
                 # The cheap global features shortlist places for SIFT to verify.
-                qg, g_ms = query.global_features(cfg.global_features)
+                qg, g_ms = query.global_features(cfg.global_features, self.map.vocabularies,
+                                                 sift_paid=True)
                 feat_ms += g_ms
                 every_image = np.arange(len(self.map))
                 g = global_similarity(qg, self.map, every_image, features=cfg.global_features,
@@ -137,7 +143,8 @@ class FilterLocaliser(Localiser):
         cfg = self.config
         ms = 0.0
         if used == SIFT:
-            qg, ms = query.global_features(cfg.global_features)
+            qg, ms = query.global_features(cfg.global_features, self.map.vocabularies,
+                                           sift_paid=True)
             g = global_similarity(qg, self.map, np.arange(len(self.map)),
                                   features=cfg.global_features, measure=cfg.global_measure)
             top = np.argsort(-g, kind="stable")[: cfg.global_trust]

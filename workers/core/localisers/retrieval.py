@@ -14,9 +14,9 @@ import numpy as np
 from ..estimate import Estimate, Status
 from ..mapdata import MapData
 from ..query import QueryFrame
-from ..similarity import distances, similarities
+from ..similarity import distances
 from .base import StatelessLocaliser
-from .similarity_models import sift_similarity
+from .similarity_models import check_map_features, global_similarity, sift_similarity
 
 SPREAD_CANDIDATES = 5
 
@@ -38,7 +38,9 @@ class RetrievalLocaliser(StatelessLocaliser):
     Parameters (``params``)
     -----------------------
     feature : str, default "wgoh"
+        A histogram feature or a place descriptor (``vlad_orb``, ``bow_orb``, ...).
     measure : str, default "bradley" (Flyphone's best pairing for WGOH, Fig. 7)
+        For histogram features; place descriptors are compared by their cosine.
     """
 
     mode = "retrieval"
@@ -47,13 +49,13 @@ class RetrievalLocaliser(StatelessLocaliser):
         super().__init__(map_data, params, seed)
         self.feature = params["feature"]
         self.measure = params["measure"]
-        if self.feature not in map_data.global_features:
-            raise ValueError(f"map has no {self.feature!r} features")
+        check_map_features(map_data, (self.feature,))
 
     def _step(self, query: QueryFrame, t0: float) -> Estimate:
-        q, feat_ms = query.global_features((self.feature,))
+        q, feat_ms = query.global_features((self.feature,), self.map.vocabularies)
         t1 = time.perf_counter()
-        s = similarities(self.measure, q[self.feature], self.map.global_features[self.feature])
+        s = global_similarity(q, self.map, np.arange(len(self.map)), features=(self.feature,),
+                              measure=self.measure)
         top = np.argsort(-s, kind="stable")[:SPREAD_CANDIDATES]
         xy = np.asarray(self.map.positions)
         cov = _spread(xy, top, s[top] - s[top].min() + 1e-12)

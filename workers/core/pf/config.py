@@ -61,9 +61,12 @@ class FilterConfig:
         Length scale (m) of the factor ``exp(-d^2 / 2 s^2)`` that lowers a particle's weight
         with its distance d to its nearest map image; None: twice the map's median spacing.
     global_features : tuple of str
-        Global features whose similarities are multiplied (Weiss: WGOH x WGII).
+        Global features whose similarities are multiplied (Weiss: WGOH x WGII): histogram
+        features or place descriptors (``vlad_orb``, ``bow_orb``, ..., whose vocabulary the
+        map trains at build).
     global_measure : str
-        Similarity measure for the global features ("weiss": normalised intersection).
+        Similarity measure for the histogram features ("weiss": normalised intersection).
+        Place descriptors are always compared by their cosine.
     sift_ratio : float
         Lowe ratio-test threshold on distances. The paper does not give one; 0.6 is the
         threshold of Lowe's own matching program. At Lowe's often quoted 0.8 about one in
@@ -173,11 +176,12 @@ def _check(c: FilterConfig) -> None:
             raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
     if not c.global_features:
         raise ValueError("global_features must name at least one feature")
-    from ..features import FEATURE_NAMES
+    from ..features import ALL_FEATURE_NAMES
     from ..similarity import MEASURES
     for name in c.global_features:
-        if name not in FEATURE_NAMES:
-            raise ValueError(f"unknown global feature {name!r}; valid: {', '.join(FEATURE_NAMES)}")
+        if name not in ALL_FEATURE_NAMES:
+            raise ValueError(f"unknown global feature {name!r}; valid: "
+                             f"{', '.join(ALL_FEATURE_NAMES)}")
     if c.global_measure not in MEASURES:
         raise ValueError(f"unknown measure {c.global_measure!r}; valid: {', '.join(MEASURES)}")
 
