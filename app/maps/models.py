@@ -136,10 +136,13 @@ class MapVocabulary(Base):
     """The vocabulary of one place descriptor, trained by the build of one map revision.
 
     A tree of ``branching ** depth`` words
-    (:class:`workers.core.features.vocabulary.Vocabulary`).
-    ``centroids``: (n_nodes, dim) float32, little-endian, every node below the root level by
+    (:class:`workers.core.features.vocabulary.Vocabulary`) over local vectors of length
+    ``dim`` (D), optionally projected to P principal components first.
+    ``centroids``: (n_nodes, P) float32, little-endian, every node below the root level by
     level, ``n_nodes = branching + branching ** 2 + ... + branching ** depth``.
     ``idf``: (branching ** depth,) float32, little-endian.
+    ``projection``: (P + 1, D) float32, little-endian, the mean and then the P principal
+    axes as rows; NULL where the centres live in the vectors' own space (P = D).
     """
 
     __tablename__ = "map_vocabularies"
@@ -156,4 +159,5 @@ class MapVocabulary(Base):
     dim: Mapped[int] = mapped_column(Integer)
     centroids: Mapped[bytes] = mapped_column(LargeBinary)
     idf: Mapped[bytes] = mapped_column(LargeBinary)
+    projection: Mapped[bytes | None] = mapped_column(LargeBinary)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

@@ -44,6 +44,7 @@ def upgrade() -> None:
         sa.Column("dim", sa.Integer(), nullable=False),
         sa.Column("centroids", sa.LargeBinary(), nullable=False),
         sa.Column("idf", sa.LargeBinary(), nullable=False),
+        sa.Column("projection", sa.LargeBinary(), nullable=True),
         sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
         sa.ForeignKeyConstraint(["map_id"], ["maps.id"], ondelete="CASCADE",
                                 name=op.f("fk_map_vocabularies_map_id_maps")),

@@ -294,10 +294,15 @@ def _assert_vocabularies_stored(ctx, map_id: str, revision: int, packed: MapData
         for name, row in rows.items():
             vocab = decode_vocabulary(branching=row.branching, depth=row.depth,
                                       binary=row.binary, dim=row.dim, centroids=row.centroids,
-                                      idf=row.idf)
+                                      idf=row.idf, projection=row.projection)
             np.testing.assert_array_equal(vocab.centroids, packed.vocabularies[name].centroids)
             np.testing.assert_array_equal(vocab.idf, packed.vocabularies[name].idf)
             assert vocab.binary == packed.vocabularies[name].binary
+            if packed.vocabularies[name].projection is None:
+                assert vocab.projection is None
+            else:
+                np.testing.assert_array_equal(vocab.projection,
+                                              packed.vocabularies[name].projection)
 
 
 def test_images_extracted_before_orb_are_extracted_again(module_client, shots):

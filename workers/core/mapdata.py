@@ -19,8 +19,9 @@ sift_keep : (K,) bool
     localiser can choose to match against the full or the reduced set.
 vocabularies[name] : Vocabulary
     The vocabulary of each place descriptor in ``global_features`` (trained on this map's
-    own local features at build), saved as ``vocab_{name}_centroids.npy`` and
-    ``vocab_{name}_idf.npy`` with its tree shape in ``meta.json``. Maps packed before place
+    own local features at build), saved as ``vocab_{name}_centroids.npy``,
+    ``vocab_{name}_idf.npy`` and, where it projects the local vectors,
+    ``vocab_{name}_projection.npy``, with its tree shape in ``meta.json``. Maps packed before place
     descriptors existed have none and load unchanged.
 captured_at : (N,) float64
     Capture times of the map images in seconds since the epoch, NaN where unknown; the
@@ -197,11 +198,14 @@ class MapData:
         for name, vocab in self.vocabularies.items():
             np.save(tmp / f"vocab_{name}_centroids.npy", vocab.centroids)
             np.save(tmp / f"vocab_{name}_idf.npy", vocab.idf)
+            if vocab.projection is not None:
+                np.save(tmp / f"vocab_{name}_projection.npy", vocab.projection)
         meta = {"origin": [self.origin.lat, self.origin.lon, self.origin.alt],
                 "names": list(self.names), "features": sorted(self.global_features),
                 "map_id": self.map_id, "revision": self.revision,
                 "vocabularies": {name: {"branching": v.branching, "depth": v.depth,
-                                        "binary": v.binary}
+                                        "binary": v.binary,
+                                        "projected": v.projection is not None}
                                  for name, v in sorted(self.vocabularies.items())}}
         (tmp / "meta.json").write_text(json.dumps(meta))
         if folder.exists():
@@ -222,7 +226,8 @@ class MapData:
         vocabularies = {
             name: Vocabulary(ld(f"vocab_{name}_centroids.npy"), int(shape["branching"]),
                              int(shape["depth"]), bool(shape["binary"]),
-                             ld(f"vocab_{name}_idf.npy"))
+                             ld(f"vocab_{name}_idf.npy"),
+                             ld(f"vocab_{name}_projection.npy") if shape["projected"] else None)
             for name, shape in meta.get("vocabularies", {}).items()}
         return cls(origin=GeoOrigin(*meta["origin"]), names=tuple(meta["names"]),
                    positions=ld("positions.npy"), altitudes=ld("altitudes.npy"),

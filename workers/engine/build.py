@@ -62,17 +62,24 @@ def decode_orb(n: int, keypoints: bytes, descriptors: bytes) -> OrbFeatures:
     return OrbFeatures(kps, desc)
 
 
-def encode_vocabulary(vocab: Vocabulary) -> tuple[bytes, bytes]:
-    """Centroids (n_nodes, dim) and idf (n_words,), float32 little-endian -> bytes."""
+def encode_vocabulary(vocab: Vocabulary) -> tuple[bytes, bytes, bytes | None]:
+    """Centroids (n_nodes, P), idf (n_words,) and projection (P + 1, D) or None, float32
+    little-endian -> bytes."""
+    projection = None if vocab.projection is None \
+        else np.ascontiguousarray(vocab.projection, dtype="<f4").tobytes()
     return (np.ascontiguousarray(vocab.centroids, dtype="<f4").tobytes(),
-            np.ascontiguousarray(vocab.idf, dtype="<f4").tobytes())
+            np.ascontiguousarray(vocab.idf, dtype="<f4").tobytes(), projection)
 
 
 def decode_vocabulary(*, branching: int, depth: int, binary: bool, dim: int,
-                      centroids: bytes, idf: bytes) -> Vocabulary:
-    c = np.frombuffer(centroids, dtype="<f4").astype(np.float32).reshape(-1, dim)
-    return Vocabulary(c, branching, depth, binary,
-                      np.frombuffer(idf, dtype="<f4").astype(np.float32))
+                      centroids: bytes, idf: bytes, projection: bytes | None) -> Vocabulary:
+    """The inverse of :func:`encode_vocabulary`; ``dim`` is D, the local vectors' length."""
+    idf_arr = np.frombuffer(idf, dtype="<f4").astype(np.float32)
+    n_nodes = sum(branching ** level for level in range(1, depth + 1))
+    c = np.frombuffer(centroids, dtype="<f4").astype(np.float32).reshape(n_nodes, -1)
+    p = None if projection is None \
+        else np.frombuffer(projection, dtype="<f4").astype(np.float32).reshape(-1, dim)
+    return Vocabulary(c, branching, depth, binary, idf_arr, p)
 
 
 @lru_cache(maxsize=8)
@@ -159,11 +166,11 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str) -> dict
         db.execute(delete(MapVocabulary).where(MapVocabulary.map_id == uuid.UUID(map_id),
                                                MapVocabulary.revision == revision))
         for name, vocab in sorted(data.vocabularies.items()):
-            centroids, idf = encode_vocabulary(vocab)
+            centroids, idf, projection = encode_vocabulary(vocab)
             db.add(MapVocabulary(map_id=uuid.UUID(map_id), revision=revision, name=name,
                                  branching=vocab.branching, depth=vocab.depth,
                                  binary=vocab.binary, dim=vocab.dim, centroids=centroids,
-                                 idf=idf))
+                                 idf=idf, projection=projection))
     data.save(folder)
     o = data.origin
     return {"origin": (o.lat, o.lon, o.alt), "image_ids": ids,

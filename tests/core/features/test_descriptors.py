@@ -57,7 +57,7 @@ def place_map(feats):
 def test_registry():
     assert DESCRIPTOR_NAMES == ("vlad_orb", "vlad_rootsift", "bow_orb", "bow_rootsift")
     assert ALL_FEATURE_NAMES == FEATURE_NAMES + DESCRIPTOR_NAMES
-    assert [DESCRIPTORS[n].dim for n in DESCRIPTOR_NAMES] == [8192, 8192, 4096, 4096]
+    assert [DESCRIPTORS[n].dim for n in DESCRIPTOR_NAMES] == [2048, 4096, 4096, 4096]
     assert get_descriptor("bow_orb").binary and not get_descriptor("vlad_orb").binary
     with pytest.raises(ValueError, match="vlad_orb"):
         get_descriptor("netvlad")
@@ -139,6 +139,9 @@ def test_packed_map_round_trip_and_old_maps_load(tmp_path, place_map):
         assert (a.branching, a.depth, a.binary) == (b.branching, b.depth, b.binary)
         np.testing.assert_array_equal(a.centroids, b.centroids)
         np.testing.assert_array_equal(a.idf, b.idf)
+        assert (a.projection is None) == (b.projection is None) == (name.startswith("bow"))
+        if a.projection is not None:
+            np.testing.assert_array_equal(a.projection, b.projection)
     # a folder packed before place descriptors: no vocabulary files, no meta key
     old = tmp_path / "old"
     shutil.copytree(folder, old)

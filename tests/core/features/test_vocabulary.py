@@ -11,6 +11,7 @@ from workers.core.features.vocabulary import (
     Vocabulary,
     cluster_sums,
     inverse_document_frequency,
+    principal_axes,
     quantise,
     train_vocabulary,
 )
@@ -132,3 +133,54 @@ def test_vocabulary_shape_is_checked():
         Vocabulary(np.zeros((5, 2), np.float32), 2, 2, False, np.zeros(4, np.float32))
     with pytest.raises(ValueError, match="idf"):
         Vocabulary(np.zeros((6, 2), np.float32), 2, 2, False, np.zeros(3, np.float32))
+
+
+def test_principal_axes_known_answer():
+    # points on the line through (1, 2, 3) along (3, 4, 0) / 5, a little noise across it
+    rng = np.random.default_rng(13)
+    t = rng.uniform(-10, 10, 400)
+    x = np.array([1.0, 2.0, 3.0]) + t[:, None] * np.array([0.6, 0.8, 0.0])
+    x[:, 2] += 0.01 * rng.standard_normal(400)
+    p = principal_axes([x[:200].astype(np.float32), x[200:].astype(np.float32)], 2,
+                       rng=np.random.default_rng(0))
+    assert p.shape == (3, 3) and p.dtype == np.float32
+    np.testing.assert_allclose(p[0], x.mean(axis=0), atol=1e-4)
+    np.testing.assert_allclose(p[1], [0.6, 0.8, 0.0], atol=1e-3)  # sign: largest positive
+    np.testing.assert_allclose(p[1:] @ p[1:].T, np.eye(2), atol=1e-5)
+    with pytest.raises(ValueError, match="n_components"):
+        principal_axes([x.astype(np.float32)], 4, rng=np.random.default_rng(0))
+
+
+def test_principal_axes_equal_the_covariance_loop():
+    rng = np.random.default_rng(14)
+    x = (rng.standard_normal((300, 4)) @ rng.standard_normal((4, 4))).astype(np.float32)
+    p = principal_axes([x], 4, rng=np.random.default_rng(0))
+    rows = x.astype(np.float64).tolist()
+    mean = [sum(r[j] for r in rows) / len(rows) for j in range(4)]
+    cov = [[sum((r[i] - mean[i]) * (r[j] - mean[j]) for r in rows) for j in range(4)]
+           for i in range(4)]
+    values = np.array([float(np.array(a) @ np.array(cov) @ np.array(a)) for a in p[1:]])
+    assert (np.diff(values) <= 1e-3 * values[0]).all()  # largest variance first
+    for a, lam in zip(p[1:].astype(np.float64), values, strict=True):  # eigenvectors
+        np.testing.assert_allclose(np.array(cov) @ a, lam * a, rtol=1e-3, atol=1e-3 * values[0])
+
+
+def test_projected_vocabulary():
+    rng = np.random.default_rng(15)
+    per_image = [rng.standard_normal((80, 6)).astype(np.float32) for _ in range(4)]
+    vocab = train_vocabulary(per_image, branching=4, depth=1, binary=False, components=3,
+                             rng=np.random.default_rng(1))
+    assert (vocab.dim, vocab.word_dim) == (6, 3) and vocab.projection.shape == (4, 6)
+    x = rng.standard_normal((5, 6)).astype(np.float32)
+    mean, axes = vocab.projection[0].tolist(), vocab.projection[1:].tolist()
+    slow = [[sum((v[j] - mean[j]) * a[j] for j in range(6)) for a in axes] for v in x.tolist()]
+    np.testing.assert_allclose(vocab.project(x), slow, atol=1e-5)
+    again = train_vocabulary(per_image, branching=4, depth=1, binary=False, components=3,
+                             rng=np.random.default_rng(1))
+    np.testing.assert_array_equal(again.projection, vocab.projection)
+    np.testing.assert_array_equal(again.centroids, vocab.centroids)
+    with pytest.raises(ValueError, match="vectors"):
+        vocab.project(x[:, :3])
+    with pytest.raises(ValueError, match="binary"):
+        train_vocabulary(per_image, branching=2, depth=1, binary=True, components=3,
+                         rng=np.random.default_rng(1))

@@ -23,8 +23,9 @@ def bow(vectors: np.ndarray, vocabulary: Vocabulary, *,
 
     Parameters
     ----------
-    vectors : (K, D) float32 ndarray
-        The image's local feature vectors (bit vectors for a binary vocabulary).
+    vectors : (K, P) float32 ndarray
+        The image's local feature vectors in the vocabulary's space
+        (:meth:`Vocabulary.project`; bit vectors for a binary vocabulary).
     vocabulary : Vocabulary
     words : (K,) int ndarray, optional
         The vectors' words, when already quantised.
@@ -36,8 +37,8 @@ def bow(vectors: np.ndarray, vocabulary: Vocabulary, *,
         words no map image contains.
     """
     x = np.asarray(vectors, dtype=np.float32)
-    if x.ndim != 2 or x.shape[1] != vocabulary.dim:
-        raise ValueError(f"expected (K, {vocabulary.dim}) vectors for this vocabulary, "
+    if x.ndim != 2 or x.shape[1] != vocabulary.word_dim:
+        raise ValueError(f"expected (K, {vocabulary.word_dim}) vectors for this vocabulary, "
                          f"got {x.shape}")
     if words is None:
         words = quantise(vocabulary, x)

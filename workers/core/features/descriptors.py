@@ -1,13 +1,14 @@
 """Place descriptors: global vectors over a vocabulary trained on the map's own local features.
 
-=================  ========  ========  ==========================================  =========
-name               local     encoding  vocabulary                                  dim
-=================  ========  ========  ==========================================  =========
-``vlad_orb``       ORB       VLAD      k-means on the bit vectors, 32 words        8192
-``vlad_rootsift``  RootSIFT  VLAD      k-means, 64 words                           8192
-``bow_orb``        ORB       BoW       k-majority tree, 8 x 8 x 8 x 8 = 4096 words 4096
-``bow_rootsift``   RootSIFT  BoW       hierarchical k-means, 4096 words            4096
-=================  ========  ========  ==========================================  =========
+=================  ========  ========  ============================================  =====
+name               local     encoding  vocabulary                                    dim
+=================  ========  ========  ============================================  =====
+``vlad_orb``       ORB       VLAD      64 principal components of the bits, 32       2048
+                                       k-means words
+``vlad_rootsift``  RootSIFT  VLAD      64 principal components, 64 k-means words     4096
+``bow_orb``        ORB       BoW       k-majority tree, 8 x 8 x 8 x 8 = 4096 words   4096
+``bow_rootsift``   RootSIFT  BoW       hierarchical k-means, 4096 words              4096
+=================  ========  ========  ============================================  =====
 
 Unlike the histogram features of :data:`~workers.core.features.GLOBAL_FEATURES`, a place
 descriptor needs the map: its vocabulary is trained at map build on the local features of
@@ -15,11 +16,15 @@ the map images (:func:`train_descriptor_vocabulary`), stored with the map revisi
 frame is described against it (:func:`describe`). Descriptors have unit L2 norm and are
 compared by their dot product (:func:`workers.core.similarity.descriptor_similarities`).
 
-Why these vocabularies (seneca-uav, pass 2 against pass 1, recall@1 within 25 m; see
-``bench/results/place.md``): VLAD of ORB around k-majority (binary) centres reached 0.34-0.52,
-around real-valued centres of the same bit vectors 0.73-0.79, because the residual from a
-binary centre is itself a sparse bit pattern that says little about the descriptor; bags of
-words need the finer partition a tree gives (4096 words: 0.73 for ORB, against 0.61 with 256).
+Why these vocabularies (seneca-uav, pass 2 against pass 1, recall@1 within 25 m; the
+results are in ``bench/results/place.md``): VLAD of ORB around k-majority (binary) centres
+reached 0.34-0.52, around real-valued centres of the same bit vectors 0.73-0.79, because the
+residual from a binary centre is itself a sparse bit pattern that says little about the
+descriptor. Projecting the local vectors to 64 principal components first (Jégou et al.
+2012) kept the recall within the spread over seeds (ORB 0.71-0.77 at 2048 dimensions against
+0.77 at 8192; RootSIFT 0.80-0.82 at 4096 against 0.77 at 8192) and makes the map matrix four
+times smaller, which is what scoring a large map costs. Bags of words need the finer
+partition a tree gives (4096 words: 0.73 for ORB, against 0.61 with 256).
 """
 
 from __future__ import annotations
@@ -57,6 +62,8 @@ class DescriptorSpec:
     binary : bool
         Train the vocabulary by k-majority on bits (ORB) rather than k-means.
     description : str
+    components : int or None
+        Project the local vectors to this many principal components before the vocabulary.
     """
 
     name: str
@@ -66,6 +73,7 @@ class DescriptorSpec:
     depth: int
     binary: bool
     description: str
+    components: int | None = None
 
     @property
     def n_words(self) -> int:
@@ -75,7 +83,7 @@ class DescriptorSpec:
     def dim(self) -> int:
         """Length of the descriptor vector."""
         if self.encoding == "vlad":
-            return self.n_words * _LOCAL_DIM[self.local]
+            return self.n_words * (self.components or _LOCAL_DIM[self.local])
         return self.n_words
 
 
@@ -83,10 +91,11 @@ DESCRIPTORS: dict[str, DescriptorSpec] = {
     s.name: s
     for s in (
         DescriptorSpec("vlad_orb", "orb", "vlad", 32, 1, False,
-                       "VLAD of ORB bit vectors, 32 k-means words, intra- and "
-                       "power-normalised"),
+                       "VLAD of ORB bit vectors reduced to 64 principal components, 32 "
+                       "k-means words, intra- and power-normalised", components=64),
         DescriptorSpec("vlad_rootsift", "rootsift", "vlad", 64, 1, False,
-                       "VLAD of RootSIFT, 64 k-means words, intra- and power-normalised"),
+                       "VLAD of RootSIFT reduced to 64 principal components, 64 k-means "
+                       "words, intra- and power-normalised", components=64),
         DescriptorSpec("bow_orb", "orb", "bow", 8, 4, True,
                        "tf-idf bag of ORB words, k-majority tree of 4096 words"),
         DescriptorSpec("bow_rootsift", "rootsift", "bow", 8, 4, False,
@@ -148,13 +157,19 @@ def train_descriptor_vocabulary(spec: DescriptorSpec, per_image: list[np.ndarray
     Vocabulary
     """
     return train_vocabulary(per_image, branching=spec.branching, depth=spec.depth,
-                            binary=spec.binary, rng=rng)
+                            binary=spec.binary, rng=rng, components=spec.components)
 
 
 def describe(spec: DescriptorSpec, vectors: np.ndarray, vocabulary: Vocabulary) -> np.ndarray:
-    """One image's descriptor: ``(spec.dim,)`` float32, unit L2 norm (or all zeros)."""
-    if vocabulary.n_words != spec.n_words or vocabulary.dim != _LOCAL_DIM[spec.local]:
+    """One image's descriptor: ``(spec.dim,)`` float32, unit L2 norm (or all zeros).
+
+    ``vectors`` are the image's :func:`local_vectors`; the vocabulary's projection, if any,
+    is applied here.
+    """
+    word_dim = spec.components or _LOCAL_DIM[spec.local]
+    if (vocabulary.n_words != spec.n_words or vocabulary.dim != _LOCAL_DIM[spec.local]
+            or vocabulary.word_dim != word_dim):
         raise ValueError(f"vocabulary of {vocabulary.n_words} words of dimension "
-                         f"{vocabulary.dim} does not fit {spec.name!r}")
+                         f"{vocabulary.dim} -> {vocabulary.word_dim} does not fit {spec.name!r}")
     encode = vlad if spec.encoding == "vlad" else bow
-    return encode(vectors, vocabulary)
+    return encode(vocabulary.project(vectors), vocabulary)

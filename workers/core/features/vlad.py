@@ -28,8 +28,9 @@ def vlad(vectors: np.ndarray, vocabulary: Vocabulary, *,
 
     Parameters
     ----------
-    vectors : (K, D) float32 ndarray
-        The image's local feature vectors (bit vectors for a binary vocabulary).
+    vectors : (K, P) float32 ndarray
+        The image's local feature vectors in the vocabulary's space
+        (:meth:`Vocabulary.project`).
     vocabulary : Vocabulary
         Its words (leaves) are the centres; a flat vocabulary (``depth = 1``) is usual.
     words : (K,) int ndarray, optional
@@ -37,7 +38,7 @@ def vlad(vectors: np.ndarray, vocabulary: Vocabulary, *,
 
     Returns
     -------
-    descriptor : (n_words * D,) float32 ndarray
+    descriptor : (n_words * P,) float32 ndarray
         Unit L2 norm; all zeros for an image without local features.
     """
     x = np.asarray(vectors, dtype=np.float32)

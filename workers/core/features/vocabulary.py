@@ -21,6 +21,11 @@ Choices left open by the papers, and what is used here:
 * A node with fewer distinct training vectors than ``branching`` gets one child per vector
   and repeats the last for the remaining children: those words are never the nearest
   (ties go to the lowest index) and stay empty, the tree stays complete.
+* An optional projection (PCA, as Jégou et al. 2012 reduce SIFT to 64 dimensions before
+  VLAD) maps the local vectors to their first principal components before anything else:
+  :func:`principal_axes` gives it, :meth:`Vocabulary.project` applies it, and the centres
+  then live in the reduced space. The ORB bits and RootSIFT components are strongly
+  correlated, so 64 components keep their structure at a fraction of the size.
 * Words get inverse document frequencies ``log(N / n_w)`` from the N map images (``n_w``
   images contain word ``w``); a word no map image contains gets 0: it cannot tell map
   images apart.
@@ -45,7 +50,7 @@ class Vocabulary:
 
     Attributes
     ----------
-    centroids : (n_nodes, D) float32 ndarray
+    centroids : (n_nodes, P) float32 ndarray
         Every node below the root, level by level: level ``l`` (1-based) holds
         ``branching ** l`` nodes, and the children of node ``i`` of level ``l`` are nodes
         ``i * branching .. i * branching + branching - 1`` of level ``l + 1``. The last
@@ -54,6 +59,10 @@ class Vocabulary:
     binary : bool
         Trained by k-majority on bit vectors (centres are 0/1).
     idf : (n_words,) float32 ndarray
+    projection : (P + 1, D) float32 ndarray or None
+        The mean of the local vectors (row 0) and ``P`` orthonormal principal axes (rows
+        1..P): vectors of dimension ``D`` are projected to ``P`` before quantisation. None:
+        the centres live in the vectors' own space (``P = D``).
     """
 
     centroids: np.ndarray
@@ -61,6 +70,7 @@ class Vocabulary:
     depth: int
     binary: bool
     idf: np.ndarray
+    projection: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.branching < 1 or self.depth < 1:
@@ -71,6 +81,10 @@ class Vocabulary:
                              f"has {n_nodes} nodes, got centroids of {self.centroids.shape}")
         if self.idf.shape != (self.n_words,):
             raise ValueError(f"idf must be ({self.n_words},), got {self.idf.shape}")
+        if self.projection is not None and (
+                self.projection.ndim != 2 or self.projection.shape[0] != self.word_dim + 1):
+            raise ValueError(f"projection must be ({self.word_dim + 1}, D), "
+                             f"got {self.projection.shape}")
 
     @property
     def n_words(self) -> int:
@@ -78,7 +92,25 @@ class Vocabulary:
 
     @property
     def dim(self) -> int:
+        """D: the dimension of the local vectors the vocabulary takes."""
+        if self.projection is not None:
+            return int(self.projection.shape[1])
+        return self.word_dim
+
+    @property
+    def word_dim(self) -> int:
+        """P: the dimension of the centres (``dim`` without a projection)."""
         return int(self.centroids.shape[1])
+
+    def project(self, vectors: np.ndarray) -> np.ndarray:
+        """Local vectors in the centres' space: ``(K, D)`` -> ``(K, P)`` float32."""
+        x = np.asarray(vectors, dtype=np.float32)
+        if x.ndim != 2 or x.shape[1] != self.dim:
+            raise ValueError(f"expected (K, {self.dim}) vectors for this vocabulary, "
+                             f"got {x.shape}")
+        if self.projection is None:
+            return x
+        return (x - self.projection[0]) @ self.projection[1:].T
 
     @property
     def words(self) -> np.ndarray:
@@ -123,7 +155,7 @@ def quantise(vocabulary: Vocabulary, vectors: np.ndarray) -> np.ndarray:
 
 
 def train_vocabulary(per_image: list[np.ndarray], *, branching: int, depth: int,
-                     binary: bool, rng: np.random.Generator,
+                     binary: bool, rng: np.random.Generator, components: int | None = None,
                      max_training: int = MAX_TRAINING,
                      iterations: int = ITERATIONS) -> Vocabulary:
     """Train a vocabulary on the map images' local feature vectors.
@@ -138,6 +170,9 @@ def train_vocabulary(per_image: list[np.ndarray], *, branching: int, depth: int,
         k-majority (centres rounded to 0/1) instead of k-means.
     rng : numpy.random.Generator
         Sampling and initialisation; the same seed gives the same vocabulary.
+    components : int or None
+        Project the vectors to this many principal components first (:func:`principal_axes`;
+        not with ``binary``, whose centres are bit vectors).
     max_training : int
         Train on a random sample of at most this many vectors.
 
@@ -145,14 +180,15 @@ def train_vocabulary(per_image: list[np.ndarray], *, branching: int, depth: int,
     -------
     Vocabulary
     """
-    dims = {v.shape[1] for v in per_image if np.ndim(v) == 2}
-    if len(dims) != 1:
-        raise ValueError(f"expected a list of (K_i, D) arrays of one width D, got widths {dims}")
-    dim = dims.pop()
-    data = np.concatenate([np.asarray(v, np.float32) for v in per_image]) if per_image \
-        else np.zeros((0, dim), np.float32)
-    if len(data) > max_training:
-        data = data[np.sort(rng.choice(len(data), size=max_training, replace=False))]
+    projection = None
+    if components is not None:
+        if binary:
+            raise ValueError("a binary vocabulary takes the bits themselves, not a projection")
+        projection = principal_axes(per_image, components, rng=rng, max_training=max_training)
+        per_image = [(np.asarray(v, np.float32) - projection[0]) @ projection[1:].T
+                     for v in per_image]
+    data = _sample(per_image, rng, max_training)
+    dim = data.shape[1]
     levels = []
     members = [np.arange(len(data))]  # training vectors under each node of the level above
     for _ in range(depth):
@@ -169,7 +205,51 @@ def train_vocabulary(per_image: list[np.ndarray], *, branching: int, depth: int,
     vocab = Vocabulary(centroids, branching, depth, binary, np.zeros(branching ** depth, np.float32))
     return Vocabulary(centroids, branching, depth, binary,
                       inverse_document_frequency([quantise(vocab, v) for v in per_image],
-                                                 vocab.n_words))
+                                                 vocab.n_words), projection)
+
+
+def principal_axes(per_image: list[np.ndarray], n_components: int, *,
+                   rng: np.random.Generator, max_training: int = MAX_TRAINING) -> np.ndarray:
+    """Mean and leading principal axes of the map images' local vectors.
+
+    Parameters
+    ----------
+    per_image : list of (K_i, D) float32 ndarray
+    n_components : int
+        P, at most D.
+    rng : numpy.random.Generator
+        Draws the sample when there are more than ``max_training`` vectors.
+
+    Returns
+    -------
+    projection : (P + 1, D) float32 ndarray
+        Row 0 the mean, rows 1..P the eigenvectors of the covariance with the largest
+        eigenvalues, largest first, each with its largest component positive (an
+        eigenvector's sign is arbitrary; this fixes it).
+    """
+    x = _sample(per_image, rng, max_training).astype(np.float64)
+    dim = x.shape[1]
+    if not 1 <= n_components <= dim:
+        raise ValueError(f"n_components must be in 1..{dim}, got {n_components}")
+    mean = x.mean(axis=0) if len(x) else np.zeros(dim)
+    centred = x - mean
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    axes = vectors[:, ::-1][:, :n_components].T  # eigh sorts ascending
+    flip = np.sign(axes[np.arange(n_components), np.abs(axes).argmax(axis=1)])
+    axes *= np.where(flip == 0, 1.0, flip)[:, None]
+    return np.vstack([mean, axes]).astype(np.float32)
+
+
+def _sample(per_image: list[np.ndarray], rng: np.random.Generator,
+            max_training: int) -> np.ndarray:
+    """All vectors of all images, or a random sample of ``max_training`` (in image order)."""
+    dims = {v.shape[1] for v in per_image if np.ndim(v) == 2}
+    if len(dims) != 1:
+        raise ValueError(f"expected a list of (K_i, D) arrays of one width D, got widths {dims}")
+    data = np.concatenate([np.asarray(v, np.float32) for v in per_image])
+    if len(data) > max_training:
+        data = data[np.sort(rng.choice(len(data), size=max_training, replace=False))]
+    return data
 
 
 def inverse_document_frequency(words_per_image: list[np.ndarray], n_words: int) -> np.ndarray:
