@@ -16,15 +16,16 @@ the map images (:func:`train_descriptor_vocabulary`), stored with the map revisi
 frame is described against it (:func:`describe`). Descriptors have unit L2 norm and are
 compared by their dot product (:func:`workers.core.similarity.descriptor_similarities`).
 
-Why these vocabularies (seneca-uav, pass 2 against pass 1, recall@1 within 25 m; the
-results are in ``bench/results/place.md``): VLAD of ORB around k-majority (binary) centres
-reached 0.34-0.52, around real-valued centres of the same bit vectors 0.73-0.79, because the
-residual from a binary centre is itself a sparse bit pattern that says little about the
-descriptor. Projecting the local vectors to 64 principal components first (Jégou et al.
-2012) kept the recall within the spread over seeds (ORB 0.71-0.77 at 2048 dimensions against
-0.77 at 8192; RootSIFT 0.80-0.82 at 4096 against 0.77 at 8192) and makes the map matrix four
-times smaller, which is what scoring a large map costs. Bags of words need the finer
-partition a tree gives (4096 words: 0.73 for ORB, against 0.61 with 256).
+Why these vocabularies (seneca-uav, pass 2 against pass 1, recall@1 within 25 m, measured
+while choosing them; the chosen ones' figures are in ``bench/results/place.md``): VLAD of ORB
+around k-majority (binary) centres reached 0.34-0.52, around real-valued centres of the same
+bit vectors 0.73-0.79, because the residual from a binary centre is itself a sparse bit
+pattern that says little about the descriptor. Projecting the local vectors to 64 principal
+components first (Jégou et al. 2012) keeps the recall (ORB: 0.75 at 2048 dimensions against
+0.76 at 8192, means over five vocabulary seeds; RootSIFT: 0.80-0.82 at 4096 against 0.77 at
+8192) and makes the map matrix two to four times smaller, and scoring a large map costs in
+proportion to it. Bags of words need the finer partition a tree gives (4096 words: 0.73 for
+ORB, against 0.61 with 256).
 """
 
 from __future__ import annotations
