@@ -199,3 +199,40 @@ def test_evaluate_summary_and_starts(world, small_map):
     d = res["default"]["sift"].to_dict()
     assert d["runs"] == 2 and d["sift_step_share"] == 1.0
     assert d["median_error_m"] < 6.0
+
+
+@pytest.mark.parametrize("feature", ["vlad_orb", "bow_orb", "vlad_rootsift", "bow_rootsift"])
+def test_retrieval_by_place_descriptor_under_other_light(world, small_map, feature):
+    queries, truth = _queries(world, n=20)
+    loc = make_localiser("retrieval", small_map, {"feature": feature}, seed=0)
+    estimates = [loc.step(q) for q in queries]
+    errors = [abs(e.x - t[0]) for e, t in zip(estimates, truth, strict=True)]
+    assert np.median(errors) <= 5.0  # half a map spacing: the nearest map image
+    assert estimates[0].feature == feature
+
+
+def test_hybrid_with_a_place_descriptor_takes_global_steps(world, small_map):
+    queries, truth = _queries(world)
+    params = {"n_particles": 200, "global_features": ["vlad_orb"], "sift_candidates": 5,
+              "global_power": 4.0}
+    loc = make_localiser("hybrid", small_map, params, seed=1)
+    errors, feats = [], []
+    for q, t in zip(queries, truth, strict=True):
+        e = loc.step(q)
+        errors.append(np.hypot(e.x - t[0], e.y - t[1]))
+        feats.append(e.feature)
+    assert np.median(errors[10:]) < 6.0
+    assert feats.count("global") >= 10
+
+
+def test_place_descriptor_needs_a_map_that_has_it(small_map):
+    from dataclasses import replace
+
+    old = replace(small_map, vocabularies={},
+                  global_features={k: v for k, v in small_map.global_features.items()
+                                   if not k.startswith(("vlad_", "bow_"))})
+    with pytest.raises(ValueError, match="vlad_orb"):
+        make_localiser("retrieval", old, {"feature": "vlad_orb"})
+    with pytest.raises(ValueError, match="bow_orb"):
+        make_localiser("hybrid", old, {"global_features": ["bow_orb"]})
+    make_localiser("sift", old, {"global_features": ["bow_orb"]})  # never uses them

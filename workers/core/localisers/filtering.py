@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..estimate import Estimate, Status
+from ..features import DESCRIPTORS
 from ..mapdata import MapData
 from ..pf import switching
 from ..pf.config import config_from_params
@@ -25,7 +26,7 @@ from ..query import QueryFrame
 from ..sift import SiftFeatures
 from .base import Localiser
 from .refine import Refinement, refine_sift
-from .scoring import global_similarity, sift_similarity
+from .scoring import check_map_features, global_similarity, sift_similarity
 
 MIN_REDUCED_KEYPOINTS = 20
 """Below this many keypoints surviving the match with the previous frame, the frame is kept
@@ -52,6 +53,10 @@ class FilterLocaliser(Localiser):
         super().__init__(map_data, params, seed)
         self.mode = mode
         self.config = cfg = config_from_params(params)
+        if mode != "sift" or cfg.sift.candidates:
+            # only the place descriptors: maps have always carried every histogram feature
+            check_map_features(map_data, tuple(n for n in cfg.measurement.global_features
+                                               if n in DESCRIPTORS))
         speed = map_data.typical_speed() if cfg.motion.speed == "auto" else cfg.motion.speed
         self.motion = MotionModel(sigma_floor=cfg.motion.sigma, speed=speed,
                                   pull=cfg.motion.pull, velocity=cfg.motion.velocity,
@@ -148,7 +153,7 @@ class FilterLocaliser(Localiser):
         cfg = self.config
         m = cfg.measurement
         if kind == GLOBAL:
-            q, feat_ms = query.global_features(m.global_features)
+            q, feat_ms = query.global_features(m.global_features, self.map.vocabularies)
 
             def similarity(idx: np.ndarray) -> np.ndarray:
                 return global_similarity(q, self.map, idx, features=m.global_features,
@@ -187,9 +192,12 @@ class FilterLocaliser(Localiser):
                                candidates=candidates), feat_ms
 
     def _global_scores(self, query: QueryFrame) -> tuple[np.ndarray, float]:
-        """Global similarity of the frame with every map image, and the extraction ms."""
+        """Global similarity of the frame with every map image, and the extraction ms.
+
+        Called on SIFT steps only (candidates, trust check): the frame's SIFT is at hand.
+        """
         m = self.config.measurement
-        q, ms = query.global_features(m.global_features)
+        q, ms = query.global_features(m.global_features, self.map.vocabularies, sift_paid=True)
         return global_similarity(q, self.map, np.arange(len(self.map)),
                                  features=m.global_features, measure=m.global_measure), ms
 

@@ -14,11 +14,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..estimate import Estimate, Status
-from ..features import FEATURE_NAMES
+from ..features import ALL_FEATURE_NAMES
 from ..mapdata import MapData
-from ..measures import MEASURES, similarities
+from ..measures import MEASURES
 from ..query import QueryFrame
 from .base import SPREAD_CANDIDATES, StatelessLocaliser, candidate_spread, check_param_keys
+from .scoring import check_map_features, global_similarity
 
 
 @dataclass(frozen=True)
@@ -28,18 +29,21 @@ class RetrievalConfig:
     Attributes
     ----------
     feature : str
-        Global feature (a name in :data:`workers.core.features.FEATURE_NAMES`).
+        Global feature (a name in :data:`workers.core.features.ALL_FEATURE_NAMES`): a
+        histogram feature or a place descriptor (``vlad_orb``, ``bow_orb``, ...).
     measure : str
-        Measure (a name in :data:`workers.core.measures.MEASURES`); Bradley's is
-        Flyphone's best pairing for WGOH (Fig. 7).
+        Measure (a name in :data:`workers.core.measures.MEASURES`) for histogram features;
+        Bradley's is Flyphone's best pairing for WGOH (Fig. 7). Place descriptors are
+        compared by their cosine.
     """
 
     feature: str = "wgoh"
     measure: str = "bradley"
 
     def __post_init__(self) -> None:
-        if self.feature not in FEATURE_NAMES:
-            raise ValueError(f"unknown feature {self.feature!r}; valid: {', '.join(FEATURE_NAMES)}")
+        if self.feature not in ALL_FEATURE_NAMES:
+            raise ValueError(f"unknown feature {self.feature!r}; "
+                             f"valid: {', '.join(ALL_FEATURE_NAMES)}")
         if self.measure not in MEASURES:
             raise ValueError(f"unknown measure {self.measure!r}; valid: {', '.join(MEASURES)}")
 
@@ -69,14 +73,13 @@ class RetrievalLocaliser(StatelessLocaliser):
         super().__init__(map_data, params, seed)
         self.config = RetrievalConfig.from_params(params)
         self.feature = self.config.feature
-        if self.feature not in map_data.global_features:
-            raise ValueError(f"map has no {self.feature!r} features")
+        check_map_features(map_data, (self.feature,))
 
     def _step(self, query: QueryFrame, t0: float) -> Estimate:
-        q, feat_ms = query.global_features((self.feature,))
+        q, feat_ms = query.global_features((self.feature,), self.map.vocabularies)
         t1 = time.perf_counter()
-        s = similarities(self.config.measure, q[self.feature],
-                         self.map.global_features[self.feature])
+        s = global_similarity(q, self.map, np.arange(len(self.map)), features=(self.feature,),
+                              measure=self.config.measure)
         top = np.argsort(-s, kind="stable")[:SPREAD_CANDIDATES]
         xy = np.asarray(self.map.positions)
         cov = candidate_spread(xy, top, s[top] - s[top].min() + 1e-12)

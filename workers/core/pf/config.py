@@ -57,9 +57,12 @@ class MeasurementConfig:
     Attributes
     ----------
     global_features : tuple of str
-        Global features whose similarities are multiplied (Weiss: WGOH x WGII).
+        Global features whose similarities are multiplied (Weiss: WGOH x WGII): histogram
+        features or place descriptors (``vlad_orb``, ``bow_orb``, ..., whose vocabulary the
+        map trains at build).
     global_measure : str
-        Similarity measure for the global features ("weiss": normalised intersection).
+        Similarity measure for the histogram features ("weiss": normalised intersection).
+        Place descriptors are always compared by their cosine.
     global_power, sift_power : float
         Exponents applied to global and to SIFT similarities.
     distance_scale : float or None
@@ -293,11 +296,12 @@ def _check(c: dict) -> None:
             raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {c[name]!r}")
     if not c["global_features"]:
         raise ValueError("global_features must name at least one feature")
-    from ..features import FEATURE_NAMES
+    from ..features import ALL_FEATURE_NAMES
     from ..measures import MEASURES
     for name in c["global_features"]:
-        if name not in FEATURE_NAMES:
-            raise ValueError(f"unknown global feature {name!r}; valid: {', '.join(FEATURE_NAMES)}")
+        if name not in ALL_FEATURE_NAMES:
+            raise ValueError(f"unknown global feature {name!r}; valid: "
+                             f"{', '.join(ALL_FEATURE_NAMES)}")
     if c["global_measure"] not in MEASURES:
         raise ValueError(f"unknown measure {c['global_measure']!r}; valid: {', '.join(MEASURES)}")
 
