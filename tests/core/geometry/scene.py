@@ -78,8 +78,10 @@ def survey(rng: np.random.Generator, *, rows: int = 2, cols: int = 4, spacing: f
                 theta = rng.uniform(-np.pi, np.pi)
             rotations.append(tilted_rotation(theta, rng.uniform(0.0, max_tilt_deg),
                                              rng.uniform(0.0, 2 * np.pi)))
-            centres.append([c * spacing + rng.normal(0.0, 1.0), r * spacing + rng.normal(0.0, 1.0),
-                            height + rng.uniform(-3.0, 3.0)])
+            jitter = spacing / 18.0
+            centres.append([c * spacing + rng.normal(0.0, jitter),
+                            r * spacing + rng.normal(0.0, jitter),
+                            height * (1.0 + rng.uniform(-0.06, 0.06))])
     rotations = np.stack(rotations)
     centres = np.array(centres, np.float64)
     half = height * 0.75
@@ -88,18 +90,24 @@ def survey(rng: np.random.Generator, *, rows: int = 2, cols: int = 4, spacing: f
     points = rng.uniform(lo, hi, size=(n_points, 2))
     descriptors = rng.integers(0, 256, size=(n_points, 128), dtype=np.uint8)
     keypoints, image_desc, ids = [], [], []
-    ground3 = np.column_stack([points, np.zeros(n_points)])
     for R, C in zip(rotations, centres, strict=True):
-        px = project(R, C, K, ground3)
-        seen = np.flatnonzero(np.isfinite(px).all(axis=1) & (px[:, 0] >= 0) & (px[:, 1] >= 0)
-                              & (px[:, 0] < 2 * K.cx) & (px[:, 1] < 2 * K.cy))
-        kp = np.zeros((len(seen), 4), np.float32)
-        kp[:, :2] = px[seen]
-        kp[:, 2] = 3.0
+        kp, desc, seen = observe(points, descriptors, R, C, K)
         keypoints.append(kp)
-        image_desc.append(descriptors[seen])
+        image_desc.append(desc)
         ids.append(seen)
     return Survey(rotations, centres, K, points, descriptors, keypoints, image_desc, ids)
+
+
+def observe(points: np.ndarray, descriptors: np.ndarray, R: np.ndarray, C: np.ndarray,
+            K: Intrinsics = K_TRUE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Keypoints (K, 4) float32, descriptors and ground point ids of what camera (R, C) sees."""
+    px = project(R, C, K, np.column_stack([points, np.zeros(len(points))]))
+    seen = np.flatnonzero(np.isfinite(px).all(axis=1) & (px[:, 0] >= 0) & (px[:, 1] >= 0)
+                          & (px[:, 0] < 2 * K.cx) & (px[:, 1] < 2 * K.cy))
+    kp = np.zeros((len(seen), 4), np.float32)
+    kp[:, :2] = px[seen]
+    kp[:, 2] = 3.0
+    return kp, descriptors[seen], seen
 
 
 def exact_pairs(s: Survey, rng: np.random.Generator, *, min_common: int = 10,
