@@ -99,14 +99,6 @@ def register_frame(frame_px: np.ndarray, ground_xy: np.ndarray, image_of: np.nda
         return None
     inl = inl.ravel()
     rvec, tvec = cv2.solvePnPRefineLM(obj_c[inl], img_pts[inl], K.matrix, None, rvec, tvec)
-    # RANSAC counts inliers against its minimal-sample pose, which for planar points is
-    # rough (OpenCV 5 keeps about 70 % of exact correspondences at 4 px): count them again
-    # against the refined pose and refine once more on that set.
-    proj, _ = cv2.projectPoints(obj_c, rvec, tvec, K.matrix, None)
-    inl = np.flatnonzero(np.linalg.norm(proj.reshape(-1, 2) - img_pts, axis=1) < reproj_px)
-    if len(inl) < MIN_INLIERS:
-        return None
-    rvec, tvec = cv2.solvePnPRefineLM(obj_c[inl], img_pts[inl], K.matrix, None, rvec, tvec)
     R, _ = cv2.Rodrigues(rvec)
     C = -R.T @ tvec.ravel() + centre
     tilt = math.degrees(math.acos(float(np.clip(-R[2, 2], -1.0, 1.0))))
