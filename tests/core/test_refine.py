@@ -12,7 +12,7 @@ from tests.core.geometry.scene import HEIGHT, WIDTH, observe, survey, tilted_rot
 from workers.core.experiment import load_experiment
 from workers.core.geo import GeoOrigin
 from workers.core.localisers.refine import MIN_MATCHES, interpolate, refine_sift
-from workers.core.localisers.similarity_models import sift_similarity
+from workers.core.localisers.scoring import sift_similarity
 from workers.core.mapbuild import map_geometry
 from workers.core.mapdata import MapData
 from workers.core.sift import SiftFeatures
