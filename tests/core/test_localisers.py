@@ -89,7 +89,10 @@ def test_filter_localisers_converge(world, small_map, mode):
         errors.append(np.hypot(e.x - t[0], e.y - t[1]))
         feats.append(e.feature)
         assert e.n_particles == 200
-        assert e.measurement == e.feature  # one image-similarity measurement per step
+        # the image similarity, and on SIFT steps the solved position where one was found
+        kinds = e.measurement.split("+")
+        assert kinds[0] == e.feature
+        assert set(kinds[1:]) <= ({"registered", "interpolated"} if e.feature == "sift" else set())
     # within a map spacing (10 m) for global features, better for SIFT
     assert np.median(errors[10:]) < (10.0 if mode == "global" else 6.0)
     assert feats[0] == ("global" if mode == "global" else "sift")

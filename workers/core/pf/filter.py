@@ -21,11 +21,11 @@ import numpy as np
 
 from .config import FilterConfig
 from .measurement import Likelihood, Measurement, Position, normalise_log
+from .motion import MotionModel
+from .resampling import RESAMPLERS
 
 RefineFn = Callable[[tuple[Likelihood, ...]], "Position | None"]
 """What the measurements said -> a metric position of the frame, or None."""
-from .motion import MotionModel
-from .resampling import RESAMPLERS
 
 
 @dataclass(frozen=True)
