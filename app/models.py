@@ -2,8 +2,15 @@
 
 from app.db import Base
 from app.jobs.models import BuildJob
-from app.maps.models import ImageGlobalFeature, ImageSift, Map, MapImage
+from app.maps.models import (
+    ImageGlobalFeature,
+    ImageOrb,
+    ImageSift,
+    Map,
+    MapImage,
+    MapVocabulary,
+)
 from app.sessions.models import Frame, LocalisationSession, Pose
 
-__all__ = ["Base", "BuildJob", "Frame", "ImageGlobalFeature", "ImageSift",
-           "LocalisationSession", "Map", "MapImage", "Pose"]
+__all__ = ["Base", "BuildJob", "Frame", "ImageGlobalFeature", "ImageOrb", "ImageSift",
+           "LocalisationSession", "Map", "MapImage", "MapVocabulary", "Pose"]

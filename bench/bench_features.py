@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from workers.core.features import FEATURE_NAMES, GLOBAL_FEATURES, extract_many  # noqa: E402
 from workers.core.image import decode_image, prepare  # noqa: E402
-from workers.core.similarity import (  # noqa: E402
+from workers.core.measures import (  # noqa: E402
     MEASURES,
     normalise,
     similarities,

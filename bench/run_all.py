@@ -1,7 +1,8 @@
 """Run every benchmark and paper reproduction in turn (``make bench``).
 
 Stage timings first (``bench_features.py``, ``bench_core.py``, ``bench_world.py``, and
-``bench_service.py`` where the seneca-uav data set it streams is present), then the paper
+``bench_service.py``, ``bench_place.py``, ``eval_place.py`` and ``eval_seneca_place.py``
+where the seneca-uav data set they read is present), then the paper
 experiments under ``bench/paper/`` (Weiss Table I, Table II from Table I's runs, Fig. 4 e/f,
 Flyphone Fig. 7/9). Each runs in its own process, one after the other, so that timings do
 not compete with each other; results go to ``bench/results/`` and ``bench/results/paper/``.
@@ -38,6 +39,12 @@ STAGES: tuple[tuple[str, list[str]], ...] = (
                               "--out", f"{QUICK_OUT}/world.md"]),
     ("bench/bench_service.py", ["--sessions", "1,10", "--frames", "20,5",
                                 "--out", f"{QUICK_OUT}/service.md"]),
+    ("bench/bench_place.py", ["--map-images", "200", "--queries", "10", "--repeats", "1",
+                              "--out", f"{QUICK_OUT}/place_timing.md"]),
+    ("bench/eval_place.py", ["--variants", "none", "--seeds", "1", "--no-sift",
+                             "--out", str(QUICK_OUT)]),
+    ("bench/eval_seneca_place.py", ["--variants", "none", "--starts", "1",
+                                    "--out", str(QUICK_OUT)]),
     ("bench/paper/weiss_table1.py", ["--quick", "--pairs", "1", "--out", f"{QUICK_OUT}/paper"]),
     ("bench/paper/weiss_table2.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),
     ("bench/paper/weiss_fig4.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),
@@ -53,7 +60,8 @@ def _missing_input(script: str) -> str | None:
     """Why a stage cannot run here, or None."""
     if not (ROOT / script).is_file():
         return "script not present"
-    if _name(script) == "bench_service" and not (SENECA / "images").is_dir():
+    seneca_stages = ("bench_service", "bench_place", "eval_place", "eval_seneca_place")
+    if _name(script) in seneca_stages and not (SENECA / "images").is_dir():
         return f"data set {SENECA} not present"
     return None
 

@@ -12,13 +12,13 @@ import logging
 import uuid
 from dataclasses import dataclass
 
-from sqlalchemy import func, select, update
+from sqlalchemy import func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.config import Settings
 from app.db import utcnow
 from app.jobs.models import BuildJob, JobStatus
-from app.maps.models import ImageSift, Map, MapImage, MapStatus
+from app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapStatus
 from app.maps.service import image_path
 from app.metrics import Metrics
 from app.problems import Problem
@@ -120,9 +120,12 @@ class BuildRunner:
     def _begin(self, job_id: uuid.UUID) -> tuple[uuid.UUID, list[tuple[int, str]]]:
         with self.db_sessions() as db:
             job = db.get(BuildJob, job_id)
+            # new images, and images extracted before ORB features were stored
             images = list(db.scalars(
                 select(MapImage).outerjoin(ImageSift, ImageSift.image_id == MapImage.id)
-                .where(MapImage.map_id == job.map_id, ImageSift.image_id.is_(None))
+                .outerjoin(ImageOrb, ImageOrb.image_id == MapImage.id)
+                .where(MapImage.map_id == job.map_id,
+                       or_(ImageSift.image_id.is_(None), ImageOrb.image_id.is_(None)))
                 .order_by(MapImage.id)))
             job.status, job.started_at = JobStatus.RUNNING, utcnow()
             job.n_images = len(images)

@@ -10,7 +10,16 @@ from __future__ import annotations
 import uuid
 from datetime import datetime
 
-from sqlalchemy import BigInteger, Float, ForeignKey, Integer, LargeBinary, String, UniqueConstraint
+from sqlalchemy import (
+    BigInteger,
+    Boolean,
+    Float,
+    ForeignKey,
+    Integer,
+    LargeBinary,
+    String,
+    UniqueConstraint,
+)
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from app.db import Base, UTCDateTime, new_id, utcnow
@@ -104,3 +113,51 @@ class ImageSift(Base):
     n_keypoints: Mapped[int] = mapped_column(Integer)
     keypoints: Mapped[bytes] = mapped_column(LargeBinary)
     descriptors: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class ImageOrb(Base):
+    """The ORB features of one map image, which the place descriptors over ORB aggregate.
+
+    ``keypoints``: (n_keypoints, 4) float32, little-endian, columns x, y (pixels at the
+    working resolution), size, angle (degrees).
+    ``descriptors``: (n_keypoints, 32) uint8, 256 bits per keypoint.
+    """
+
+    __tablename__ = "image_orb"
+
+    image_id: Mapped[int] = mapped_column(
+        ForeignKey("map_images.id", ondelete="CASCADE"), primary_key=True)
+    n_keypoints: Mapped[int] = mapped_column(Integer)
+    keypoints: Mapped[bytes] = mapped_column(LargeBinary)
+    descriptors: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class MapVocabulary(Base):
+    """The vocabulary of one place descriptor, trained by the build of one map revision.
+
+    A tree of ``branching ** depth`` words
+    (:class:`workers.core.features.vocabulary.Vocabulary`) over local vectors of length
+    ``dim`` (D), optionally projected to P principal components first.
+    ``centroids``: (n_nodes, P) float32, little-endian, every node below the root level by
+    level, ``n_nodes = branching + branching ** 2 + ... + branching ** depth``.
+    ``idf``: (branching ** depth,) float32, little-endian.
+    ``projection``: (P + 1, D) float32, little-endian, the mean and then the P principal
+    axes as rows; NULL where the centres live in the vectors' own space (P = D).
+    """
+
+    __tablename__ = "map_vocabularies"
+
+    map_id: Mapped[uuid.UUID] = mapped_column(
+        ForeignKey("maps.id", ondelete="CASCADE"), primary_key=True)
+    revision: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(32), primary_key=True)
+    """The place descriptor, e.g. ``vlad_orb``."""
+    branching: Mapped[int] = mapped_column(Integer)
+    depth: Mapped[int] = mapped_column(Integer)
+    binary: Mapped[bool] = mapped_column(Boolean)
+    """Trained by k-majority on bits (ORB)."""
+    dim: Mapped[int] = mapped_column(Integer)
+    centroids: Mapped[bytes] = mapped_column(LargeBinary)
+    idf: Mapped[bytes] = mapped_column(LargeBinary)
+    projection: Mapped[bytes | None] = mapped_column(LargeBinary)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

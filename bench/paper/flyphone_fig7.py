@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 from bench.paper import _common as c  # noqa: E402
 from workers.core.evaluate import retrieval_grid  # noqa: E402
 from workers.core.features import FEATURE_NAMES  # noqa: E402
-from workers.core.similarity import MEASURES  # noqa: E402
+from workers.core.measures import MEASURES  # noqa: E402
 
 NAME = "flyphone_fig7"
 SEED = 4
@@ -172,7 +172,7 @@ feature in bold; the paper's figure shows mean ± std (`retrieval_grid` reports 
 
 {sections}
 
-Under the normalisation of `workers.core.similarity` (L1-normalised histograms for `l1`,
+Under the normalisation of `workers.core.measures` (L1-normalised histograms for `l1`,
 `linf`, `intersection`; L2-normalised for `l2` and `bradley`, as Flyphone chose for the
 intersection and Bradley measures), intersection = 1 - L1/2 and Bradley = L2^2/2, and Weiss's
 normalised intersection equals the intersection on our features, which sum to 1 (see the

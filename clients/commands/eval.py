@@ -55,10 +55,10 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
     from workers.core.evaluate import retrieval_grid as run_grid
     from workers.core.experiment import load_experiment
     from workers.core.features import FEATURE_NAMES
+    from workers.core.measures import MEASURES
     from workers.core.pf.config import CONFIGS
     from workers.core.photometric import VARIANTS
     from workers.core.report import grid_table, markdown_table, plot_tracks, results_dict
-    from workers.core.similarity import MEASURES
 
     mode_list = _csv(modes, MODES, "mode")
     config_list = _csv(configs, tuple(CONFIGS), "config")

@@ -9,15 +9,18 @@ import zlib
 
 import numpy as np
 import pytest
-from sqlalchemy import select
+from sqlalchemy import delete, select
 
-from app.maps.models import ImageGlobalFeature, ImageSift
+from app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
 from tests.app.conftest import ADMIN, ADMIN_KEY, PROBLEM, jpeg_files, snapshot, wait_job
 from tests.app.imagery import plain_jpeg, png, png_bomb
+from workers.core.features import DESCRIPTOR_NAMES
+from workers.core.features.orb import extract_orb
 from workers.core.geo import GeoOrigin
 from workers.core.image import load_frame
 from workers.core.mapdata import MapData
 from workers.core.sift import extract_sift
+from workers.engine.build import decode_vocabulary
 
 
 def new_map(client, name: str = "a map") -> str:
@@ -248,7 +251,14 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     assert stored.descriptors == reference.descriptors.tobytes()
     assert np.frombuffer(stored.keypoints, "<f4").reshape(-1, 4).tolist() == \
         reference.keypoints.tolist()
-    assert set(first.global_features) <= names
+    assert set(first.global_features) - set(DESCRIPTOR_NAMES) <= names
+    # ORB is stored for the place descriptors' vocabularies, bit for bit too.
+    with ctx.db_sessions() as db:
+        orb = db.get(ImageOrb, images[2]["id"])
+    ref_orb = extract_orb(load_frame(maps[2].jpeg).grey)
+    assert orb.n_keypoints == len(ref_orb) > 0
+    assert orb.descriptors == ref_orb.descriptors.tobytes()
+    _assert_vocabularies_stored(ctx, map_id, 1, first)
     # The map keeps the reduced SIFT: never more than the raw keypoints.
     assert first.sift_counts()[2] <= stored.n_keypoints
 
@@ -263,11 +273,54 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
         ("ready", 2, 0, 10)
     second = MapData.load(ctx.settings.packed_map_dir(map_id, 2))
     assert len(second) == 10 and list(second.names) == [s.name for s in maps]
+    # The vocabularies are trained anew on all ten images, and revision 1 keeps its own.
+    _assert_vocabularies_stored(ctx, map_id, 2, second)
+    _assert_vocabularies_stored(ctx, map_id, 1, first)
+    assert not np.array_equal(first.vocabularies["bow_orb"].idf,
+                              second.vocabularies["bow_orb"].idf)
     # Sessions on revision 1 keep their folder.
     assert len(MapData.load(ctx.settings.packed_map_dir(map_id, 1))) == 6
     images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
     assert math.isclose(m["origin"]["lat"], np.mean([i["lat"] for i in images]), abs_tol=1e-12)
     assert [i["built_revision"] for i in images] == [1] * 6 + [2] * 4
+
+
+def _assert_vocabularies_stored(ctx, map_id: str, revision: int, packed: MapData) -> None:
+    """The database holds the packed revision's vocabularies, bit for bit."""
+    with ctx.db_sessions() as db:
+        rows = {v.name: v for v in db.scalars(select(MapVocabulary).where(
+            MapVocabulary.map_id == uuid.UUID(map_id), MapVocabulary.revision == revision))}
+        assert set(rows) == set(DESCRIPTOR_NAMES) == set(packed.vocabularies)
+        for name, row in rows.items():
+            vocab = decode_vocabulary(branching=row.branching, depth=row.depth,
+                                      binary=row.binary, dim=row.dim, centroids=row.centroids,
+                                      idf=row.idf, projection=row.projection)
+            np.testing.assert_array_equal(vocab.centroids, packed.vocabularies[name].centroids)
+            np.testing.assert_array_equal(vocab.idf, packed.vocabularies[name].idf)
+            assert vocab.binary == packed.vocabularies[name].binary
+            if packed.vocabularies[name].projection is None:
+                assert vocab.projection is None
+            else:
+                np.testing.assert_array_equal(vocab.projection,
+                                              packed.vocabularies[name].projection)
+
+
+def test_images_extracted_before_orb_are_extracted_again(module_client, shots):
+    c = module_client
+    ctx = c.app.state.ctx
+    map_id = new_map(c)
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][:3]), headers=ADMIN)
+    wait_job(c, c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"])
+    images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
+    with ctx.db_sessions() as db:  # as a map built before ORB features were stored
+        db.execute(delete(ImageOrb).where(ImageOrb.image_id == images[1]["id"]))
+        db.commit()
+    job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"])
+    assert (job["status"], job["n_images"], job["revision"]) == ("done", 1, 2)
+    with ctx.db_sessions() as db:
+        assert db.get(ImageOrb, images[1]["id"]) is not None
+    assert set(MapData.load(ctx.settings.packed_map_dir(map_id, 2)).vocabularies) == \
+        set(DESCRIPTOR_NAMES)
 
 
 def test_build_conflicts(module_client, shots, hold_worker):

@@ -19,6 +19,8 @@ TABLES_AT = {
              "sessions", "pose_estimates"},
     "0005": {"maps", "map_images", "image_global_features", "image_sift", "build_jobs",
              "sessions", "pose_estimates", "frames"},
+    "0006": {"maps", "map_images", "image_global_features", "image_sift", "build_jobs",
+             "sessions", "pose_estimates", "frames", "image_orb", "map_vocabularies"},
 }
 
 
@@ -30,8 +32,8 @@ def test_upgrade_to_head_matches_the_models(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        assert migrate.current_revision(engine) == migrate.head_revision() == "0005"
-        assert _tables(engine) == TABLES_AT["0005"]
+        assert migrate.current_revision(engine) == migrate.head_revision() == "0006"
+        assert _tables(engine) == TABLES_AT["0006"]
         with engine.connect() as conn:
             diff = compare_metadata(MigrationContext.configure(
                 conn, opts={"compare_type": True}), Base.metadata)
@@ -44,11 +46,11 @@ def test_each_step_downgrades_and_upgrades_again(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        for revision in ("0004", "0003", "0002", "0001", None):
+        for revision in ("0005", "0004", "0003", "0002", "0001", None):
             migrate.downgrade(engine, revision or "base")
             assert migrate.current_revision(engine) == revision
             assert _tables(engine) == TABLES_AT[revision]
-        for revision in ("0001", "0002", "0003", "0004", "0005"):
+        for revision in ("0001", "0002", "0003", "0004", "0005", "0006"):
             migrate.upgrade(engine, revision)
             assert _tables(engine) == TABLES_AT[revision]
         names = {c["name"] for c in inspect(engine).get_unique_constraints("map_images")}

@@ -89,6 +89,10 @@ def test_filter_localisers_converge(world, small_map, mode):
         errors.append(np.hypot(e.x - t[0], e.y - t[1]))
         feats.append(e.feature)
         assert e.n_particles == 200
+        # the image similarity, and on SIFT steps the solved position where one was found
+        kinds = e.measurement.split("+")
+        assert kinds[0] == e.feature
+        assert set(kinds[1:]) <= ({"registered", "interpolated"} if e.feature == "sift" else set())
     # within a map spacing (10 m) for global features, better for SIFT
     assert np.median(errors[10:]) < (10.0 if mode == "global" else 6.0)
     assert feats[0] == ("global" if mode == "global" else "sift")
@@ -161,6 +165,19 @@ def test_validate_params_fills_defaults_and_refuses_bad():
     assert set(MODES) == {"hybrid", "global", "sift", "hierarchical", "retrieval"}
 
 
+def test_single_frame_localisers_have_their_own_configs():
+    from workers.core.localisers.hierarchical import HierarchicalConfig
+    from workers.core.localisers.retrieval import RetrievalConfig
+    from workers.core.sift import RATIO
+
+    assert RetrievalConfig().to_params() == {"feature": "wgoh", "measure": "bradley"}
+    assert HierarchicalConfig().sift_ratio == RATIO  # Lowe 2004, the one source of 0.8
+    assert validate_params("hierarchical", {"k": 3}) == {"k": 3, "sift_ratio": RATIO,
+                                                         "sift_verify": "none"}
+    with pytest.raises(ValueError, match="for mode 'hierarchical': feature"):
+        HierarchicalConfig.from_params({"feature": "wgoh"})
+
+
 def test_mapdata_save_load_round_trip(tmp_path, small_map):
     folder = small_map.save(tmp_path / "map")
     back = MapData.load(folder, mmap=True)
@@ -185,3 +202,40 @@ def test_evaluate_summary_and_starts(world, small_map):
     d = res["default"]["sift"].to_dict()
     assert d["runs"] == 2 and d["sift_step_share"] == 1.0
     assert d["median_error_m"] < 6.0
+
+
+@pytest.mark.parametrize("feature", ["vlad_orb", "bow_orb", "vlad_rootsift", "bow_rootsift"])
+def test_retrieval_by_place_descriptor_under_other_light(world, small_map, feature):
+    queries, truth = _queries(world, n=20)
+    loc = make_localiser("retrieval", small_map, {"feature": feature}, seed=0)
+    estimates = [loc.step(q) for q in queries]
+    errors = [abs(e.x - t[0]) for e, t in zip(estimates, truth, strict=True)]
+    assert np.median(errors) <= 5.0  # half a map spacing: the nearest map image
+    assert estimates[0].feature == feature
+
+
+def test_hybrid_with_a_place_descriptor_takes_global_steps(world, small_map):
+    queries, truth = _queries(world)
+    params = {"n_particles": 200, "global_features": ["vlad_orb"], "sift_candidates": 5,
+              "global_power": 4.0}
+    loc = make_localiser("hybrid", small_map, params, seed=1)
+    errors, feats = [], []
+    for q, t in zip(queries, truth, strict=True):
+        e = loc.step(q)
+        errors.append(np.hypot(e.x - t[0], e.y - t[1]))
+        feats.append(e.feature)
+    assert np.median(errors[10:]) < 6.0
+    assert feats.count("global") >= 10
+
+
+def test_place_descriptor_needs_a_map_that_has_it(small_map):
+    from dataclasses import replace
+
+    old = replace(small_map, vocabularies={},
+                  global_features={k: v for k, v in small_map.global_features.items()
+                                   if not k.startswith(("vlad_", "bow_"))})
+    with pytest.raises(ValueError, match="vlad_orb"):
+        make_localiser("retrieval", old, {"feature": "vlad_orb"})
+    with pytest.raises(ValueError, match="bow_orb"):
+        make_localiser("hybrid", old, {"global_features": ["bow_orb"]})
+    make_localiser("sift", old, {"global_features": ["bow_orb"]})  # never uses them

@@ -6,11 +6,25 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from workers.core.pf.config import CONFIGS, FilterConfig, config_from_params
-from workers.core.pf.filter import GLOBAL, SIFT, ParticleFilter, cloud_stats
-from workers.core.pf.measurement import distance_factor, log_likelihoods, normalise_log
+from workers.core.pf.config import (
+    CONFIGS,
+    DEFAULT_OVERRIDES,
+    PARAMS,
+    WEISS2008,
+    FilterConfig,
+    config_from_params,
+)
+from workers.core.pf.filter import ParticleFilter, cloud_stats
+from workers.core.pf.measurement import (
+    ImageSimilarity,
+    Likelihood,
+    distance_factor,
+    log_likelihoods,
+    normalise_log,
+)
 from workers.core.pf.motion import MotionModel
 from workers.core.pf.resampling import multinomial, systematic
+from workers.core.pf.switching import GLOBAL, SIFT
 
 # -- resampling --------------------------------------------------------------------------
 
@@ -63,6 +77,40 @@ def test_power_20_survives_tiny_similarities():
     s = np.array([1e-30, 2e-30])
     w = normalise_log(log_likelihoods(s, np.zeros(2), power=20.0, scale=1.0))
     np.testing.assert_allclose(w, [1 / (1 + 2**20), 2**20 / (1 + 2**20)])
+
+
+def test_image_similarity_scores_each_distinct_nearest_image_once():
+    map_xy = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    asked = []
+
+    def sim(idx):
+        asked.append(idx.copy())
+        return np.array([0.2, 0.5, 0.9])[idx]
+
+    xy = np.array([[1.0, 0.0], [9.0, 0.0], [11.0, 0.0], [0.0, 2.0]])
+    lk = ImageSimilarity(SIFT, sim, power=2.0, scale=5.0).likelihood(xy, cKDTree(map_xy))
+    assert len(asked) == 1 and asked[0].tolist() == [0, 1]  # image 2 is nobody's nearest
+    d = np.array([1.0, 1.0, 1.0, 2.0])
+    s = np.array([0.2, 0.5, 0.5, 0.2])
+    np.testing.assert_allclose(lk.log, 2.0 * np.log(s) - 0.5 * (d / 5.0) ** 2, rtol=1e-12)
+    assert lk.kind == SIFT and lk.power == 2.0
+    assert lk.scored.tolist() == [0, 1] and lk.similarities.tolist() == [0.2, 0.5]
+
+
+def test_image_similarity_every_image_and_candidates():
+    map_xy = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [30.0, 0.0]])
+    xy = np.array([[1.0, 0.0]])
+    tree = cKDTree(map_xy)
+
+    def sim(idx):
+        return idx / 10.0 + 0.1
+
+    every = ImageSimilarity(GLOBAL, sim, 1.0, 5.0, every_image=True).likelihood(xy, tree)
+    assert every.scored.tolist() == [0, 1, 2, 3]
+    shortlisted = ImageSimilarity(SIFT, sim, 1.0, 5.0, candidates=np.array([3])).likelihood(
+        xy, tree)
+    assert shortlisted.scored.tolist() == [0, 3]
+    np.testing.assert_allclose(every.log, shortlisted.log)
 
 
 # -- cloud statistics --------------------------------------------------------------------
@@ -125,65 +173,77 @@ def _perfect(map_xy, truth, width=3.0):
     return sim
 
 
+def _measure(sim, kind=SIFT, power=1.0, scale=2.0):
+    return ImageSimilarity(kind, sim, power, scale)
+
+
 @pytest.mark.parametrize("config", ["weiss2008", "default"])
 def test_filter_with_perfect_similarity_converges_to_truth(config):
     map_xy = _route()
     cfg = CONFIGS[config]
     pf = ParticleFilter(map_xy, cKDTree(map_xy), cfg,
-                        MotionModel(sigma_floor=2.0, speed=1.0, velocity=cfg.velocity),
+                        MotionModel(sigma_floor=2.0, speed=1.0, velocity=cfg.motion.velocity),
                         2.0, np.random.default_rng(5))
     errors = []
     for k in range(40):
         truth = map_xy[(10 + k) % len(map_xy)]
-        stats, used, _, _ = pf.step(_perfect(map_xy, truth), 1.0)
-        errors.append(np.linalg.norm(stats.mean - truth))
+        result = pf.step([_measure(_perfect(map_xy, truth))], 1.0)
+        errors.append(np.linalg.norm(result.stats.mean - truth))
     assert np.mean(errors[-20:]) < 3.0
 
 
-def test_hybrid_switch_follows_thresholds():
+def test_step_result_names_the_measurements_used():
     map_xy = _route()
-    cfg = FilterConfig(speed=None)
-    pf = ParticleFilter(map_xy, cKDTree(map_xy), cfg, MotionModel(sigma_floor=4.0), 2.0,
+    pf = ParticleFilter(map_xy, cKDTree(map_xy), WEISS2008, MotionModel(), 2.0,
                         np.random.default_rng(0))
-    assert pf.mode == SIFT  # IV-B: the first step is SIFT
-    truth = map_xy[0]
-    modes = []
-    for _ in range(15):
-        stats, used, _, _ = pf.step(_perfect(map_xy, truth, 2.0), None)
-        spread = max(stats.sigma_x, stats.sigma_y)
-        if used == SIFT:
-            assert pf.mode == (GLOBAL if spread < 7.0 else SIFT)
-        else:
-            assert pf.mode == (SIFT if spread > 5.5 else GLOBAL)
-        modes.append(used)
-    assert GLOBAL in modes  # a confident filter does go global
+    sim = _perfect(map_xy, map_xy[0])
+    assert pf.step([_measure(sim, GLOBAL, 20.0)], None).kinds == (GLOBAL,)
+    assert pf.step([_measure(sim), _measure(sim, GLOBAL)], None).kinds == (SIFT, GLOBAL)
 
 
-def test_thresholds_scale_with_motion_sigma():
+class _Flat:
+    """A measurement that likes one half-plane: log-likelihood 0 for x > 0, -inf elsewhere."""
+
+    kind = "east"
+
+    def likelihood(self, xy, tree):
+        return Likelihood(self.kind, np.where(xy[:, 0] > 0, 0.0, -np.inf))
+
+
+def test_measurements_in_one_step_multiply():
     map_xy = _route()
-    pf = ParticleFilter(map_xy, cKDTree(map_xy), FilterConfig(),
-                        MotionModel(sigma_floor=4.0, speed=7.0, nominal_dt=5.0), 2.0,
-                        np.random.default_rng(0))
-    k = np.hypot(4.0, 35.0) / 4.0
-    assert pf.thresholds() == pytest.approx((5.5 * k, 7.0 * k))
+    cfg = WEISS2008.with_params(replace_fraction=0.0)
+    pf = ParticleFilter(map_xy, cKDTree(map_xy), cfg, MotionModel(pull=0.0), 2.0,
+                        np.random.default_rng(1))
+    sim = _perfect(map_xy, map_xy[0], 20.0)
+    before = pf.xy.copy()
+    result = pf.step([_measure(sim), _Flat()], None)
+    assert result.kinds == (SIFT, "east")
+    assert np.all(pf.w[pf.xy[:, 0] <= 0] == 0.0)  # the second measurement vetoes the west
+    # and where both allow, the weights follow the image similarity alone
+    east = pf.xy[:, 0] > 0
+    image = result.likelihoods[0].log[east]
+    np.testing.assert_allclose(pf.w[east], np.exp(image - image.max()) /
+                               np.exp(image - image.max()).sum(), rtol=1e-9)
+    assert not np.array_equal(before, pf.xy)
 
 
 def test_zero_similarity_everywhere_keeps_uniform_weights():
     map_xy = _route()
-    pf = ParticleFilter(map_xy, cKDTree(map_xy), FilterConfig(replace_fraction=0.0),
+    pf = ParticleFilter(map_xy, cKDTree(map_xy), WEISS2008.with_params(replace_fraction=0.0),
                         MotionModel(), 2.0, np.random.default_rng(0))
-    pf.step(lambda idx: np.zeros(len(idx)), None)
+    pf.step([_measure(lambda idx: np.zeros(len(idx)))], None)
     np.testing.assert_allclose(pf.w, 1.0 / len(pf.w))
 
 
 def test_worst_five_percent_replaced_and_weights_renormalised():
     map_xy = _route()
     m = 200
-    pf = ParticleFilter(map_xy, cKDTree(map_xy), FilterConfig(n_particles=m),
+    pf = ParticleFilter(map_xy, cKDTree(map_xy), WEISS2008.with_params(n_particles=m),
                         MotionModel(sigma_floor=1.0, pull=0.0), 2.0, np.random.default_rng(4))
     # Only image 0 looks like the frame: every other particle gets weight zero, so the
     # worst 5 % are zero-weight ones and the sum after replacement is 1 + 10/m.
-    pf.step(lambda idx: (idx == 0).astype(float), None)
+    pf.step([_measure(lambda idx: (idx == 0).astype(float))], None)
     assert pf.w.sum() == pytest.approx(1.0)
     assert np.sum(np.isclose(pf.w, 1.0 / (m + 10), rtol=1e-12)) == 10
 
@@ -201,14 +261,14 @@ def test_serialised_state_resumes_bit_for_bit():
 
     a = make(9)
     for k in range(5):
-        a.step(_perfect(map_xy, map_xy[k]), 1.0)
+        a.step([_measure(_perfect(map_xy, map_xy[k]))], 1.0)
     arrays, meta = a.state()
     b = make(123)  # another seed: everything must come from the state
     b.load({k: v.copy() for k, v in arrays.items()}, meta)
     for k in range(5, 12):
-        sa, *_ = a.step(_perfect(map_xy, map_xy[k]), 1.0)
-        sb, *_ = b.step(_perfect(map_xy, map_xy[k]), 1.0)
-        assert np.array_equal(sa.mean, sb.mean)
+        ra = a.step([_measure(_perfect(map_xy, map_xy[k]))], 1.0)
+        rb = b.step([_measure(_perfect(map_xy, map_xy[k]))], 1.0)
+        assert np.array_equal(ra.stats.mean, rb.stats.mean)
     assert np.array_equal(a.xy, b.xy) and np.array_equal(a.w, b.w)
 
 
@@ -217,9 +277,46 @@ def test_serialised_state_resumes_bit_for_bit():
 
 def test_weiss2008_is_the_paper():
     c = CONFIGS["weiss2008"]
-    assert (c.n_particles, c.motion_sigma, c.pull, c.global_power, c.replace_fraction,
-            c.d_global, c.d_sift, c.replacement, c.global_features, c.global_measure) == (
-        300, 4.0, 0.2, 20.0, 0.05, 5.5, 7.0, "uniform", ("wgoh", "wgii"), "weiss")
+    assert c is WEISS2008
+    assert (c.n_particles, c.resampler, c.motion.sigma, c.motion.pull, c.motion.velocity,
+            c.measurement.global_power, c.measurement.sift_power,
+            c.measurement.global_features, c.measurement.global_measure,
+            c.sift.verify, c.sift.reduce, c.switching.d_global, c.switching.d_sift,
+            c.switching.global_check, c.switching.global_trust, c.reset.fraction,
+            c.reset.replacement) == (
+        300, "multinomial", 4.0, 0.2, False, 20.0, 1.0, ("wgoh", "wgii"), "weiss", "none",
+        "both", 5.5, 7.0, 0, 0, 0.05, "uniform")
+
+
+def test_default_is_weiss2008_with_its_overrides_alone():
+    base, default = CONFIGS["weiss2008"].to_params(), CONFIGS["default"].to_params()
+    changed = {k: v for k, v in default.items() if base[k] != v}
+    assert changed == DEFAULT_OVERRIDES
+
+
+def test_flat_parameters_reach_their_part_and_come_back():
+    c = config_from_params({"config": "weiss2008", "n_particles": 50, "sift_ratio": 0.75,
+                            "global_features": "wgoh", "global_trust_level": 0.5,
+                            "replace_fraction": 0.1, "motion_sigma": 3.0})
+    assert (c.n_particles, c.sift.ratio, c.measurement.global_features,
+            c.switching.global_trust_level, c.reset.fraction, c.motion.sigma) == (
+        50, 0.75, ("wgoh",), 0.5, 0.1, 3.0)
+    flat = c.to_params()
+    assert list(flat) == list(PARAMS) and flat["global_features"] == ["wgoh"]
+    assert config_from_params({"config": "weiss2008", **flat}) == c
+
+
+def test_every_field_of_every_part_has_one_flat_name():
+    from dataclasses import fields
+
+    paths = set(PARAMS.values())
+    assert len(paths) == len(PARAMS)
+    for f in fields(FilterConfig):
+        part = getattr(WEISS2008, f.name)
+        if hasattr(part, "__dataclass_fields__"):
+            assert {(f.name, g.name) for g in fields(part)} <= paths
+        else:
+            assert (None, f.name) in paths
 
 
 @pytest.mark.parametrize("bad", [{"n_particles": 0}, {"pull": 1.5}, {"motion_sigma": float("nan")},

@@ -38,13 +38,14 @@ class Estimate:
     best_image : int
         Index of the best-matching map image this step (-1 if none).
     measurement : str
-        What weighed the particles this step: the feature type alone (``"sift"``,
-        ``"global"``), or with a metric position (``"sift+registered"``: a camera pose
-        from the map's geometry; ``"sift+interpolated"``: a match-weighted position
-        between the best map images). Empty means the same as ``feature``.
+        Kind of measurement the step weighed the estimate by: ``"sift"`` or ``"global"``
+        (an image similarity under that feature type), ``"registered"`` (a camera pose
+        solved against the map's geometry) or ``"interpolated"`` (a match-weighted position
+        between the best map images); several kinds in one step are joined by ``"+"``.
+        Empty where not known.
     heading_deg, heading_sigma_deg : float or None
-        Compass bearing (degrees clockwise from north) of the top edge of the frame and
-        its standard deviation, where camera geometry gave one this step.
+        Compass bearing (degrees clockwise from north) of the top edge of the frame and its
+        standard deviation, where camera geometry gave one this step; None otherwise.
     """
 
     x: float

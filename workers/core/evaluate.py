@@ -169,7 +169,7 @@ def retrieval_grid(map_data: MapData, queries: list[QueryFrame], truth: np.ndarr
     -------
     dict feature -> measure -> {"mean_error_m", "median_error_m"}
     """
-    from .similarity import similarities
+    from .measures import similarities
 
     xy = np.asarray(map_data.positions)
     truth = np.asarray(truth)[skip:]

@@ -2,7 +2,8 @@
 
 Extraction is per image and independent (run it in parallel); assembly needs all images at
 once, because the SIFT reduction matches each image with its two GPS-nearest neighbours
-(Weiss III).
+(Weiss III) and the place descriptors' vocabularies are trained on the local features of
+every map image (:mod:`workers.core.features.descriptors`), so each build trains them anew.
 """
 
 from __future__ import annotations
@@ -11,7 +12,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .features import FEATURE_NAMES, extract_many
+from .features import DESCRIPTOR_NAMES, FEATURE_NAMES, extract_many
+from .features.descriptors import (
+    describe,
+    get_descriptor,
+    local_vectors,
+    train_descriptor_vocabulary,
+)
+from .features.orb import OrbFeatures, extract_orb
+from .features.vocabulary import Vocabulary
 from .geo import GeoOrigin
 from .geometry import build_geometry, focal_from_fov
 from .geometry.camera import DEFAULT_HFOV_DEG, Intrinsics
@@ -30,23 +39,28 @@ class ImageFeatures:
     global_features : dict of str -> (D,) float32 ndarray
     sift : SiftFeatures
         All keypoints, before the neighbour reduction.
+    orb : OrbFeatures or None
+        ORB keypoints for the place descriptors over ORB; None where not extracted.
     """
 
     global_features: dict[str, np.ndarray]
     sift: SiftFeatures
+    orb: OrbFeatures | None = None
 
 
 def extract_image_features(frame: Frame, *,
                            features: tuple[str, ...] = FEATURE_NAMES) -> ImageFeatures:
-    """Extract the named global features and SIFT from one map image."""
-    return ImageFeatures(extract_many(features, frame), extract_sift(frame.grey))
+    """Extract the named global features, SIFT and ORB from one map image."""
+    return ImageFeatures(extract_many(features, frame), extract_sift(frame.grey),
+                         extract_orb(frame.grey))
 
 
 def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  captured_at=None, map_id: str = "", revision: int = 0,
                  origin: GeoOrigin | None = None, reduce_sift: bool = True,
                  ratio: float = RATIO, geometry: bool = True,
-                 focal_px: float | None = None, seed: int = 0) -> MapData:
+                 focal_px: float | None = None,
+                 descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
     Parameters
@@ -68,8 +82,12 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         The map camera's focal length in pixels at the working resolution (from EXIF,
         :func:`workers.core.lens.read_focal_px`); None assumes a typical field of view
         and lets the reconstruction refine it.
+    descriptors : tuple of str
+        Place descriptors to train a vocabulary for and describe every map image with.
+        Those over ORB are left out when an image comes without ORB features.
     seed : int
-        Seeds the reconstruction's RANSAC.
+        Seeds the vocabulary training and the reconstruction's RANSAC: the same images
+        give the same map.
 
     Returns
     -------
@@ -96,9 +114,12 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     times = None
     if captured_at is not None:
         times = np.array([np.nan if t is None else t for t in captured_at], np.float64)
+    trained = train_descriptors(features, descriptors, seed=seed)
+    glob.update({name: matrix for name, (_, matrix) in trained.items()})
     data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
                               global_features=glob, sift=sift, map_id=map_id,
-                              revision=revision, captured_at=times, sift_keep=keep)
+                              revision=revision, captured_at=times, sift_keep=keep,
+                              vocabularies={n: v for n, (v, _) in trained.items()})
     if geometry:
         data.geometry = map_geometry(data, focal_px=focal_px, seed=seed)
     return data
@@ -133,3 +154,35 @@ def typical_focal_px(files, width: int = WORK_SIZE[0], *, sample: int = 25) -> f
         if value is not None:
             focals.append(value)
     return float(np.median(focals)) if focals else None
+
+
+def train_descriptors(features: list[ImageFeatures], names: tuple[str, ...], *,
+                      seed: int = 0) -> dict[str, tuple[Vocabulary, np.ndarray]]:
+    """Train each place descriptor's vocabulary on the map images and describe them.
+
+    Parameters
+    ----------
+    features : list of ImageFeatures, one per map image
+    names : tuple of str
+        Place descriptors; those over ORB are skipped when an image has no ORB features.
+    seed : int
+        Each descriptor's vocabulary is trained with ``numpy.random.default_rng(seed)``.
+
+    Returns
+    -------
+    dict name -> (Vocabulary, (N, dim) float32 ndarray of the map images' descriptors)
+    """
+    have_orb = all(f.orb is not None for f in features)
+    vectors: dict[str, list[np.ndarray]] = {}
+    out = {}
+    for name in names:
+        spec = get_descriptor(name)
+        if spec.local == "orb" and not have_orb:
+            continue
+        if spec.local not in vectors:
+            vectors[spec.local] = [local_vectors(spec.local, orb=f.orb, sift=f.sift)
+                                   for f in features]
+        per_image = vectors[spec.local]
+        vocab = train_descriptor_vocabulary(spec, per_image, rng=np.random.default_rng(seed))
+        out[name] = (vocab, np.stack([describe(spec, v, vocab) for v in per_image]))
+    return out

@@ -17,6 +17,12 @@ sift_descriptors : (K, 128) uint8
 sift_keep : (K,) bool
     Keypoints kept by the neighbour reduction (Weiss III); all keypoints are stored so a
     localiser can choose to match against the full or the reduced set.
+vocabularies[name] : Vocabulary
+    The vocabulary of each place descriptor in ``global_features`` (trained on this map's
+    own local features at build), saved as ``vocab_{name}_centroids.npy``,
+    ``vocab_{name}_idf.npy`` and, where it projects the local vectors,
+    ``vocab_{name}_projection.npy``, with its tree shape in ``meta.json``. Maps packed before place
+    descriptors existed have none and load unchanged.
 captured_at : (N,) float64
     Capture times of the map images in seconds since the epoch, NaN where unknown; the
     motion model derives the platform's typical speed from them.
@@ -35,6 +41,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .features.vocabulary import Vocabulary
 from .geo import GeoOrigin
 from .geometry import MapGeometry
 from .sift import SiftFeatures
@@ -55,6 +62,7 @@ class MapData:
     captured_at: np.ndarray | None = None
     sift_keep: np.ndarray | None = None
     geometry: MapGeometry | None = None
+    vocabularies: dict[str, Vocabulary] = field(default_factory=dict)
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
     _reduced: tuple | None = field(default=None, repr=False, compare=False)
 
@@ -67,6 +75,9 @@ class MapData:
         for name, mat in self.global_features.items():
             if mat.ndim != 2 or mat.shape[0] != n:
                 raise ValueError(f"global feature {name!r} must have {n} rows, got {mat.shape}")
+        for name in self.vocabularies:
+            if name not in self.global_features:
+                raise ValueError(f"vocabulary {name!r} comes without its descriptor matrix")
         if self.sift_keep is None:
             self.sift_keep = np.ones(len(self.sift_descriptors), dtype=bool)
         if self.sift_keep.shape != (len(self.sift_descriptors),):
@@ -153,7 +164,8 @@ class MapData:
     def from_parts(cls, *, origin: GeoOrigin, names, positions, altitudes,
                    global_features: dict[str, np.ndarray], sift: list[SiftFeatures],
                    map_id: str = "", revision: int = 0,
-                   captured_at=None, sift_keep: list[np.ndarray] | None = None) -> MapData:
+                   captured_at=None, sift_keep: list[np.ndarray] | None = None,
+                   vocabularies: dict[str, Vocabulary] | None = None) -> MapData:
         counts = np.array([len(s) for s in sift], dtype=np.int64)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         kps = (np.concatenate([s.keypoints for s in sift]) if sift
@@ -170,7 +182,8 @@ class MapData:
                    captured_at=None if captured_at is None
                    else np.asarray(captured_at, np.float64),
                    sift_keep=None if sift_keep is None or not sift
-                   else np.concatenate(sift_keep).astype(bool))
+                   else np.concatenate(sift_keep).astype(bool),
+                   vocabularies=dict(vocabularies or {}))
 
     # -- persistence as a folder of .npy files (memory-mappable) ---------------------------
 
@@ -188,9 +201,18 @@ class MapData:
         np.save(tmp / "sift_keep.npy", self.sift_keep)
         for name, mat in self.global_features.items():
             np.save(tmp / f"global_{name}.npy", mat)
+        for name, vocab in self.vocabularies.items():
+            np.save(tmp / f"vocab_{name}_centroids.npy", vocab.centroids)
+            np.save(tmp / f"vocab_{name}_idf.npy", vocab.idf)
+            if vocab.projection is not None:
+                np.save(tmp / f"vocab_{name}_projection.npy", vocab.projection)
         meta = {"origin": [self.origin.lat, self.origin.lon, self.origin.alt],
                 "names": list(self.names), "features": sorted(self.global_features),
-                "map_id": self.map_id, "revision": self.revision}
+                "map_id": self.map_id, "revision": self.revision,
+                "vocabularies": {name: {"branching": v.branching, "depth": v.depth,
+                                        "binary": v.binary,
+                                        "projected": v.projection is not None}
+                                 for name, v in sorted(self.vocabularies.items())}}
         (tmp / "meta.json").write_text(json.dumps(meta))
         if self.geometry is not None:
             self.geometry.save(tmp)
@@ -209,11 +231,17 @@ class MapData:
         def ld(name: str) -> np.ndarray:
             return np.load(folder / name, mmap_mode=mode)
 
+        vocabularies = {
+            name: Vocabulary(ld(f"vocab_{name}_centroids.npy"), int(shape["branching"]),
+                             int(shape["depth"]), bool(shape["binary"]),
+                             ld(f"vocab_{name}_idf.npy"),
+                             ld(f"vocab_{name}_projection.npy") if shape["projected"] else None)
+            for name, shape in meta.get("vocabularies", {}).items()}
         return cls(origin=GeoOrigin(*meta["origin"]), names=tuple(meta["names"]),
                    positions=ld("positions.npy"), altitudes=ld("altitudes.npy"),
                    global_features={n: ld(f"global_{n}.npy") for n in meta["features"]},
                    sift_offsets=ld("sift_offsets.npy"), sift_keypoints=ld("sift_keypoints.npy"),
                    sift_descriptors=ld("sift_descriptors.npy"), map_id=meta["map_id"],
                    revision=int(meta["revision"]), captured_at=ld("captured_at.npy"),
-                   sift_keep=ld("sift_keep.npy"),
+                   sift_keep=ld("sift_keep.npy"), vocabularies=vocabularies,
                    geometry=MapGeometry.load(folder, mmap=mmap))

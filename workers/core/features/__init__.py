@@ -13,7 +13,7 @@ name               dim   definition                                             
 
 Every feature is a non-negative float32 vector summing to 1 (up to float32 rounding), or all
 zeros when the image has nothing to count (a WGOH without gradients, a hue histogram without
-colour); :mod:`workers.core.similarity` re-normalises as each measure needs. The measure
+colour); :mod:`workers.core.measures` re-normalises as each measure needs. The measure
 column is the one the feature's source paper uses with it (Flyphone's best for
 ``grid_hist`` and ``wgii2``).
 
@@ -22,6 +22,13 @@ the registry wraps them as functions of a :class:`~workers.core.image.Frame`, an
 :func:`extract_many` computes several features of one frame sharing the intermediate arrays
 (the float grey image, the mirrored image of the WGII kernels, the dense invariant map that
 ``wgii2_sparse`` subsamples).
+
+Place descriptors (``vlad_orb``, ``vlad_rootsift``, ``bow_orb``, ``bow_rootsift``) are global
+features too, but over a vocabulary trained on each map's own local features (ORB,
+RootSIFT); they live in :mod:`.descriptors` (:data:`DESCRIPTORS`) and are computed by
+:class:`workers.core.query.QueryFrame` and :func:`workers.core.mapbuild.assemble_map`, which hold
+the vocabulary. :data:`ALL_FEATURE_NAMES` lists both kinds, the names a configuration may use.
+:func:`north_up` turns a frame north-up from its compass heading before description.
 
 The package attributes ``grid_hist``, ``wgoh``, ``wgii`` and ``hue_hist`` are these functions,
 which shadow the modules of the same name; reach a module's constants with
@@ -37,7 +44,9 @@ import numpy as np
 
 from ..image import Frame
 from ._grid import FrameInputs
+from .descriptors import DESCRIPTOR_NAMES, DESCRIPTORS, DescriptorSpec, get_descriptor
 from .grid_hist import _grid_hist_inputs, grid_hist
+from .heading import north_up
 from .hue_hist import hue_hist
 from .wgii import (
     _wgii2_inputs,
@@ -51,15 +60,21 @@ from .wgii import (
 from .wgoh import _wgoh_inputs, wgoh
 
 __all__ = [
+    "ALL_FEATURE_NAMES",
+    "DESCRIPTORS",
+    "DESCRIPTOR_NAMES",
+    "DescriptorSpec",
     "FEATURE_NAMES",
     "GLOBAL_FEATURES",
     "FeatureSpec",
     "extract",
     "extract_many",
+    "get_descriptor",
     "get_feature",
     "grid_hist",
     "hue_hist",
     "integral_invariant",
+    "north_up",
     "wgii",
     "wgii2",
     "wgii2_sparse",
@@ -81,7 +96,7 @@ class FeatureSpec:
     description : str
     measure : str
         Similarity measure the source paper pairs with the feature (a name in
-        :data:`workers.core.similarity.MEASURES`).
+        :data:`workers.core.measures.MEASURES`).
     """
 
     name: str
@@ -130,6 +145,9 @@ GLOBAL_FEATURES: dict[str, FeatureSpec] = {
 
 FEATURE_NAMES: tuple[str, ...] = tuple(GLOBAL_FEATURES)
 """Names of the registered global features, in registry order."""
+
+ALL_FEATURE_NAMES: tuple[str, ...] = FEATURE_NAMES + DESCRIPTOR_NAMES
+"""Histogram features and place descriptors: every name a configuration may choose."""
 
 
 def get_feature(name: str) -> FeatureSpec:

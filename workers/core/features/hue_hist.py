@@ -25,7 +25,7 @@ Choices the paper leaves open, and what is used here:
 * An image without any colour (all grey) gives the all-zero vector.
 
 The histogram is compared with Euclidean distance (Li et al. eq. 5): measure ``"l2"`` of
-:mod:`workers.core.similarity`, which scales both vectors to unit L2 norm first.
+:mod:`workers.core.measures`, which scales both vectors to unit L2 norm first.
 """
 
 from __future__ import annotations

@@ -12,32 +12,24 @@ retrieval      Flyphone: nearest map image under a chosen feature and measure
 
 from __future__ import annotations
 
-from ..features import FEATURE_NAMES
 from ..mapdata import MapData
-from ..pf.config import VERIFICATIONS, config_from_params
-from ..similarity import MEASURES
+from ..pf.config import config_from_params
 from .base import Localiser, pack_state, unpack_state
 from .filtering import FilterLocaliser
-from .retrieval import HierarchicalLocaliser, RetrievalLocaliser
+from .hierarchical import HierarchicalConfig, HierarchicalLocaliser
+from .retrieval import RetrievalConfig, RetrievalLocaliser
 
 MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
 FILTER_MODES = ("hybrid", "global", "sift")
-
-_RETRIEVAL_DEFAULTS = {"feature": "wgoh", "measure": "bradley"}
-_HIERARCHICAL_DEFAULTS = {"k": 5, "sift_ratio": 0.8, "sift_verify": "none"}
-
-
-def _check_keys(mode: str, params: dict, allowed: dict) -> None:
-    unknown = sorted(set(params) - set(allowed))
-    if unknown:
-        raise ValueError(f"unknown parameter(s) for mode {mode!r}: {', '.join(unknown)}; "
-                         f"valid: {', '.join(sorted(allowed))}")
 
 
 def validate_params(mode: str, params: dict | None = None) -> dict:
     """Check a mode's parameters and return them complete, with defaults filled in.
 
-    A ``seed`` entry (int) is accepted by every mode and passed through.
+    The filter modes take flat :class:`~workers.core.pf.config.FilterConfig` parameters
+    over a named ``config``; ``retrieval`` and ``hierarchical`` the fields of
+    :class:`.RetrievalConfig` and :class:`.HierarchicalConfig`. A ``seed`` entry (int) is
+    accepted by every mode and passed through.
 
     Raises
     ------
@@ -52,25 +44,11 @@ def validate_params(mode: str, params: dict | None = None) -> dict:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     if mode in FILTER_MODES:
         name = params.get("config", "default")
-        out = {"config": name, **config_from_params(params).to_dict()}
+        out = {"config": name, **config_from_params(params).to_params()}
     elif mode == "retrieval":
-        _check_keys(mode, params, _RETRIEVAL_DEFAULTS)
-        out = {**_RETRIEVAL_DEFAULTS, **params}
-        if out["feature"] not in FEATURE_NAMES:
-            raise ValueError(f"unknown feature {out['feature']!r}; valid: {', '.join(FEATURE_NAMES)}")
-        if out["measure"] not in MEASURES:
-            raise ValueError(f"unknown measure {out['measure']!r}; valid: {', '.join(MEASURES)}")
+        out = RetrievalConfig.from_params(params).to_params()
     else:
-        _check_keys(mode, params, _HIERARCHICAL_DEFAULTS)
-        out = {**_HIERARCHICAL_DEFAULTS, **params}
-        k = out["k"]
-        if not isinstance(k, int) or isinstance(k, bool) or not 1 <= k <= 1000:
-            raise ValueError(f"k must be an integer in 1..1000, got {k!r}")
-        r = out["sift_ratio"]
-        if not isinstance(r, int | float) or not 0 < r < 1:
-            raise ValueError(f"sift_ratio must be in (0, 1), got {r!r}")
-        if out["sift_verify"] not in VERIFICATIONS:
-            raise ValueError(f"sift_verify must be one of {', '.join(VERIFICATIONS)}")
+        out = HierarchicalConfig.from_params(params).to_params()
     if seed is not None:
         out["seed"] = seed
     return out

@@ -6,6 +6,7 @@ import io
 import json
 import time
 from abc import ABC, abstractmethod
+from dataclasses import fields
 
 import numpy as np
 
@@ -13,6 +14,38 @@ from ..estimate import Estimate, Status
 from ..image import Frame
 from ..mapdata import MapData
 from ..query import QueryFrame
+
+SPREAD_CANDIDATES = 5
+"""Best candidates whose spread a single-frame localiser reports as its uncertainty."""
+
+
+def check_param_keys(mode: str, params: dict, config_type) -> None:
+    """Refuse parameters that are not fields of the mode's config dataclass."""
+    allowed = {f.name for f in fields(config_type)}
+    unknown = sorted(set(params) - allowed)
+    if unknown:
+        raise ValueError(f"unknown parameter(s) for mode {mode!r}: {', '.join(unknown)}; "
+                         f"valid: {', '.join(sorted(allowed))}")
+
+
+def candidate_spread(map_xy: np.ndarray, idx: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Covariance (2, 2) of candidate positions weighted by their scores (normalised).
+
+    Parameters
+    ----------
+    map_xy : (N, 2) float ndarray
+    idx : (k,) int ndarray
+        Candidate map images.
+    score : (k,) float ndarray
+        Their scores; negative scores count as zero, all zero as equal weights.
+    """
+    w = np.clip(score, 0.0, None)
+    if w.sum() <= 0:
+        w = np.ones_like(w)
+    w = w / w.sum()
+    pts = map_xy[idx]
+    d = pts - w @ pts
+    return (d * w[:, None]).T @ d
 
 
 def as_query(frame: Frame | QueryFrame, captured_at: float | None) -> QueryFrame:
@@ -69,10 +102,8 @@ class Localiser(ABC):
         return est
 
     def _estimate(self, mean: np.ndarray, cov: np.ndarray, *, feature: str, next_feature: str,
-                  n_particles: int, status: Status, processing_ms: float,
-                  best_image: int, measurement: str | None = None,
-                  heading: float | None = None,
-                  heading_sigma: float | None = None) -> Estimate:
+                  measurement: str, n_particles: int, status: Status, processing_ms: float,
+                  best_image: int, heading: tuple[float, float] | None = None) -> Estimate:
         lat, lon = self.map.origin.to_wgs84(mean[0], mean[1])
         return Estimate(
             x=float(mean[0]), y=float(mean[1]), lat=float(lat), lon=float(lon),
@@ -81,9 +112,9 @@ class Localiser(ABC):
             cov=(float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 0]), float(cov[1, 1])),
             feature=feature, next_feature=next_feature, n_particles=n_particles,
             status=status, processing_ms=float(processing_ms), best_image=int(best_image),
-            measurement=measurement or feature,
-            heading_deg=None if heading is None else float(heading),
-            heading_sigma_deg=None if heading_sigma is None else float(heading_sigma))
+            measurement=measurement,
+            heading_deg=None if heading is None else float(heading[0]),
+            heading_sigma_deg=None if heading is None else float(heading[1]))
 
     def get_state(self) -> bytes:
         """Everything needed to resume bit-for-bit, as bytes."""

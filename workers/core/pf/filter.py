@@ -1,40 +1,31 @@
-"""One particle filter: particle arrays, the step of Weiss IV-A and the switch of IV-B.
+"""One particle filter: particle arrays and the step of Weiss et al. 2008, IV-A.
 
 A step, in the paper's order:
 
 1. resample by weight;
 2. move (motion model: Gaussian, pull towards the nearest map image);
-3. weight by the similarity of the frame with each particle's nearest map image (computed
-   once per distinct map image) times the distance factor; power 20 for global features;
-   normalise;
+3. weight by the measurements (:mod:`.measurement`; the paper's is the frame's similarity
+   with each particle's nearest map image times the distance factor, power 20 for global
+   features); normalise;
 4. estimate: weighted mean and covariance; sigma_x, sigma_y by eq. 2;
-5. decide the next step's features (IV-B);
+5. (the next step's features are the localiser's choice: :mod:`.switching`, IV-B);
 6. replace the worst 5 % by new particles with weight 1/m; renormalise.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from .config import REFERENCE_SIGMA, FilterConfig
-from .measurement import log_likelihoods, normalise_log, position_log_likelihoods
+from .config import FilterConfig
+from .measurement import Likelihood, Measurement, Position, normalise_log
 from .motion import MotionModel
 from .resampling import RESAMPLERS
 
-SIFT = "sift"
-GLOBAL = "global"
-
-SimilarityFn = Callable[[np.ndarray], np.ndarray]
-"""Map-image indexes (k,) -> similarities (k,) in [0, 1] of the current frame."""
-
-PositionFix = tuple[np.ndarray, float]
-"""A metric position measurement: east/north (2,) and its sigma per axis (m)."""
-
-RefineFn = Callable[[np.ndarray, np.ndarray], "PositionFix | None"]
-"""(scored map images, their similarities) -> a position measurement of the frame, or None."""
+RefineFn = Callable[[tuple[Likelihood, ...]], "Position | None"]
+"""What the measurements said -> a metric position of the frame, or None."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +36,11 @@ class CloudStats:
     cov: np.ndarray  # (2, 2)
     sigma_x: float
     sigma_y: float
+
+    @property
+    def spread(self) -> float:
+        """``max(sigma_x, sigma_y)``: what the switching rule compares with its thresholds."""
+        return max(self.sigma_x, self.sigma_y)
 
 
 def cloud_stats(xy: np.ndarray, w: np.ndarray) -> CloudStats:
@@ -60,6 +56,27 @@ def cloud_stats(xy: np.ndarray, w: np.ndarray) -> CloudStats:
     cov = (d * w[:, None]).T @ d
     return CloudStats(mean, cov, float(np.sqrt(max(cov[0, 0], 0.0))),
                       float(np.sqrt(max(cov[1, 1], 0.0))))
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one filter step produced.
+
+    Attributes
+    ----------
+    stats : CloudStats
+        The weighted cloud before replacement (the estimate).
+    likelihoods : tuple of Likelihood
+        One per measurement, in the order given.
+    """
+
+    stats: CloudStats
+    likelihoods: tuple[Likelihood, ...]
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        """The kinds of measurement the step used."""
+        return tuple(lk.kind for lk in self.likelihoods)
 
 
 class ParticleFilter:
@@ -90,10 +107,7 @@ class ParticleFilter:
         # Uniform particles cover the map's extent plus a margin of one distance scale,
         # so positions just beyond the outermost images stay reachable.
         self.bounds = (lo - self.distance_scale, hi + self.distance_scale)
-        self.mode = SIFT
         self.steps = 0
-        self.converged = False
-        self.last_fix: PositionFix | None = None
         self.initialise()
 
     # -- state ---------------------------------------------------------------------------
@@ -104,8 +118,6 @@ class ParticleFilter:
         self.xy = self._uniform(m)
         self.v = self._random_velocity(m)
         self.w = np.full(m, 1.0 / m)
-        self.mode = SIFT  # Weiss IV-B: the first step always uses SIFT
-        self.converged = False
 
     def set_pose(self, x: float, y: float, sigma: float) -> None:
         """Particles around a known pose (AMCL's set_initial_pose)."""
@@ -113,66 +125,41 @@ class ParticleFilter:
         self.xy = np.array([x, y], dtype=np.float64) + self.rng.normal(0.0, sigma, size=(m, 2))
         self.v = self._random_velocity(m)
         self.w = np.full(m, 1.0 / m)
-        self.mode = SIFT
-        self.converged = False
 
     def _uniform(self, k: int) -> np.ndarray:
         lo, hi = self.bounds
         return lo + self.rng.random((k, 2)) * (hi - lo)
 
     def _random_velocity(self, k: int) -> np.ndarray | None:
-        if not self.config.velocity or self.motion.speed is None:
+        if not self.config.motion.velocity or self.motion.speed is None:
             return None
         angle = self.rng.random(k) * 2.0 * np.pi
         return self.motion.speed * np.stack([np.cos(angle), np.sin(angle)], axis=1)
 
-    def thresholds(self) -> tuple[float, float]:
-        """(d_global, d_sift) scaled to the motion sigma between frames a nominal gap apart.
-
-        The nominal gap, not the last one: after a long gap the cloud is spread because the
-        platform could be anywhere, and that is exactly when SIFT is needed.
-        """
-        k = self.motion.sigma(None) / REFERENCE_SIGMA
-        return self.config.d_global * k, self.config.d_sift * k
-
     # -- one step ------------------------------------------------------------------------
 
-    def step(self, similarity: SimilarityFn, dt: float | None, *,
-             all_similarities: bool = False, candidates: np.ndarray | None = None,
-             refine: RefineFn | None = None,
-             ) -> tuple[CloudStats, str, np.ndarray, np.ndarray]:
-        """Run one filter step with the feature type in ``self.mode``.
+    def step(self, measurements: Sequence[Measurement], dt: float | None, *,
+             refine: RefineFn | None = None) -> StepResult:
+        """Run one filter step.
 
         Parameters
         ----------
-        similarity : callable
-            Map-image indexes -> similarities in [0, 1] for the current frame, using the
-            features of ``self.mode``.
+        measurements : sequence of Measurement, at least one
+            What was measured of the current frame; their likelihoods multiply.
         dt : float or None
             Seconds since the previous frame.
-        all_similarities : bool
-            Ask for every map image's similarity (cheap for global features), which lets
-            replacement particles start at the best retrieved images.
-        candidates : (c,) int ndarray or None
-            Further map images to score besides the particles' nearest ones (e.g. the best
-            global matches, shortlisted for SIFT), so replacement particles can start there.
         refine : callable or None
-            Called with the scored map images and their similarities; a position it
-            returns is fused as a second measurement (:func:`position_log_likelihoods`)
-            and seeds a quarter of the replacement particles. ``self.last_fix`` keeps it.
+            Given the measurements' likelihoods, a metric position of the frame (or None).
+            A position is a further measurement, and a share of the particles
+            (``config.refine.inject``) is first drawn around it: sensor resetting
+            (Lenser and Veloso 2000), so the posterior has particles where the position
+            says the platform is even when the motion spread the cloud thin.
 
         Returns
         -------
-        stats : CloudStats
-        used : str
-            The feature type this step used.
-        scored : (k,) int ndarray
-            Map images whose similarity was computed.
-        sims : (k,) float ndarray
-            Their similarities.
+        StepResult
         """
         cfg = self.config
-        used = self.mode
         # 1. resample
         idx = RESAMPLERS[cfg.resampler](self.w, self.rng)
         self.xy = self.xy[idx]
@@ -181,75 +168,49 @@ class ParticleFilter:
         # 2. move
         self.xy, self.v = self.motion.move(self.xy, self.v, dt, self.tree, self.map_xy,
                                            self.rng)
-        # 3. weight: one similarity per distinct nearest map image
-        dist, nearest = self.tree.query(self.xy)
-        if all_similarities:
-            scored = np.arange(len(self.map_xy))
-            sims = np.asarray(similarity(scored), dtype=np.float64)
-            per_particle = sims[nearest]
-        else:
-            scored = np.unique(nearest if candidates is None
-                               else np.concatenate([nearest, candidates]))
-            sims = np.asarray(similarity(scored), dtype=np.float64)
-            per_particle = sims[np.searchsorted(scored, nearest)]
-        power = cfg.global_power if used == GLOBAL else cfg.sift_power
-        logw = log_likelihoods(per_particle, dist, power=power, scale=self.distance_scale)
-        self.last_fix = refine(scored, sims) if refine is not None else None
-        if self.last_fix is not None:
-            # Both measurements come from one frame but from different evidence (which
-            # place it looks like; where its camera is): their likelihoods multiply.
-            # Without any similar image the position alone still weighs the particles.
-            base = logw if np.isfinite(logw).any() else np.zeros_like(logw)
-            logw = base + position_log_likelihoods(self.xy, self.last_fix[0],
-                                                   self.last_fix[1],
-                                                   outlier=cfg.refine_outlier)
+        # 3. weight
+        likelihoods = tuple(m.likelihood(self.xy, self.tree) for m in measurements)
+        position = refine(likelihoods) if refine is not None else None
+        if position is not None:
+            k = int(round(cfg.refine.inject * len(self.xy)))
+            if k:
+                drawn = self.rng.choice(len(self.xy), size=k, replace=False)
+                self.xy[drawn] = position.xy + self.rng.normal(0.0, position.sigma,
+                                                               size=(k, 2))
+                likelihoods = tuple(m.likelihood(self.xy, self.tree) for m in measurements)
+            likelihoods = likelihoods + (position.likelihood(self.xy, self.tree),)
+        logw = likelihoods[0].log
+        for other in likelihoods[1:]:
+            logw = logw + other.log
         w = normalise_log(logw)
-        # No image looked anything like the frame: the measurement says nothing, so the
+        # No particle is possible under the measurements: they say nothing, so the
         # predicted cloud stands with uniform weights.
         self.w = np.full(len(self.xy), 1.0 / len(self.xy)) if w is None else w
         # 4. estimate
         stats = cloud_stats(self.xy, self.w)
-        # 5. decide the next step's features (IV-B)
-        d_global, d_sift = self.thresholds()
-        spread = max(stats.sigma_x, stats.sigma_y)
-        if used == SIFT:
-            self.mode = GLOBAL if spread < d_sift else SIFT
-        else:
-            self.mode = SIFT if spread > d_global else GLOBAL
-            if self.mode == GLOBAL and cfg.global_check and len(scored) == len(self.map_xy):
-                top = np.argsort(-sims, kind="stable")[: cfg.global_check]
-                gap = np.min(np.linalg.norm(self.map_xy[scored[top]] - stats.mean, axis=1))
-                if gap > d_global:
-                    self.mode = SIFT
-        if spread < d_sift:
-            self.converged = True
         # 6. replace the worst particles
-        self._replace_worst(scored, sims, power)
+        self._replace_worst(likelihoods)
         self.steps += 1
-        return stats, used, scored, sims
+        return StepResult(stats, likelihoods)
 
-    def _replace_worst(self, scored: np.ndarray, sims: np.ndarray, power: float) -> None:
+    def _replace_worst(self, likelihoods: tuple[Likelihood, ...]) -> None:
         m = len(self.w)
-        k = int(round(self.config.replace_fraction * m))
+        k = int(round(self.config.reset.fraction * m))
         if k == 0:
             return
         worst = np.argpartition(self.w, k - 1)[:k]
         new_xy = self._uniform(k)
-        if self.config.replacement == "retrieval" and len(scored):
+        images = next((lk for lk in likelihoods if len(lk.scored)), None)
+        if self.config.reset.replacement == "retrieval" and images is not None:
             # Sensor resetting: half of the new particles start near map images drawn by
             # their similarity to the frame, so a lost filter finds its way back quickly.
-            prob = normalise_log(power * np.log(np.clip(sims, 1e-300, 1.0)))
+            prob = normalise_log(images.power * np.log(np.clip(images.similarities, 1e-300,
+                                                               1.0)))
             if prob is not None:
                 half = k // 2
-                pick = scored[self.rng.choice(len(scored), size=half, p=prob)]
+                pick = images.scored[self.rng.choice(len(images.scored), size=half, p=prob)]
                 new_xy[:half] = self.map_xy[pick] + self.rng.normal(
                     0.0, 0.5 * self.distance_scale, size=(half, 2))
-        if self.last_fix is not None:
-            # Sensor resetting at the measured position: a filter that lost the platform
-            # comes back at once when a pose is solved.
-            quarter = k // 4
-            xy, sigma = self.last_fix
-            new_xy[k - quarter:] = xy + self.rng.normal(0.0, sigma, size=(quarter, 2))
         self.xy[worst] = new_xy
         if self.v is not None:
             self.v[worst] = self._random_velocity(k)
@@ -263,15 +224,12 @@ class ParticleFilter:
         arrays = {"xy": self.xy, "w": self.w}
         if self.v is not None:
             arrays["v"] = self.v
-        meta = {"mode": self.mode, "steps": self.steps, "converged": self.converged,
-                "rng": self.rng.bit_generator.state}
+        meta = {"steps": self.steps, "rng": self.rng.bit_generator.state}
         return arrays, meta
 
     def load(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
         self.xy = np.array(arrays["xy"], dtype=np.float64)
         self.w = np.array(arrays["w"], dtype=np.float64)
         self.v = np.array(arrays["v"], dtype=np.float64) if "v" in arrays else None
-        self.mode = meta["mode"]
         self.steps = int(meta["steps"])
-        self.converged = bool(meta["converged"])
         self.rng.bit_generator.state = meta["rng"]

@@ -5,13 +5,22 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..features import DESCRIPTORS
 from ..mapdata import MapData
+from ..measures import descriptor_similarities, similarities
 from ..sift import SiftFeatures, ratio_matches
-from ..similarity import similarities
 
 _MIN_VERIFY = {"homography": 4, "fundamental": 8}
 RANSAC_PX = 4.0
 """RANSAC inlier threshold in pixels at the working resolution."""
+
+
+def check_map_features(map_data: MapData, features: tuple[str, ...]) -> None:
+    """ValueError unless the map holds every named global feature (and its vocabulary)."""
+    for name in features:
+        if name not in map_data.global_features or (
+                name in DESCRIPTORS and name not in map_data.vocabularies):
+            raise ValueError(f"map has no {name!r} features; a build of the map adds them")
 
 
 def global_similarity(query: dict[str, np.ndarray], map_data: MapData, idx: np.ndarray, *,
@@ -19,7 +28,9 @@ def global_similarity(query: dict[str, np.ndarray], map_data: MapData, idx: np.n
     """Product over ``features`` of the per-feature similarities (Weiss II-C).
 
     With ``features = ("wgoh", "wgii")`` and ``measure = "weiss"`` this is
-    s_WGOH x s_WGII with the normalised intersection of Weiss eq. 1.
+    s_WGOH x s_WGII with the normalised intersection of Weiss eq. 1. ``measure`` applies to
+    the histogram features; place descriptors are always compared by their cosine
+    (:func:`~workers.core.measures.descriptor_similarities`).
 
     Returns
     -------
@@ -27,7 +38,10 @@ def global_similarity(query: dict[str, np.ndarray], map_data: MapData, idx: np.n
     """
     s = np.ones(len(idx))
     for name in features:
-        s *= similarities(measure, query[name], map_data.global_features[name][idx])
+        if name in DESCRIPTORS:
+            s *= descriptor_similarities(query[name], map_data.global_features[name], idx)
+        else:
+            s *= similarities(measure, query[name], map_data.global_features[name][idx])
     return s
 
 

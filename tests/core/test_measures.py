@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from workers.core.similarity import (
+from workers.core.measures import (
     D_MAX,
     MEASURES,
     distances,
@@ -223,3 +223,33 @@ def test_inputs_are_left_untouched(measure):
         normalise(M, measure)
     np.testing.assert_array_equal(M, M_before)
     np.testing.assert_array_equal(q, q_before)
+
+
+def test_descriptor_similarities_are_clipped_cosines():
+    from workers.core.measures import descriptor_similarities
+
+    q = np.array([0.6, 0.8, 0.0], np.float32)
+    M = np.array([[0.6, 0.8, 0.0], [0.0, 0.0, 1.0], [-0.6, -0.8, 0.0], [0.8, 0.6, 0.0],
+                  [0.0, 0.0, 0.0]], np.float32)
+    np.testing.assert_allclose(descriptor_similarities(q, M), [1.0, 0.0, 0.0, 0.96, 0.0],
+                               atol=1e-6)
+    np.testing.assert_allclose(descriptor_similarities(q, M, np.array([3, 0])), [0.96, 1.0],
+                               atol=1e-6)
+
+
+def test_descriptor_similarities_equal_a_loop_for_any_subset():
+    from workers.core.measures import descriptor_similarities
+
+    rng = np.random.default_rng(12)
+    M = rng.standard_normal((40, 9)).astype(np.float32)
+    M /= np.linalg.norm(M, axis=1, keepdims=True)
+    q = M[7] + 0.5 * rng.standard_normal(9).astype(np.float32)
+    q /= np.linalg.norm(q)
+    slow = [max(sum(float(a) * float(b) for a, b in zip(q, row, strict=True)), 0.0) for row in M]
+    for idx in (None, np.array([5]), np.arange(0, 40, 2)):
+        want = slow if idx is None else [slow[i] for i in idx]
+        np.testing.assert_allclose(descriptor_similarities(q, M, idx), want, atol=1e-6)
+    with pytest.raises(ValueError, match="NaN"):
+        descriptor_similarities(np.full(9, np.nan, np.float32), M)
+    with pytest.raises(ValueError, match=r"\(D,\)"):
+        descriptor_similarities(q[:4], M)

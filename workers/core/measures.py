@@ -33,6 +33,13 @@ evidence of place, so any pair involving one has distance ``d_max`` and similari
 every measure, itself included.
 
 Inputs must be finite and non-negative (histograms); anything else is a ``ValueError``.
+
+Place descriptors (:mod:`workers.core.features.descriptors`) are not histograms: they have
+unit L2 norm and VLAD's components are signed. :func:`descriptor_similarities` compares them
+by the one measure they are designed for, the cosine ``q . m``, and turns it into a
+similarity by the same rule with ``d = 1 - q . m`` and ``d_max = 1``: ``s = max(q . m, 0)``.
+Anti-correlated descriptors (negative cosine) say no more about place than unrelated ones, and
+an all-zero descriptor (no local features) matches nothing.
 """
 
 from __future__ import annotations
@@ -162,6 +169,41 @@ def weiss_similarity(q_wgoh: np.ndarray, M_wgoh: np.ndarray, q_wgii: np.ndarray,
         raise ValueError(f"WGOH and WGII map matrices must have the same number of rows, "
                          f"got {n1} and {n2}")
     return similarities("weiss", q_wgoh, M_wgoh) * similarities("weiss", q_wgii, M_wgii)
+
+
+def descriptor_similarities(q: np.ndarray, M: np.ndarray,
+                            idx: np.ndarray | None = None) -> np.ndarray:
+    """Similarity ``max(q . m, 0)`` of a place descriptor to map descriptors.
+
+    The map matrix is used in place (no copy, no per-call validation: it was checked when the
+    map was packed), so scoring a frame against a large map is one matrix-vector product.
+
+    Parameters
+    ----------
+    q : (D,) float ndarray
+        Query descriptor, unit L2 norm or zero, finite.
+    M : (N, D) float32 ndarray
+        Map descriptors, one row per map image, unit L2 norm or zero.
+    idx : (k,) int ndarray, optional
+        Score only these map images (all when None).
+
+    Returns
+    -------
+    s : (k,) or (N,) float64 ndarray in [0, 1]
+    """
+    q = np.asarray(q, dtype=np.float32)
+    if q.ndim != 1 or M.ndim != 2 or M.shape[1] != q.shape[0]:
+        raise ValueError(f"expected a (D,) query and an (N, D) map matrix, got {q.shape} "
+                         f"and {M.shape}")
+    if not np.isfinite(q).all():
+        raise ValueError("query descriptor contains NaN or infinite values")
+    if idx is None:
+        s = M @ q
+    else:
+        idx = np.asarray(idx, dtype=np.intp)
+        # a few rows: gather them; most of the map: one product over all rows is cheaper
+        s = M[idx] @ q if 4 * len(idx) < len(M) else (M @ q)[idx]
+    return np.clip(s.astype(np.float64), 0.0, 1.0)
 
 
 def _raw_distances(measure: str, q: np.ndarray, M: np.ndarray, *,

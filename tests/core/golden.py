@@ -1,0 +1,192 @@
+"""Recorded estimates of every localiser mode and configuration, for regression checks.
+
+Each case runs one localiser over a short query sequence with a fixed seed and records every
+estimate at full precision (positions, spreads, covariance, feature, next feature, status,
+best image). Half way through, the localiser's state is packed and restored into a fresh
+localiser of another seed, so the checkpoint format is part of what is pinned down.
+
+The recorded answers live in ``golden_estimates.json`` beside this file. Regenerate them (only
+when a change of behaviour is intended) with::
+
+    .venv/bin/python -m tests.core.golden            # synthetic worlds
+    .venv/bin/python -m tests.core.golden --seneca   # and the seneca-uav frames
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import tempfile
+from pathlib import Path
+from unittest import mock
+
+import cv2
+import numpy as np
+
+from clients.world import generate_world
+from workers.core.experiment import load_experiment
+from workers.core.localisers import make_localiser
+
+GOLDEN_FILE = Path(__file__).with_name("golden_estimates.json")
+
+FILTER_CASES: list[dict] = [
+    {"config": "weiss2008"},
+    {"config": "default"},
+    # paths the named configurations leave off
+    {"config": "default", "global_check": 3, "sift_candidates": 5, "global_trust": 3,
+     "global_trust_level": 0.5},
+    {"config": "weiss2008", "velocity": True, "resampler": "systematic",
+     "replacement": "retrieval", "sift_reduce": "map", "global_features": ["grid_hist"],
+     "global_measure": "bradley", "n_particles": 120},
+    # not "fundamental": OpenCV's RANSAC for the fundamental matrix gives other inliers
+    # from one call to the next on the same points, so it cannot be recorded
+    {"config": "weiss2008", "sift_reduce": "query", "sift_verify": "homography",
+     "sift_ratio": 0.8, "speed": None, "distance_scale": 6.0, "global_trust": 1,
+     "global_trust_level": 0.0},
+]
+SINGLE_FRAME_CASES: dict[str, list[dict]] = {
+    "retrieval": [{}, {"feature": "wgii", "measure": "l1"}],
+    "hierarchical": [{}, {"k": 3, "sift_ratio": 0.7, "sift_verify": "homography"}],
+}
+CASES: list[tuple[str, dict]] = (
+    [(mode, p) for mode in ("hybrid", "global", "sift") for p in FILTER_CASES]
+    + [(mode, p) for mode, ps in SINGLE_FRAME_CASES.items() for p in ps])
+
+WORLDS = {
+    # kind, world seed, frames per pass, route length (m)
+    "robot": ("robot", 3, 30, 30.0),
+    "uav": ("uav", 3, 30, 200.0),
+}
+SENECA_FRAMES = 14
+SEED = 7
+
+
+def _magnitude(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``sqrt(x^2 + y^2)`` correctly rounded: exact for the integer gradients of WGOH."""
+    return np.sqrt(x * x + y * y)
+
+
+@contextlib.contextmanager
+def repeatable_features():
+    """Make the global features repeat bit for bit from one process to the next.
+
+    ``cv2.magnitude`` (WGOH's gradient magnitude) differs in the last bit of some pixels
+    from one run to the next, which moves global similarities by about 1e-7 and the
+    estimates after them by as much; the recorded answers are taken, and compared, with
+    the correctly rounded magnitude instead, so that equality can be exact.
+    """
+    with mock.patch.object(cv2, "magnitude", _magnitude):
+        yield
+
+
+def case_name(world: str, mode: str, params: dict) -> str:
+    return f"{world}/{mode}/{json.dumps(params, sort_keys=True)}"
+
+
+def estimate_record(e) -> list:
+    """The parts of an estimate that must not change (not the timing)."""
+    return [e.x, e.y, e.sigma_x, e.sigma_y, list(e.cov), e.feature, e.next_feature,
+            str(e.status), e.n_particles, e.best_image]
+
+
+def run_case(experiment, mode: str, params: dict, frames: int | None = None) -> list[list]:
+    """Estimates of one localiser over the experiment's queries, restored half way."""
+    queries = experiment.queries[:frames]
+    loc = make_localiser(mode, experiment.map_data, params, seed=SEED)
+    out = []
+    for i, q in enumerate(queries):
+        if i == len(queries) // 2:
+            blob = loc.get_state()
+            loc = make_localiser(mode, experiment.map_data, params, seed=SEED + 1000)
+            loc.set_state(blob)
+        out.append(estimate_record(loc.step(q)))
+    return out
+
+
+def synthetic_experiment(world: str, folder: Path):
+    kind, seed, frames, route = WORLDS[world]
+    path = folder / world
+    if not (path / "world.json").is_file():
+        generate_world(path, kind=kind, seed=seed, passes=("sunny", "cloudy"), frames=frames,
+                       route_length=route, overwrite=True)
+    return load_experiment(path, rule="pass", map_pass=1, query_pass=2)
+
+
+def seneca_experiment(folder: Path):
+    return load_experiment(folder, rule="pass", map_pass=1, query_pass=2)
+
+
+BAD_PARAMS: list[tuple[str, dict]] = [
+    ("hybrid", {"n_particles": 0}), ("hybrid", {"n_particles": 2.5}),
+    ("sift", {"pull": 1.5}), ("global", {"motion_sigma": float("nan")}),
+    ("hybrid", {"nonsense": 1}), ("hybrid", {"config": "nope"}),
+    ("hybrid", {"sift_verify": "maybe"}), ("hybrid", {"global_features": ["colour"]}),
+    ("hybrid", {"global_features": []}), ("hybrid", {"global_measure": "cosine"}),
+    ("hybrid", {"sift_ratio": 1.0}), ("hybrid", {"sift_ratio": -0.1}),
+    ("hybrid", {"global_trust": True}), ("hybrid", {"global_trust_level": 1.5}),
+    ("hybrid", {"global_check": 1001}), ("hybrid", {"speed": "fast"}),
+    ("hybrid", {"speed": 0}), ("hybrid", {"distance_scale": -1.0}),
+    ("hybrid", {"replace_fraction": 1.0}), ("hybrid", {"resampler": "stratified"}),
+    ("hybrid", {"replacement": "gaussian"}), ("hybrid", {"sift_reduce": "all"}),
+    ("hybrid", {"seed": -1}), ("retrieval", {"feature": "colour"}),
+    ("retrieval", {"measure": "cosine"}), ("retrieval", {"k": 3}),
+    ("hierarchical", {"k": 0}), ("hierarchical", {"sift_ratio": 1.0}),
+    ("hierarchical", {"sift_verify": "maybe"}), ("hierarchical", {"feature": "wgoh"}),
+    ("teleport", {}),
+]
+"""Parameters the HTTP API and the command line refuse, each with its message."""
+
+
+def validated_params() -> dict:
+    """What :func:`validate_params` returns for every case, and its error for bad ones."""
+    from workers.core.localisers import validate_params
+
+    good = {f"{mode}/{json.dumps(p, sort_keys=True)}": validate_params(mode, {**p, "seed": 1})
+            for mode, p in CASES + [("hybrid", {}), ("global", {"config": "weiss2008"})]}
+    bad = {}
+    for mode, p in BAD_PARAMS:
+        try:
+            validate_params(mode, p)
+        except ValueError as exc:
+            bad[f"{mode}/{json.dumps(p, sort_keys=True)}"] = str(exc)
+    return {"valid": good, "refused": bad}
+
+
+def record_all(experiments: dict, frames: dict[str, int | None]) -> dict[str, list[list]]:
+    return {case_name(w, mode, p): run_case(exp, mode, p, frames.get(w))
+            for w, exp in experiments.items() for mode, p in CASES}
+
+
+def main() -> None:
+    from tests.conftest import shared_dir
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seneca", action="store_true", help="also the seneca-uav frames")
+    args = parser.parse_args()
+    stored = json.loads(GOLDEN_FILE.read_text()) if GOLDEN_FILE.is_file() else {}
+    stored["params"] = validated_params()
+    with tempfile.TemporaryDirectory() as tmp, repeatable_features():
+        exps = {w: synthetic_experiment(w, Path(tmp)) for w in WORLDS}
+        if args.seneca:
+            exps["seneca"] = seneca_experiment(shared_dir() / "datasets" / "seneca-uav")
+        stored.update(record_all(exps, {"seneca": SENECA_FRAMES}))
+    write_golden(stored)
+    print(f"{len(stored)} cases written to {GOLDEN_FILE}")
+
+
+def write_golden(stored: dict) -> None:
+    """One case per line, keys sorted: a changed case shows as one changed line."""
+    lines = [f"{json.dumps(k)}: {json.dumps(stored[k], sort_keys=True)}" for k in sorted(stored)]
+    GOLDEN_FILE.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
+
+
+def first_difference(want: list[list], got: list[list]) -> str:
+    for i, (a, b) in enumerate(zip(want, got, strict=False)):
+        if a != b:
+            return f"step {i}: recorded {a}, now {b}"
+    return f"{len(want)} steps recorded, {len(got)} now"
+
+
+if __name__ == "__main__":
+    main()

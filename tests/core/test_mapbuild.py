@@ -1,0 +1,67 @@
+"""map_geometry: the map cameras and every stored keypoint on the ground, at map build."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.core.geometry.scene import F_TRUE, survey
+from workers.core.geo import GeoOrigin
+from workers.core.image import prepare
+from workers.core.mapbuild import (
+    ImageFeatures,
+    assemble_map,
+    extract_image_features,
+    map_geometry,
+)
+from workers.core.mapdata import MapData
+from workers.core.sift import SiftFeatures
+
+ORIGIN = GeoOrigin(41.03, -83.30, 260.0)
+
+
+def _survey_map(seed: int = 0):
+    s = survey(np.random.default_rng(seed), max_tilt_deg=8.0)
+    data = MapData.from_parts(origin=ORIGIN, names=[f"m{i}" for i in range(len(s.centres))],
+                              positions=s.positions, altitudes=s.altitudes, global_features={},
+                              sift=[SiftFeatures(k, d) for k, d in
+                                    zip(s.keypoints, s.image_descriptors, strict=True)])
+    return s, data
+
+
+@pytest.mark.parametrize("focal_px", [F_TRUE, None], ids=["exif", "assumed"])
+def test_map_geometry_places_every_keypoint_on_the_ground(focal_px):
+    # None assumes a 65 degree lens (251 px) where the truth is 60 degrees (277 px)
+    s, data = _survey_map()
+    geo = map_geometry(data, focal_px=focal_px)
+    assert geo is not None and geo.reconstructed.all()
+    ground = np.asarray(geo.ground["sift"])
+    assert ground.shape == (len(data.sift_keypoints), 2)
+    truth = s.points[np.concatenate(s.point_ids)]
+    err = np.linalg.norm(ground - truth, axis=1)
+    assert np.median(err) < 0.5 and err.max() < 2.0
+
+
+def test_map_geometry_of_unrelated_textures_is_none():
+    rng = np.random.default_rng(4)
+    frames = [prepare(rng.integers(0, 256, (60, 80, 3), dtype=np.uint8).repeat(4, 0).repeat(4, 1))
+              for _ in range(4)]
+    lat, lon = ORIGIN.to_wgs84(np.array([0.0, 10.0, 20.0, 30.0]), np.zeros(4))
+    data = assemble_map(names=list("abcd"), lats=lat, lons=lon, alts=[300.0] * 4,
+                        features=[extract_image_features(f, features=()) for f in frames],
+                        origin=ORIGIN)
+    assert min(data.sift_counts()) > 50  # there are features, they just do not agree
+    assert data.geometry is None
+    assert map_geometry(data) is None
+
+
+def test_assemble_map_without_geometry():
+    s, data = _survey_map(1)
+    feats = [ImageFeatures({}, SiftFeatures(k, d))
+             for k, d in zip(s.keypoints, s.image_descriptors, strict=True)]
+    lat, lon = ORIGIN.to_wgs84(s.positions[:, 0], s.positions[:, 1])
+    kwargs = dict(names=data.names, lats=lat, lons=lon, alts=list(s.altitudes),
+                  features=feats, origin=ORIGIN, focal_px=F_TRUE)
+    assert assemble_map(**kwargs, geometry=False).geometry is None
+    built = assemble_map(**kwargs)
+    assert built.geometry is not None and "sift" in built.geometry.ground

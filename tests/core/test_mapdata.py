@@ -1,0 +1,65 @@
+"""MapData persistence carries the map's camera geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from workers.core.geo import GeoOrigin
+from workers.core.geometry.camera import Intrinsics, nadir_rotation
+from workers.core.geometry.mapgeometry import MapGeometry
+from workers.core.mapdata import MapData
+from workers.core.sift import SiftFeatures
+
+
+def _map(rng: np.random.Generator) -> MapData:
+    counts = [5, 0, 7]
+    sift = [SiftFeatures(rng.uniform(0, 240, (k, 4)).astype(np.float32),
+                         rng.integers(0, 256, (k, 128), dtype=np.uint8)) for k in counts]
+    return MapData.from_parts(origin=GeoOrigin(41.03, -83.3, 280.0), names=["a", "b", "c"],
+                              positions=[[0.0, 0.0], [10.0, 0.0], [20.0, 1.0]],
+                              altitudes=[300.0, 301.0, np.nan],
+                              global_features={"wgoh": rng.random((3, 8))}, sift=sift,
+                              map_id="m", revision=2)
+
+
+def _geometry(data: MapData) -> MapGeometry:
+    rotations = np.stack([nadir_rotation(0.1), nadir_rotation(0.2), np.full((3, 3), np.nan)])
+    centres = np.array([[0.0, 0.0, 30.0], [10.0, 0.0, 31.0], [np.nan] * 3])
+    geo = MapGeometry(rotations, centres, Intrinsics(250.0, 160.0, 120.0), ground_alt=270.0,
+                      residual_px=0.4, gps_rms=0.8)
+    geo.add_ground("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets))
+    return geo
+
+
+@pytest.mark.parametrize("mmap", [True, False])
+def test_save_load_keeps_geometry(tmp_path, mmap):
+    data = _map(np.random.default_rng(0))
+    data.geometry = _geometry(data)
+    back = MapData.load(data.save(tmp_path / "map"), mmap=mmap)
+    geo = back.geometry
+    assert geo is not None
+    assert isinstance(geo.ground["sift"], np.memmap) is mmap
+    np.testing.assert_array_equal(geo.rotations, data.geometry.rotations)
+    np.testing.assert_array_equal(geo.centres, data.geometry.centres)
+    assert geo.intrinsics == Intrinsics(250.0, 160.0, 120.0)
+    assert (geo.ground_alt, geo.residual_px, geo.gps_rms) == (270.0, 0.4, 0.8)
+    # the ground positions stay row-aligned with the keypoints
+    ground = np.asarray(geo.ground["sift"])
+    assert ground.shape == (len(back.sift_keypoints), 2)
+    np.testing.assert_array_equal(ground, data.geometry.ground["sift"])
+    assert np.isfinite(ground[:5]).all() and np.isnan(ground[5:]).all()
+    assert back.names == data.names and back.revision == 2
+
+
+def test_map_without_geometry_loads_with_none(tmp_path):
+    data = _map(np.random.default_rng(1))
+    assert MapData.load(data.save(tmp_path / "map")).geometry is None
+    # ... also when it replaces a save that had one
+    data.geometry = _geometry(data)
+    data.save(tmp_path / "again")
+    assert MapData.load(tmp_path / "again").geometry is not None
+    data.geometry = None
+    data.save(tmp_path / "again")
+    assert MapData.load(tmp_path / "again").geometry is None
+    assert not list((tmp_path / "again").glob("geometry*"))

@@ -1,0 +1,175 @@
+"""Metric refinement: registration against a reconstructed map, interpolation without one."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from clients.world.writer import generate_world
+from tests.core.geometry.scene import HEIGHT, WIDTH, observe, survey, tilted_rotation
+from workers.core.experiment import load_experiment
+from workers.core.geo import GeoOrigin
+from workers.core.localisers.refine import MIN_MATCHES, interpolate, refine_sift
+from workers.core.localisers.scoring import sift_similarity
+from workers.core.mapbuild import map_geometry
+from workers.core.mapdata import MapData
+from workers.core.sift import SiftFeatures
+
+
+def _line_map(n: int = 4, spacing: float = 10.0) -> MapData:
+    rng = np.random.default_rng(0)
+    sift = [SiftFeatures(rng.uniform(0, 200, (20, 4)).astype(np.float32),
+                         rng.integers(0, 256, (20, 128), dtype=np.uint8)) for _ in range(n)]
+    return MapData.from_parts(origin=GeoOrigin(48.5, 9.0), names=[str(i) for i in range(n)],
+                              positions=[[spacing * i, 0.0] for i in range(n)],
+                              altitudes=np.zeros(n), global_features={}, sift=sift)
+
+
+def test_interpolate_known_answers():
+    data = _line_map()
+    r = interpolate(data, np.array([1, 2]), np.array([3.0, 1.0]))
+    assert r.kind == "interpolated" and r.images == (1, 2)
+    np.testing.assert_allclose(r.xy, [12.5, 0.0])
+    # spread sqrt((0.75 * 2.5^2 + 0.25 * 7.5^2) / 2) = 3.06 m, under a third of the spacing
+    assert r.sigma == pytest.approx(10.0 / 3.0)
+    r = interpolate(data, np.array([0, 3]), np.array([1.0, 1.0]))
+    np.testing.assert_allclose(r.xy, [15.0, 0.0])
+    assert r.sigma == pytest.approx(math.sqrt(15.0**2 / 2.0))
+    assert r.heading_deg is None and r.inliers == 0
+
+
+def test_interpolate_ignores_zero_scores():
+    data = _line_map()
+    r = interpolate(data, np.array([3, 0, 1]), np.array([2.0, 0.0, 2.0]))
+    np.testing.assert_allclose(r.xy, [20.0, 0.0])
+    assert r.images == (3, 1)
+    assert interpolate(data, np.array([0, 1]), np.zeros(2)) is None
+
+
+def _survey_map(with_geometry: bool):
+    s = survey(np.random.default_rng(21), max_tilt_deg=8.0)
+    data = MapData.from_parts(origin=GeoOrigin(48.5, 9.0),
+                              names=[str(i) for i in range(len(s.centres))],
+                              positions=s.positions, altitudes=s.altitudes, global_features={},
+                              sift=[SiftFeatures(k, d) for k, d in
+                                    zip(s.keypoints, s.image_descriptors, strict=True)])
+    if with_geometry:
+        data.geometry = map_geometry(data, focal_px=s.K.f)
+        assert data.geometry is not None
+    return s, data
+
+
+@pytest.fixture(scope="module")
+def surveyed_map():
+    return _survey_map(with_geometry=True)
+
+
+def _query(s, C, theta=0.8):
+    R = tilted_rotation(theta, 5.0, 1.0)
+    kp, desc, ids = observe(s.points, s.descriptors, R, C, s.K)
+    shared = np.array([len(np.intersect1d(ids, p)) for p in s.point_ids], np.float64)
+    ranked = np.argsort(-shared)
+    return SiftFeatures(kp, desc), ranked, shared[ranked] / len(ids)
+
+
+def test_refine_sift_registers_against_map_geometry(surveyed_map):
+    s, data = surveyed_map
+    C = np.array([25.0, 8.0, 45.0])
+    query, ranked, scores = _query(s, C)
+    r = refine_sift(query, data, ranked, scores, frame_shape=(HEIGHT, WIDTH))
+    assert r is not None and r.kind == "registered"
+    assert np.linalg.norm(r.xy - C[:2]) < 0.5
+    assert r.images == tuple(sorted(int(i) for i in ranked[:3]))  # max_images best
+    assert r.heading_deg is not None and r.inliers >= 30
+
+
+def test_refine_sift_without_geometry_interpolates():
+    s, data = _survey_map(with_geometry=False)
+    query, ranked, scores = _query(s, np.array([25.0, 8.0, 45.0]))
+    r = refine_sift(query, data, ranked, scores, frame_shape=(HEIGHT, WIDTH), max_images=2)
+    assert r.kind == "interpolated" and r.images == tuple(int(i) for i in ranked[:2])
+    w = scores[:2] / scores[:2].sum()
+    np.testing.assert_allclose(r.xy, w @ s.positions[ranked[:2]])
+
+
+def test_refine_sift_needs_matches(surveyed_map):
+    s, data = surveyed_map
+    query, ranked, scores = _query(s, np.array([25.0, 8.0, 45.0]))
+    shape = (HEIGHT, WIDTH)
+    assert refine_sift(query, data, ranked, np.zeros(len(ranked)), frame_shape=shape) is None
+    empty = SiftFeatures(np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8))
+    assert refine_sift(empty, data, ranked, scores, frame_shape=shape) is None
+    few = SiftFeatures(query.keypoints[: MIN_MATCHES - 1], query.descriptors[: MIN_MATCHES - 1])
+    assert refine_sift(few, data, ranked, scores, frame_shape=shape) is None
+
+
+# -- end to end on a rendered UAV world --------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def uav_world(tmp_path_factory):
+    """Two passes over one survey path at 30 m: sunny builds the map, cloudy is queried."""
+    folder = tmp_path_factory.mktemp("uav-world")
+    generate_world(folder, kind="uav", seed=3, passes=["sunny", "cloudy"], frames=24,
+                   altitude=30.0, gps_noise_m=0.0, supersample=1)
+    return load_experiment(folder, rule="pass", map_pass=1, query_pass=2)
+
+
+def _ranked(query, data, candidates=None):
+    idx = np.arange(len(data)) if candidates is None else np.asarray(candidates)
+    scores = sift_similarity(query, data, idx, ratio=0.7, verify="homography")
+    order = np.argsort(-scores, kind="stable")
+    return idx[order], scores[order]
+
+
+def test_uav_world_map_is_reconstructed(uav_world):
+    geo = uav_world.map_data.geometry
+    assert geo is not None
+    assert geo.reconstructed.all()
+    assert geo.residual_px < 1.0
+    assert geo.gps_rms < 1.0  # the tags are exact
+    lo, hi = geo.height_range()
+    assert lo < 30.0 < hi
+
+
+def test_uav_world_frames_register_sub_metre(uav_world):
+    data = uav_world.map_data
+    errors = []
+    for q, truth in zip(uav_world.queries, uav_world.truth, strict=True):
+        sift, _ = q.sift()
+        ranked, scores = _ranked(sift, data)
+        r = refine_sift(sift, data, ranked, scores, frame_shape=q.frame.grey.shape[:2])
+        if r is not None:
+            assert r.kind == "registered"
+            errors.append(float(np.linalg.norm(r.xy - truth)))
+    n = len(uav_world.queries)
+    assert len(errors) >= 0.75 * n
+    assert np.median(errors) < 1.0
+    assert np.percentile(errors, 90) < 3.0
+
+
+def test_uav_world_without_geometry_interpolates_between_map_images(uav_world):
+    # Two map images are too few to reconstruct: refinement falls back to a position
+    # between the verified map images, weighted by their scores.
+    full = uav_world.map_data
+    truth = uav_world.truth
+    k = len(uav_world.queries) // 2
+    near = np.argsort(np.linalg.norm(full.positions - truth[k], axis=1))[:2]
+    pair = MapData.from_parts(origin=full.origin, names=[full.names[i] for i in near],
+                              positions=full.positions[near], altitudes=full.altitudes[near],
+                              global_features={}, sift=[full.sift(int(i)) for i in near])
+    assert map_geometry(pair) is None
+    sift, _ = uav_world.queries[k].sift()
+    ranked, scores = _ranked(sift, pair)
+    assert (scores > 0).all()
+    r = refine_sift(sift, pair, ranked, scores, frame_shape=uav_world.queries[k].frame.grey.shape)
+    assert r is not None and r.kind == "interpolated"
+    assert sorted(r.images) == [0, 1]
+    w = scores / scores.sum()
+    np.testing.assert_allclose(r.xy, w @ pair.positions[ranked])
+    # between the two images, nearer the one that matched better
+    a, b = pair.positions[ranked[0]], pair.positions[ranked[1]]
+    t = float(np.dot(r.xy - a, b - a) / np.dot(b - a, b - a))
+    assert 0.0 <= t <= 0.5
+    assert np.linalg.norm(r.xy - truth[k]) <= np.linalg.norm(b - truth[k])

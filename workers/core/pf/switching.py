@@ -1,0 +1,165 @@
+"""Which feature type the next filter step uses: the hybrid rule of Weiss et al. 2008, IV-B.
+
+A pure policy: the state it keeps between steps and what one step showed go in, the state
+for the next step comes out. The localiser gathers the evidence (the cloud's spread, and the
+distances its optional checks need) and calls :func:`decide` once per step.
+
+The rule, in the paper's words and this module's names:
+
+- the first step uses SIFT (:func:`start`);
+- after a SIFT step, switch to global features when sigma_x and sigma_y (eq. 2) are both
+  below d_SIFT; after a global step, switch to SIFT when either exceeds d_global
+  (:func:`decide`, thresholds from :func:`thresholds`);
+- "for other motion models d_global and d_SIFT must be chosen differently": both scale with
+  the motion sigma relative to the paper's 4 m (:data:`REFERENCE_SIGMA`).
+
+Two checks beyond the paper, off in ``weiss2008``:
+
+- ``global_check``: after a global step, stay global only while one of the best few map
+  images under the global features (over the whole map) lies within d_global of the
+  estimate (``StepEvidence.global_gap``);
+- ``global_trust``: on each SIFT step, record whether the global features' best image agrees
+  with the SIFT-based estimate (``StepEvidence.trust_gap`` within ``agree_radius``) in a
+  running share (:data:`TRUST_RATE`); while that share is below ``global_trust_level`` the
+  rule vetoes global steps.
+
+The ``global`` and ``sift`` localisers pin the feature type (``pinned``): the rule then
+always answers the pinned type and leaves the trust alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .config import SwitchingConfig
+
+SIFT = "sift"
+GLOBAL = "global"
+
+REFERENCE_SIGMA: float = 4.0
+"""Motion sigma (m) the paper's thresholds were chosen for."""
+
+TRUST_RATE: float = 0.3
+"""Weight of the newest SIFT step in the running agreement of global features with SIFT."""
+
+
+@dataclass(frozen=True)
+class SwitchState:
+    """What the rule carries from one step to the next.
+
+    Attributes
+    ----------
+    next : {"sift", "global"}
+        Feature type of the next step.
+    trust : float
+        Running share of SIFT steps on which the global features agreed, in [0, 1].
+    """
+
+    next: str = SIFT
+    trust: float = 0.0
+
+
+@dataclass(frozen=True)
+class StepEvidence:
+    """What one filter step showed, as far as the rule needs it.
+
+    Attributes
+    ----------
+    used : {"sift", "global"}
+        Feature type of the step.
+    spread : float
+        ``max(sigma_x, sigma_y)`` of the weighted cloud (Weiss eq. 2), metres.
+    global_gap : float or None
+        Global steps under ``global_check``: distance (m) from the estimate to the nearest
+        of the ``global_check`` best map images; None where not checked.
+    trust_gap : float or None
+        SIFT steps under ``global_trust``: distance (m) from the estimate to the nearest of
+        the ``global_trust`` best map images under the global features; None where not
+        judged.
+    """
+
+    used: str
+    spread: float
+    global_gap: float | None = None
+    trust_gap: float | None = None
+
+
+def start(pinned: str | None = None) -> str:
+    """Feature type of a filter's first step: SIFT (IV-B), or the pinned type."""
+    return SIFT if pinned is None else pinned
+
+
+def thresholds(rule: SwitchingConfig, motion_sigma: float) -> tuple[float, float]:
+    """``(d_global, d_sift)`` scaled to a motion sigma (m) between frames a nominal gap apart.
+
+    The nominal gap, not the last one: after a long gap the cloud is spread because the
+    platform could be anywhere, and that is exactly when SIFT is needed.
+    """
+    k = motion_sigma / REFERENCE_SIGMA
+    return rule.d_global * k, rule.d_sift * k
+
+
+def checks_global(rule: SwitchingConfig, used: str, pinned: str | None = None) -> bool:
+    """Whether this step's evidence needs ``global_gap``."""
+    return pinned is None and rule.global_check > 0 and used == GLOBAL
+
+
+def judges_trust(rule: SwitchingConfig, used: str, pinned: str | None = None) -> bool:
+    """Whether this step's evidence needs ``trust_gap``."""
+    return pinned is None and rule.global_trust > 0 and used == SIFT
+
+
+def gap_to_best(positions: np.ndarray, scores: np.ndarray, k: int, point: np.ndarray) -> float:
+    """Distance from ``point`` to the nearest of the ``k`` best-scoring positions.
+
+    Parameters
+    ----------
+    positions : (n, 2) float ndarray
+    scores : (n,) float ndarray
+        Higher is better; ties keep the order of ``positions``.
+    k : int
+    point : (2,) float ndarray
+    """
+    top = np.argsort(-scores, kind="stable")[:k]
+    return float(np.min(np.linalg.norm(positions[top] - point, axis=1)))
+
+
+def decide(rule: SwitchingConfig, state: SwitchState, evidence: StepEvidence, *,
+           thresholds: tuple[float, float], agree_radius: float,
+           pinned: str | None = None) -> SwitchState:
+    """The state for the next step.
+
+    Parameters
+    ----------
+    rule : SwitchingConfig
+    state : SwitchState
+        The state the step just taken started from.
+    evidence : StepEvidence
+    thresholds : (float, float)
+        ``(d_global, d_sift)`` in metres, from :func:`thresholds`.
+    agree_radius : float
+        Largest ``trust_gap`` (m) that counts as agreement.
+    pinned : {"sift", "global"} or None
+        The feature type of a single-feature filter.
+    """
+    if pinned is not None:
+        return replace(state, next=pinned)
+    d_global, d_sift = thresholds
+    if evidence.used == SIFT:
+        nxt = GLOBAL if evidence.spread < d_sift else SIFT
+    else:
+        nxt = SIFT if evidence.spread > d_global else GLOBAL
+        if nxt == GLOBAL and evidence.global_gap is not None and evidence.global_gap > d_global:
+            # the global features disagree with the cloud: a sign of trouble that the
+            # cloud's own spread cannot show
+            nxt = SIFT
+    trust = state.trust
+    if rule.global_trust:
+        if evidence.trust_gap is not None:
+            agree = float(evidence.trust_gap <= agree_radius)
+            trust = (1.0 - TRUST_RATE) * trust + TRUST_RATE * agree
+        if trust < rule.global_trust_level:
+            nxt = SIFT
+    return SwitchState(nxt, trust)
