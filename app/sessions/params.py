@@ -21,7 +21,8 @@ SEED_BOUND = 2**63
 JSON number states exactly where 2**63 - 1 is rounded up)."""
 
 FilterConfigName = Literal["default", "weiss2008"]
-FeatureName = Literal["grid_hist", "wgoh", "wgii", "wgii2", "wgii2_sparse", "hue_hist"]
+FeatureName = Literal["grid_hist", "wgoh", "wgii", "wgii2", "wgii2_sparse", "hue_hist",
+                      "vlad_orb", "vlad_rootsift", "bow_orb", "bow_rootsift"]
 MeasureName = Literal["l1", "l2", "linf", "intersection", "bradley", "weiss"]
 Verification = Literal["none", "homography", "fundamental"]
 
@@ -77,6 +78,8 @@ class FilterParams(_Params):
                                       "images")
     refine_outlier: float = _unset(gt=0, lt=1, description="Probability that a refined "
                                                            "position is wrong")
+    refine_inject: float = _unset(ge=0, lt=1, description="Share of the particles drawn "
+                                                          "around a refined position")
 
 
 class RetrievalParams(_Params):

@@ -3,7 +3,6 @@ stored; and the edge's models agree with the core's lists and fields."""
 
 from __future__ import annotations
 
-import dataclasses
 import typing
 
 import pytest
@@ -99,22 +98,22 @@ def _literal_values(annotation) -> set:
 
 
 def test_the_edge_models_follow_the_core():
-    from workers.core.features import FEATURE_NAMES
+    from workers.core.features import ALL_FEATURE_NAMES
     from workers.core.localisers import MODES
+    from workers.core.measures import MEASURES
     from workers.core.pf.config import (
         CONFIGS,
+        PARAMS,
         REDUCTIONS,
         REPLACEMENTS,
         RESAMPLERS,
         VERIFICATIONS,
-        FilterConfig,
     )
-    from workers.core.similarity import MEASURES
 
     assert set(edge.FilterParams.model_fields) == \
-        {f.name for f in dataclasses.fields(FilterConfig)} | {"config", "seed"}
+        set(PARAMS) | {"config", "seed"}
     assert _literal_values(edge.FilterConfigName) == set(CONFIGS)
-    assert _literal_values(edge.FeatureName) == set(FEATURE_NAMES)
+    assert _literal_values(edge.FeatureName) == set(ALL_FEATURE_NAMES)
     assert _literal_values(edge.MeasureName) == set(MEASURES)
     assert _literal_values(edge.Verification) == set(VERIFICATIONS)
     fields = edge.FilterParams.model_fields
