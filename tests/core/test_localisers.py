@@ -83,11 +83,12 @@ def test_filter_localisers_converge(world, small_map, mode):
     loc = make_localiser(mode, small_map, {"n_particles": 200}, seed=1)
     if mode == "global":
         loc.set_initial_pose(truth[0, 0], truth[0, 1], sigma=3.0)
-    errors, feats = [], []
+    errors, feats, statuses = [], [], []
     for q, t in zip(queries, truth, strict=True):
         e = loc.step(q)
         errors.append(np.hypot(e.x - t[0], e.y - t[1]))
         feats.append(e.feature)
+        statuses.append(e.status)
         assert e.n_particles == 200
         # the image similarity, and on SIFT steps the solved position where one was found
         kinds = e.measurement.split("+")
@@ -99,7 +100,10 @@ def test_filter_localisers_converge(world, small_map, mode):
     if mode == "hybrid":
         assert "global" in feats  # converged filters switch to the fast features
     if mode != "global":
-        assert e.status is Status.TRACKING
+        # SIFT steps after convergence keep the cloud tight; the global steps between them
+        # spread it on this self-similar texture under another light, whichever comes last.
+        after = [s for s, f in zip(statuses[10:], feats[10:], strict=True) if f == "sift"]
+        assert after and all(s is Status.TRACKING for s in after)
 
 
 def test_estimate_carries_wgs84_and_covariance(world, small_map):
@@ -219,11 +223,12 @@ def test_hybrid_with_a_place_descriptor_takes_global_steps(world, small_map):
     params = {"n_particles": 200, "global_features": ["vlad_orb"], "sift_candidates": 5,
               "global_power": 4.0}
     loc = make_localiser("hybrid", small_map, params, seed=1)
-    errors, feats = [], []
+    errors, feats, statuses = [], [], []
     for q, t in zip(queries, truth, strict=True):
         e = loc.step(q)
         errors.append(np.hypot(e.x - t[0], e.y - t[1]))
         feats.append(e.feature)
+        statuses.append(e.status)
     assert np.median(errors[10:]) < 6.0
     assert feats.count("global") >= 10
 
