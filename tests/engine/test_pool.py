@@ -57,6 +57,20 @@ def test_call_error_comes_back_as_the_builtin_type(engine):
     assert engine.call("tests.engine.fakes:square", 3).result(TIMEOUT) == 9
 
 
+def test_a_call_its_caller_cancelled_leaves_the_engine_working(engine, outcomes, tmp_path):
+    """A caller that stops waiting (a timeout, a request that went away) cancels its
+    future; the worker's late answer to it is dropped, and everything else still comes
+    back."""
+    release = tmp_path / "release"
+    held = [engine.call("tests.engine.fakes:wait_for_file", str(release)) for _ in range(2)]
+    assert all(fut.cancel() for fut in held)
+    release.touch()
+    engine.open_session(_spec("a")).result(TIMEOUT)
+    engine.submit_frame("a", 0, _png(10))
+    assert isinstance(_take(outcomes, 1)[0], FrameDone)
+    assert engine.call("tests.engine.fakes:square", 4).result(TIMEOUT) == 16
+
+
 def test_frames_of_a_session_come_back_in_order(engine, outcomes):
     engine.open_session(_spec("a")).result(TIMEOUT)
     engine.open_session(_spec("b", offset=100)).result(TIMEOUT)

@@ -24,7 +24,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from multiprocessing.connection import wait
 
 from .messages import (
@@ -362,12 +362,11 @@ class LocalEngine:
                     self._states[msg.session_id] = msg.state
             if checkpoint:
                 self._emit(Checkpoint(msg.session_id, msg.state))
-            if fut is None:
-                return
-            if msg.ok:
-                fut.set_result(msg.value)
-            else:
-                fut.set_exception(remote_error(msg.error_type, msg.error))
+            if fut is not None:
+                if msg.ok:
+                    _settle(fut, value=msg.value)
+                else:
+                    _settle(fut, error=remote_error(msg.error_type, msg.error))
             return
         log.warning("engine: unexpected message %r", type(msg).__name__)
 
@@ -392,8 +391,7 @@ class LocalEngine:
             frames, slot.frames = list(slot.frames), {}
             calls, slot.calls = list(slot.calls.values()), {}
         for fut in calls:
-            if not fut.done():
-                fut.set_exception(WorkerDied(reason))
+            _settle(fut, error=WorkerDied(reason))
         for session_id, seq in frames:
             self._emit(FrameFailed(session_id, seq, "worker_died", reason))
 
@@ -437,3 +435,15 @@ class LocalEngine:
                                             self._states.get(session_id)))
             self._slots[slot.index] = fresh
             self.restarts += 1
+
+
+def _settle(fut: Future, *, value=None, error: BaseException | None = None) -> None:
+    """Resolve a caller's future, unless the caller cancelled it (it stopped waiting: a
+    timeout, a request that went away); the reader thread must never fail on that."""
+    try:
+        if error is not None:
+            fut.set_exception(error)
+        else:
+            fut.set_result(value)
+    except InvalidStateError:
+        pass
