@@ -102,7 +102,7 @@ class BuildRunner:
         map_id, todo = await asyncio.to_thread(self._begin, job_id)
         url = self.settings.resolved_database_url
         futures = [asyncio.wrap_future(self.engine.call(
-            "workers.engine.build:extract_image", url, image_id, path,
+            "app.jobs.tasks:extract_image", url, image_id, path,
             max_pixels=self.settings.max_pixels)) for image_id, path in todo]
         for done, fut in enumerate(asyncio.as_completed(futures), start=1):
             await fut
@@ -111,7 +111,7 @@ class BuildRunner:
         folder = self.settings.packed_map_dir(str(map_id), revision)
         lens_files = await asyncio.to_thread(self._lens_sample, map_id)
         packed = await asyncio.wrap_future(self.engine.call(
-            "workers.engine.build:pack_map", url, str(map_id), revision, str(folder),
+            "app.jobs.tasks:pack_map", url, str(map_id), revision, str(folder),
             lens_files=lens_files))
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 

@@ -1,16 +1,11 @@
-"""Map-building tasks that run in the worker processes (through ``LocalEngine.call``).
+"""What map builds run in the worker processes besides the core: image inspection and the
+byte layouts of features as the database stores them.
 
-Extraction is per image and writes its features straight into the database, so that big
-arrays never travel through the API process; packing reads every built image's features
-back, assembles the map (with the SIFT neighbour reduction and the place descriptors'
-vocabularies, trained anew for every revision and stored with it) and saves it as a
-memory-mappable folder. Both open their own database connection, cached per URL.
+The build tasks that read and write the database belong to the service
+(:mod:`app.jobs.tasks`); the engine only runs them, so it never imports the web layer.
 """
 
 from __future__ import annotations
-
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 
@@ -36,30 +31,26 @@ def decode_vector(data: bytes) -> np.ndarray:
     return np.frombuffer(data, dtype="<f4").astype(np.float32)
 
 
-def encode_sift(sift: SiftFeatures) -> tuple[bytes, bytes]:
-    """Keypoints (K, 4) float32 and descriptors (K, 128) uint8 -> bytes."""
-    kps = np.ascontiguousarray(sift.keypoints, dtype="<f4").reshape(-1, 4)
-    desc = np.ascontiguousarray(sift.descriptors, dtype=np.uint8).reshape(-1, 128)
+def encode_local(features: SiftFeatures | OrbFeatures) -> tuple[bytes, bytes]:
+    """Keypoints (K, 4) float32 and descriptors (K, B) uint8 -> little-endian bytes."""
+    kps = np.ascontiguousarray(features.keypoints, dtype="<f4").reshape(-1, 4)
+    desc = np.ascontiguousarray(features.descriptors, dtype=np.uint8)
     return kps.tobytes(), desc.tobytes()
+
+
+def _decode_local(n: int, keypoints: bytes, descriptors: bytes, width: int):
+    kps = np.frombuffer(keypoints, dtype="<f4").astype(np.float32).reshape(n, 4)
+    return kps, np.frombuffer(descriptors, dtype=np.uint8).reshape(n, width)
 
 
 def decode_sift(n: int, keypoints: bytes, descriptors: bytes) -> SiftFeatures:
-    kps = np.frombuffer(keypoints, dtype="<f4").astype(np.float32).reshape(n, 4)
-    desc = np.frombuffer(descriptors, dtype=np.uint8).reshape(n, 128)
-    return SiftFeatures(kps, desc)
-
-
-def encode_orb(orb: OrbFeatures) -> tuple[bytes, bytes]:
-    """Keypoints (K, 4) float32 and descriptors (K, 32) uint8 -> bytes."""
-    kps = np.ascontiguousarray(orb.keypoints, dtype="<f4").reshape(-1, 4)
-    desc = np.ascontiguousarray(orb.descriptors, dtype=np.uint8).reshape(-1, 32)
-    return kps.tobytes(), desc.tobytes()
+    """The inverse of :func:`encode_local` for SIFT (128-byte descriptors)."""
+    return SiftFeatures(*_decode_local(n, keypoints, descriptors, 128))
 
 
 def decode_orb(n: int, keypoints: bytes, descriptors: bytes) -> OrbFeatures:
-    kps = np.frombuffer(keypoints, dtype="<f4").astype(np.float32).reshape(n, 4)
-    desc = np.frombuffer(descriptors, dtype=np.uint8).reshape(n, 32)
-    return OrbFeatures(kps, desc)
+    """The inverse of :func:`encode_local` for ORB (32-byte descriptors)."""
+    return OrbFeatures(*_decode_local(n, keypoints, descriptors, 32))
 
 
 def encode_vocabulary(vocab: Vocabulary) -> tuple[bytes, bytes, bytes | None]:
@@ -80,109 +71,3 @@ def decode_vocabulary(*, branching: int, depth: int, binary: bool, dim: int,
     p = None if projection is None \
         else np.frombuffer(projection, dtype="<f4").astype(np.float32).reshape(-1, dim)
     return Vocabulary(c, branching, depth, binary, idf_arr, p)
-
-
-@lru_cache(maxsize=8)
-def _sessions(database_url: str):
-    from app.db import make_engine, make_session_factory
-
-    return make_session_factory(make_engine(database_url))
-
-
-def extract_image(database_url: str, image_id: int, path: str, *, max_pixels: int) -> int:
-    """Extract one map image's global features, raw SIFT and ORB and store them.
-
-    Returns the number of SIFT keypoints. Raises ImageError for an undecodable file.
-    """
-    from sqlalchemy import delete
-
-    from app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift
-    from workers.core.image import load_frame
-    from workers.core.mapbuild import extract_image_features
-
-    frame = load_frame(Path(path).read_bytes(), max_pixels=max_pixels)
-    feats = extract_image_features(frame)
-    kps, desc = encode_sift(feats.sift)
-    orb_kps, orb_desc = encode_orb(feats.orb)
-    with _sessions(database_url)() as db, db.begin():
-        db.execute(delete(ImageGlobalFeature).where(ImageGlobalFeature.image_id == image_id))
-        db.execute(delete(ImageSift).where(ImageSift.image_id == image_id))
-        db.execute(delete(ImageOrb).where(ImageOrb.image_id == image_id))
-        for name, vec in sorted(feats.global_features.items()):
-            db.add(ImageGlobalFeature(image_id=image_id, name=name, dim=int(vec.shape[0]),
-                                      data=encode_vector(vec)))
-        db.add(ImageSift(image_id=image_id, n_keypoints=len(feats.sift), keypoints=kps,
-                         descriptors=desc))
-        db.add(ImageOrb(image_id=image_id, n_keypoints=len(feats.orb), keypoints=orb_kps,
-                        descriptors=orb_desc))
-    return len(feats.sift)
-
-
-def _readers(paths: list[str]):
-    """A reader per file that still exists (an image may be deleted during a build)."""
-    return [Path(p).read_bytes for p in paths if Path(p).is_file()]
-
-
-def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
-             lens_files: list[str] | None = None) -> dict:
-    """Assemble every extracted image of a map into a MapData folder.
-
-    ``lens_files`` are some of the map's image files, read for the camera's focal length
-    (EXIF) that the map's camera geometry starts from.
-
-    The place descriptors' vocabularies are trained here on the map's images and stored in
-    ``map_vocabularies`` under ``revision`` (replacing rows a failed earlier attempt at the
-    same revision left); the descriptors over ORB need every image's ORB features.
-
-    Returns
-    -------
-    dict
-        ``origin`` (lat, lon, alt), ``image_ids`` (in map order) and their ``east`` and
-        ``north`` in the new local frame.
-    """
-    import uuid
-
-    from sqlalchemy import delete, select
-
-    from app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
-    from workers.core.mapbuild import ImageFeatures, assemble_map, typical_focal_px
-
-    with _sessions(database_url)() as db:
-        rows = db.execute(
-            select(MapImage, ImageSift, ImageOrb)
-            .join(ImageSift, ImageSift.image_id == MapImage.id)
-            .outerjoin(ImageOrb, ImageOrb.image_id == MapImage.id)
-            .where(MapImage.map_id == uuid.UUID(map_id)).order_by(MapImage.id)).all()
-        ids = [img.id for img, _, _ in rows]
-        vectors: dict[int, dict[str, np.ndarray]] = {i: {} for i in ids}
-        for feat in db.scalars(select(ImageGlobalFeature)
-                               .where(ImageGlobalFeature.image_id.in_(ids))):
-            vectors[feat.image_id][feat.name] = decode_vector(feat.data)
-        if not rows:
-            raise ValueError("the map has no image with extracted features")
-        features = [ImageFeatures(vectors[img.id],
-                                  decode_sift(s.n_keypoints, s.keypoints, s.descriptors),
-                                  None if o is None
-                                  else decode_orb(o.n_keypoints, o.keypoints, o.descriptors))
-                    for img, s, o in rows]
-        images = [img for img, _, _ in rows]
-    times = [img.captured_at.timestamp() if img.captured_at else None for img in images]
-    data = assemble_map(names=[img.filename for img in images],
-                        lats=[img.lat for img in images], lons=[img.lon for img in images],
-                        alts=[img.alt for img in images], features=features,
-                        captured_at=times, map_id=map_id, revision=revision,
-                        focal_px=typical_focal_px(_readers(lens_files or [])))
-    with _sessions(database_url)() as db, db.begin():
-        db.execute(delete(MapVocabulary).where(MapVocabulary.map_id == uuid.UUID(map_id),
-                                               MapVocabulary.revision == revision))
-        for name, vocab in sorted(data.vocabularies.items()):
-            centroids, idf, projection = encode_vocabulary(vocab)
-            db.add(MapVocabulary(map_id=uuid.UUID(map_id), revision=revision, name=name,
-                                 branching=vocab.branching, depth=vocab.depth,
-                                 binary=vocab.binary, dim=vocab.dim, centroids=centroids,
-                                 idf=idf, projection=projection))
-    data.save(folder)
-    o = data.origin
-    return {"origin": (o.lat, o.lon, o.alt), "image_ids": ids,
-            "east": np.asarray(data.positions)[:, 0].tolist(),
-            "north": np.asarray(data.positions)[:, 1].tolist()}
