@@ -64,6 +64,7 @@ class MapData:
     geometry: MapGeometry | None = None
     vocabularies: dict[str, Vocabulary] = field(default_factory=dict)
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
+    _spacing: float | None = field(default=None, repr=False, compare=False)
     _reduced: tuple | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -154,11 +155,16 @@ class MapData:
         return float(np.median(dt)) if len(dt) >= 2 else None
 
     def median_spacing(self) -> float:
-        """Median distance from each map image to its nearest neighbour (metres)."""
-        if len(self) < 2:
-            return 1.0
-        d, _ = self.tree.query(np.asarray(self.positions), k=2)
-        return float(np.median(d[:, 1]))
+        """Median distance from each map image to its nearest neighbour (metres).
+
+        Computed once: refinement asks for it on every step of a map without geometry."""
+        if self._spacing is None:
+            if len(self) < 2:
+                self._spacing = 1.0
+            else:
+                d, _ = self.tree.query(np.asarray(self.positions), k=2)
+                self._spacing = float(np.median(d[:, 1]))
+        return self._spacing
 
     @classmethod
     def from_parts(cls, *, origin: GeoOrigin, names, positions, altitudes,

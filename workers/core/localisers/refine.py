@@ -82,7 +82,9 @@ def refine_sift(query: SiftFeatures, map_data: MapData, ranked: np.ndarray,
     max_images : int
         Map images to match against.
     """
-    ranked = np.asarray(ranked)[np.asarray(scores) > 0][:max_images]
+    positive = np.asarray(scores) > 0
+    ranked = np.asarray(ranked)[positive][:max_images]
+    scores = np.asarray(scores, np.float64)[positive][:max_images]
     if len(query) == 0 or len(ranked) == 0:
         return None
     geometry = map_data.geometry
@@ -100,7 +102,7 @@ def refine_sift(query: SiftFeatures, map_data: MapData, ranked: np.ndarray,
         reg = register_against(geometry, "sift", np.asarray(query.keypoints), matches,
                                frame_shape=frame_shape)
         return None if reg is None else Refinement.from_registration(reg)
-    return interpolate(map_data, ranked, np.asarray(scores)[: len(ranked)])
+    return interpolate(map_data, ranked, scores)
 
 
 def interpolate(map_data: MapData, images: np.ndarray, scores: np.ndarray) -> Refinement | None:
