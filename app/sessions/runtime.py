@@ -26,7 +26,6 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from datetime import datetime
-from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -35,8 +34,9 @@ from app.db import utcnow
 from app.metrics import Metrics
 from app.problems import Problem
 from app.sessions import store
+from app.sessions.admission import check_revision, next_seq, spec_for
 from app.sessions.models import LocalisationSession
-from app.sessions.schemas import MAX_SEQ, FrameError, PoseEstimate
+from app.sessions.schemas import FrameError, PoseEstimate
 from app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
 from app.sessions.writer import Accepted, Barrier, Writer
 from app.stream.hub import LocalHub
@@ -79,48 +79,6 @@ class LiveSession:
     """Highest sequence number accepted (processed, queued, or recorded before a restart)."""
     arrivals: dict[int, Arrival] = field(default_factory=dict)
     """Frames accepted and not yet answered, by sequence number."""
-
-
-def spec_for(row: LocalisationSession, settings: Settings) -> SessionSpec:
-    folder = settings.packed_map_dir(str(row.map_id), row.map_revision)
-    return SessionSpec(session_id=str(row.id), map_id=str(row.map_id),
-                       revision=row.map_revision, map_folder=str(folder), mode=row.mode,
-                       params=dict(row.params), seed=int(row.seed))
-
-
-def next_seq(last_seq: int | None, seq: int | None) -> int:
-    """The frame's sequence number: ``seq`` when it is after ``last_seq``, else the next one.
-
-    Raises
-    ------
-    Problem
-        409 for a duplicate or stale ``seq``, or when the session has used the last one.
-    """
-    if seq is None:
-        if last_seq is None:
-            return 0
-        if last_seq >= MAX_SEQ:
-            raise Problem(409, f"the session has used every seq up to {MAX_SEQ}",
-                          kind="seq-exhausted", last_seq=last_seq)
-        return last_seq + 1
-    if last_seq is not None and seq <= last_seq:
-        kind = "duplicate-seq" if seq == last_seq else "stale-seq"
-        raise Problem(409, f"seq {seq} is not after the last accepted seq {last_seq}",
-                      kind=kind, last_seq=last_seq)
-    return seq
-
-
-def check_revision(spec: SessionSpec) -> None:
-    """503 ``map-revision-missing`` (naming the map, not the data path) when the packed
-    revision a session needs is gone from the data directory."""
-    if not Path(spec.map_folder).is_dir():
-        raise revision_missing(spec.map_id, spec.revision)
-
-
-def revision_missing(map_id: str, revision: int) -> Problem:
-    return Problem(503, f"the files of map {map_id} revision {revision} are missing from "
-                   "the data directory; restore them or rebuild the map",
-                   kind="map-revision-missing")
 
 
 class SessionRuntime:

@@ -15,9 +15,10 @@ from app.db import new_id
 from app.maps.models import Map
 from app.problems import Problem, not_found
 from app.security import hash_secret, new_token
+from app.sessions.admission import revision_missing
 from app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
 from app.sessions.params import SessionCreate
-from app.sessions.runtime import SessionRuntime, revision_missing
+from app.sessions.runtime import SessionRuntime
 from app.sessions.schemas import (
     FrameError,
     InitialPose,
