@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
@@ -51,9 +52,10 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
     positions = np.asarray(positions, np.float64)
     if len(positions) < 3:
         return None
-    spacing = np.sort(np.linalg.norm(positions[:, None] - positions[None], axis=2), axis=1)
     # Footprints overlap over a few spacings; tie images up to three median spacings apart.
-    reach = 3.0 * float(np.median(spacing[:, 1])) if len(positions) > 1 else 0.0
+    # A KD-tree, not a distance matrix: the matrix of a 50,000-image map is 20 GB.
+    nearest, _ = cKDTree(positions).query(positions, k=2)
+    reach = 3.0 * float(np.median(nearest[:, 1]))
     pairs = match_pairs(keypoints, descriptors, positions, max_distance=max(reach, 1.0),
                         rng=rng)
     rec = reconstruct_plane(pairs, positions, np.asarray(altitudes, np.float64), K0)
