@@ -6,14 +6,16 @@ images under ``VLOC_DATA_DIR``, a pool of worker processes as large as the machi
 
 from __future__ import annotations
 
+import math
 import os
 import secrets
 import socket
 import sys
 from functools import cached_property
 from pathlib import Path
+from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ADMIN_KEY_FILE = "admin_key"
@@ -28,6 +30,21 @@ class Settings(BaseSettings):
     database_url: str | None = Field(
         None, description="SQLAlchemy URL; default a SQLite file in the data directory.")
     workers: int = Field(0, ge=0, description="Worker processes; 0 means one per CPU core.")
+    engine: Literal["local", "ray"] = Field(
+        "local", description="Where sessions run: this process's worker pool (local), or "
+                             "shard actors on a Ray cluster that several API processes share "
+                             "(ray; needs the vloc[ray] extra).")
+    ray_address: str | None = Field(
+        None, description="Ray cluster to join (e.g. ray://head:10001 or head:6379); unset "
+                          "starts a cluster inside this process.")
+    ray_shards: int = Field(
+        0, ge=0, description="Shard actors holding the sessions (each a process); 0 means "
+                             "VLOC_WORKERS. Every API process of a cluster must agree.")
+    ray_namespace: str = Field(
+        "vloc", min_length=1, max_length=64,
+        description="Ray namespace of the shards: one per deployment sharing a cluster.")
+    ray_shard_cpus: float = Field(
+        1.0, ge=0, description="CPUs the Ray scheduler reserves for each shard actor.")
     admin_key: str | None = Field(
         None, min_length=16, description="Admin API key; generated and stored when unset.")
     redis_url: str | None = Field(
@@ -51,8 +68,23 @@ class Settings(BaseSettings):
         description="This server among those sharing a database: frames it left queued "
                     "are reported interrupted when it starts again.")
     max_sessions: int = Field(100, gt=0, description="Sessions that may exist at once.")
+    session_ttl_s: int = Field(
+        3600, ge=10, description="Default time to live of a session: it expires this long "
+                                 "after its last frame or keep-alive.")
+    max_session_ttl_s: int = Field(7 * 86400, ge=10,
+                                   description="The longest time to live a session may ask.")
+    converged_accuracy_m: float = Field(
+        25.0, gt=0, description="A tracking estimate is converged when its 68 % horizontal "
+                                "accuracy is within this many metres.")
     metrics_token: str | None = Field(
         None, min_length=16, description="Bearer token for /metrics (the admin key works too).")
+
+    viewer_tile_url: str | None = Field(
+        None, pattern=r"^https?://[^\s]*\{z\}[^\s]*\{x\}[^\s]*\{y\}[^\s]*$",
+        description="Tile URL template ({z}/{x}/{y}, Web Mercator) the web viewer may draw "
+                    "under a map; unset, it draws plans only. Every viewer's browser sees it.")
+    viewer_tile_attribution: str = Field(
+        "", max_length=500, description="Credit shown under the tiles (text).")
 
     auto_migrate: bool = Field(True, description="Run Alembic migrations at start-up.")
     log_level: str = "INFO"
@@ -68,14 +100,25 @@ class Settings(BaseSettings):
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'vloc.sqlite3').resolve()}"
 
+    @field_validator("admin_key", "metrics_token", "redis_url", "database_url",
+                     mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value):
+        # Compose passes `VLOC_ADMIN_KEY: ${VLOC_ADMIN_KEY:-}` as an empty string.
+        return None if isinstance(value, str) and not value.strip() else value
+
     @property
     def worker_count(self) -> int:
         if self.workers:
             return self.workers
-        # The CPUs this process may run on (a container's cpuset), not the host's count.
+        # The CPUs this process may run on (a container's cpuset), not the host's count,
+        # and no more than its CPU quota (docker run --cpus) allows.
         if hasattr(os, "sched_getaffinity"):
-            return len(os.sched_getaffinity(0)) or 1
-        return os.cpu_count() or 1
+            cpus = len(os.sched_getaffinity(0)) or 1
+        else:
+            cpus = os.cpu_count() or 1
+        quota = cpu_quota()
+        return max(1, min(cpus, math.ceil(quota))) if quota is not None else cpus
 
     @property
     def request_limit_bytes(self) -> int:
@@ -90,6 +133,27 @@ class Settings(BaseSettings):
         return self.data_dir / "maps" / map_id / f"rev-{revision:06d}"
 
 
+CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
+CGROUP_V1_QUOTA = Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us")
+CGROUP_V1_PERIOD = Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us")
+
+
+def cpu_quota(cpu_max: Path = CGROUP_CPU_MAX, v1_quota: Path = CGROUP_V1_QUOTA,
+              v1_period: Path = CGROUP_V1_PERIOD) -> float | None:
+    """CPUs' worth of time the cgroup may use (``docker run --cpus``), or None without a
+    quota: ``cpu.max`` (cgroup v2, "QUOTA PERIOD" or "max PERIOD"), else the v1 files."""
+    try:
+        quota, period = cpu_max.read_text().split()[:2]
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        pass
+    try:
+        quota_us, period_us = int(v1_quota.read_text()), int(v1_period.read_text())
+    except (OSError, ValueError):
+        return None
+    return quota_us / period_us if quota_us > 0 and period_us > 0 else None
+
+
 def private_dir(path: Path) -> None:
     """Create ``path`` readable by this user alone (0700), or make it so when it is ours."""
     path.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -100,8 +164,8 @@ def private_dir(path: Path) -> None:
 def ensure_admin_key(settings: Settings, *, announce=None) -> str:
     """The admin key: ``VLOC_ADMIN_KEY``, else the stored one, else a new one.
 
-    A new key is written to ``<data_dir>/admin_key`` (mode 0600) and announced once, on the
-    first start, so that the operator can copy it; later starts read the file silently.
+    A new key is written to ``<data_dir>/admin_key`` (mode 0600); its file (not the key) is
+    announced once, on the first start; later starts read the file silently.
     """
     if settings.admin_key:
         return settings.admin_key
@@ -118,5 +182,8 @@ def ensure_admin_key(settings: Settings, *, announce=None) -> str:
 
 
 def _print_key(key: str, path: Path) -> None:
-    print(f"vloc: generated admin key (stored in {path}):\n\n    {key}\n", file=sys.stderr,
-          flush=True)
+    # The key itself never goes to stderr: that is where the logs go, and logs are
+    # collected and kept. The operator reads it from the file.
+    del key
+    print(f"vloc: generated an admin key; it is in {path} (readable by this user only)",
+          file=sys.stderr, flush=True)

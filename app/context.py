@@ -12,10 +12,11 @@ from app.config import Settings
 from app.metrics import Metrics
 
 if TYPE_CHECKING:
+    from app.engine import Engine
     from app.jobs.service import BuildRunner
+    from app.routes.service import RouteRunner
     from app.sessions.runtime import SessionRuntime
     from app.stream.hub import LocalHub
-    from workers.engine import LocalEngine
 
 
 @dataclass(eq=False)
@@ -25,7 +26,8 @@ class AppContext:
     db_sessions: sessionmaker[Session]
     admin_key_hash: str
     metrics: Metrics
-    engine: LocalEngine
+    engine: Engine
     hub: LocalHub
     runtime: SessionRuntime
     builds: BuildRunner
+    routes: RouteRunner

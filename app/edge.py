@@ -57,6 +57,8 @@ POLICIES: tuple[Policy, ...] = (
            BodyKind.UPLOAD),
     Policy(re.compile(rf"^/v1/sessions/{_ID}/frames$"), frozenset({"POST"}), Access.SESSION,
            BodyKind.FRAME),
+    Policy(re.compile(r"^/v1/maps/[^/]+/localize$"), frozenset({"POST"}), Access.ADMIN,
+           BodyKind.FRAME),
     Policy(re.compile(r"^/v1/(maps|jobs)(/.*)?$"), None, Access.ADMIN),
     Policy(re.compile(r"^/v1/sessions/?$"), None, Access.ADMIN),
     Policy(re.compile(rf"^/v1/sessions/{_ID}(/.*)?$"), None, Access.SESSION),

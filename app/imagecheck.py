@@ -15,6 +15,7 @@ from io import BytesIO
 from PIL import Image, UnidentifiedImageError
 
 from app.problems import Problem
+from workers.core.image import image_kind, looks_truncated
 
 CONTENT_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 _KIND_OF_TYPE = {v: k for k, v in CONTENT_TYPES.items()} | {"image/jpg": "jpeg"}
@@ -35,13 +36,8 @@ class ImageHeader:
         return ".jpg" if self.kind == "jpeg" else ".png"
 
 
-def sniff(data: bytes) -> str | None:
-    """``"jpeg"`` or ``"png"`` from the magic bytes, else None."""
-    if data[:3] == b"\xff\xd8\xff":
-        return "jpeg"
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
-        return "png"
-    return None
+sniff = image_kind
+"""``"jpeg"`` or ``"png"`` from the magic bytes, else None (the core's check)."""
 
 
 def kind_of_content_type(content_type: str | None) -> str | None:
@@ -82,7 +78,7 @@ def check_image(data: bytes, *, max_pixels: int, declared: str | None = None) ->
     if width * height > max_pixels:
         raise Problem(413, f"an image of {width}x{height} pixels exceeds the limit of "
                       f"{max_pixels} pixels", kind="too-many-pixels", max_pixels=max_pixels)
-    if _truncated(data, kind):
+    if looks_truncated(data):
         raise Problem(422, "the image is truncated", kind="truncated-image")
     return ImageHeader(kind, width, height)
 
@@ -114,10 +110,3 @@ def _describe(exc: Exception) -> str:
 
 
 _OBJECT_REPR = re.compile(r"<[^<>]*\bobject at 0x[0-9a-fA-F]+>")
-
-
-def _truncated(data: bytes, kind: str) -> bool:
-    tail = data.rstrip(b"\x00")[-12:]
-    if kind == "jpeg":
-        return not tail.endswith(b"\xff\xd9")
-    return b"IEND" not in tail

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from enum import Enum
 
+from starlette.requests import Request
+
 from app.config import Settings
 from app.problems import Problem
 
@@ -31,3 +33,17 @@ def body_limit(kind: BodyKind, settings: Settings) -> int:
     if kind is BodyKind.FRAME:
         return settings.max_frame_bytes
     return settings.max_json_bytes
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """The request's body, read in chunks; 413 as soon as it passes ``limit`` bytes."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise too_large(limit)
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise too_large(limit)
+        chunks.append(chunk)
+    return b"".join(chunks)

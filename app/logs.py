@@ -17,7 +17,9 @@ from datetime import UTC, datetime
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-_STANDARD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime"}
+_STANDARD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime", "color_message"}
+"""Record attributes that are not extra fields; ``color_message`` is uvicorn's copy of the
+message with terminal colour codes, for its own console formatter only."""
 
 access_log = logging.getLogger("vloc.access")
 

@@ -9,28 +9,31 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from app import logs, openapi, problems
+from app import logs, openapi, problems, ui
 from app.config import Settings, ensure_admin_key, private_dir
 from app.context import AppContext
 from app.db import make_engine, make_session_factory
 from app.edge import EdgeGate
+from app.engine import engine_for
 from app.health.router import router as health_router
 from app.jobs.router import router as jobs_router
 from app.jobs.service import BuildRunner, fail_interrupted
 from app.maps.router import router as maps_router
 from app.metrics import Metrics, MetricsMiddleware
+from app.routes.router import router as routes_router
+from app.routes.service import RouteRunner, fail_interrupted_routes
 from app.security import hash_secret
 from app.sessions.router import router as sessions_router
 from app.sessions.runtime import SessionRuntime
 from app.sessions.store import interrupt_left_queued
 from app.stream.hub import LocalHub
 from app.stream.router import router as stream_router
-from workers.engine import LocalEngine
 
 log = logging.getLogger("vloc.app")
 
 DRAIN_TIMEOUT_S = 10.0
 STREAMS_CLOSE_TIMEOUT_S = 5.0
+SWEEP_INTERVAL_S = 30.0
 
 
 def create_app(settings: Settings | None = None, *, configure_logging: bool = False) -> FastAPI:
@@ -43,8 +46,7 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     db_engine = make_engine(settings.resolved_database_url)
     db_sessions = make_session_factory(db_engine)
     metrics = Metrics()
-    engine = LocalEngine(settings.worker_count, checkpoint_every=settings.checkpoint_every,
-                         max_pixels=settings.max_pixels, stall_s=settings.worker_stall_s)
+    engine = engine_for(settings)
     hub = _make_hub(settings)
     runtime = SessionRuntime(settings=settings, db_sessions=db_sessions, engine=engine,
                              hub=hub, metrics=metrics)
@@ -52,16 +54,21 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     ctx = AppContext(settings=settings, db_engine=db_engine, db_sessions=db_sessions,
                      admin_key_hash=hash_secret(ensure_admin_key(settings)), metrics=metrics,
                      engine=engine, hub=hub, runtime=runtime,
-                     builds=BuildRunner(settings, db_sessions, engine, metrics))
+                     builds=BuildRunner(settings, db_sessions, engine, metrics),
+                     routes=RouteRunner(settings, db_sessions, engine))
 
-    app = FastAPI(title="vloc", version="0.1.0", lifespan=_lifespan,
+    app = FastAPI(title="vloc", version="0.1.0", lifespan=_lifespan, docs_url=None,
+                  redoc_url=None,
                   description="Visual localisation: where is the camera, from a map of "
                               "GPS-tagged images. Errors are RFC 9457 problem details.")
     app.state.ctx = ctx
     problems.install(app)
-    for router in (health_router, maps_router, jobs_router, sessions_router, stream_router):
+    for router in (health_router, maps_router, routes_router, jobs_router, sessions_router,
+                   stream_router):
         app.include_router(router)
     openapi.install(app)
+    openapi.serve_docs(app)
+    ui.install(app)
     app.add_middleware(EdgeGate)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(logs.RequestLogMiddleware)
@@ -84,13 +91,17 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     await asyncio.to_thread(ctx.engine.start)
     ctx.runtime.start(loop)
     ctx.builds.loop = loop
+    ctx.routes.loop = loop
     await ctx.hub.start()
+    sweeper = asyncio.create_task(_expire_sessions(ctx))
     log.info("vloc ready", extra={"workers": ctx.engine.n_workers,
                                   "database": ctx.db_engine.dialect.name})
     try:
         yield
     finally:
+        sweeper.cancel()
         await ctx.builds.cancel_all()
+        await ctx.routes.cancel_all()
         await ctx.runtime.drain(DRAIN_TIMEOUT_S)
         await asyncio.to_thread(ctx.engine.close)
         await asyncio.to_thread(ctx.runtime.stop)
@@ -111,6 +122,16 @@ async def drain(app: FastAPI, timeout: float = DRAIN_TIMEOUT_S) -> None:
     await ctx.hub.going_away(STREAMS_CLOSE_TIMEOUT_S)
 
 
+async def _expire_sessions(ctx: AppContext) -> None:
+    """Release the sessions idle past their time to live, every so often."""
+    while True:
+        await asyncio.sleep(min(SWEEP_INTERVAL_S, ctx.settings.session_ttl_s / 4))
+        try:
+            await ctx.runtime.expire_idle()
+        except Exception:  # noqa: BLE001 - the next round tries again
+            log.exception("expiring idle sessions failed")
+
+
 def _prepare_database(ctx: AppContext) -> None:
     from app import migrate
 
@@ -119,6 +140,8 @@ def _prepare_database(ctx: AppContext) -> None:
     with ctx.db_sessions() as db:
         if (n := fail_interrupted(db)):
             log.warning("marked %d interrupted build job(s) failed", n)
+        if (n := fail_interrupted_routes(db)):
+            log.warning("marked %d interrupted route build(s) failed", n)
         if (n := interrupt_left_queued(db, owner=ctx.settings.instance_name)):
             log.warning("%d frame(s) accepted before a stop were never answered; "
                         "reported as interrupted", n)

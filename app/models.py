@@ -10,7 +10,9 @@ from app.maps.models import (
     MapImage,
     MapVocabulary,
 )
+from app.routes.models import Route, RouteArc, RouteImage, RouteNode
 from app.sessions.models import Frame, LocalisationSession, Pose
 
 __all__ = ["Base", "BuildJob", "Frame", "ImageGlobalFeature", "ImageOrb", "ImageSift",
-           "LocalisationSession", "Map", "MapImage", "MapVocabulary", "Pose"]
+           "LocalisationSession", "Map", "MapImage", "MapVocabulary", "Pose", "Route", "RouteArc",
+           "RouteImage", "RouteNode"]

@@ -37,6 +37,7 @@ WHY = {
     403: "Credentials not good for this resource",
     404: "No such resource",
     409: "Conflicts with the resource's state",
+    410: "The session expired (session-expired): create a new one",
     413: "Body, file or image over the limits",
     415: "Unsupported media type",
     422: "Invalid parameters or body",
@@ -53,9 +54,11 @@ EXTRA = {
     ("delete", "/v1/maps/{map_id}/images/{image_id}"): (409,),
     ("post", "/v1/maps/{map_id}/build"): (409,),
     ("post", "/v1/sessions"): (404, 409, 429, 503),
-    ("post", "/v1/sessions/{session_id}/frames"): (409, 415, 429, 500, 503, 504),
-    ("post", "/v1/sessions/{session_id}/reset"): (503,),
-    ("post", "/v1/sessions/{session_id}/initial-pose"): (503,),
+    ("post", "/v1/sessions/{session_id}/frames"): (409, 410, 415, 429, 500, 503, 504),
+    ("post", "/v1/sessions/{session_id}/reset"): (410, 503),
+    ("post", "/v1/sessions/{session_id}/initial-pose"): (410, 503),
+    ("post", "/v1/sessions/{session_id}/keepalive"): (410, 503),
+    ("post", "/v1/maps/{map_id}/localize"): (409, 415, 500, 503, 504),
     ("get", "/readyz"): (503,),
 }
 """Statuses particular to an operation, beyond those the rules in :func:`statuses` give."""
@@ -106,3 +109,25 @@ def complete(schema: dict) -> None:
                     if response["description"] == "Validation Error":
                         response["description"] = WHY[422]
                     response["content"] = dict(problem)
+
+
+DOCS_ASSETS = "/docs/assets"
+
+
+def serve_docs(app: FastAPI) -> None:
+    """``/docs``: Swagger UI from the assets of the ``swagger-ui-bundle`` distribution,
+    served by this app, so that the page works with no access to a CDN."""
+    from fastapi.openapi.docs import get_swagger_ui_html
+    from fastapi.responses import HTMLResponse
+    from fastapi.staticfiles import StaticFiles
+    from swagger_ui_bundle import swagger_ui_path
+
+    app.mount(DOCS_ASSETS, StaticFiles(directory=swagger_ui_path), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url, title=f"{app.title} API",
+            swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{DOCS_ASSETS}/favicon-32x32.png")

@@ -46,3 +46,25 @@ def check_captured_at(t: datetime | None) -> datetime | None:
         raise Problem(422, f"captured_at must lie between {EARLIEST:%Y-%m-%d} and one day "
                       f"from now, got {t.isoformat()}", kind="bad-captured-at")
     return t
+
+
+def check_metadata(values: dict) -> dict | None:
+    """A frame's metadata (:class:`workers.core.metadata.FrameMetadata` fields, None where
+    absent), validated once as the core validates it: its ``to_dict()``, or None when empty.
+
+    Raises Problem 422 ``bad-metadata`` naming the field (``field``) for a non-finite or
+    out-of-range value or a half of a pair (``gps_lat`` without ``gps_lon``...).
+    """
+    from workers.core.metadata import FrameMetadata
+
+    given = {k: v for k, v in values.items() if v is not None}
+    try:
+        metadata = FrameMetadata(**given)
+    except TypeError as exc:
+        raise Problem(422, f"unknown metadata field: {exc}", kind="bad-metadata") from None
+    except ValueError as exc:
+        # The core's messages start with the offending field's name.
+        name = str(exc).split()[0]
+        raise Problem(422, str(exc), kind="bad-metadata",
+                      field=name if name in values else None) from None
+    return metadata.to_dict() or None

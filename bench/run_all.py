@@ -1,11 +1,12 @@
 """Run every benchmark and paper reproduction in turn (``make bench``).
 
 Stage timings first (``bench_features.py``, ``bench_core.py``, ``bench_world.py``, and
-``bench_service.py``, ``bench_place.py``, ``eval_place.py`` and ``eval_seneca_place.py``
-where the seneca-uav data set they read is present), then the paper
+``bench_service.py``, ``bench_place.py``, ``eval_place.py``, ``eval_seneca_place.py`` and
+``bench_hybrid.py`` where the seneca-uav data set they read is present), then the paper
 experiments under ``bench/paper/`` (Weiss Table I, Table II from Table I's runs, Fig. 4 e/f,
-Flyphone Fig. 7/9). Each runs in its own process, one after the other, so that timings do
-not compete with each other; results go to ``bench/results/`` and ``bench/results/paper/``.
+Flyphone Fig. 7/9) and Li et al.'s route relaxation and path following (``bench/nav/``).
+Each runs in its own process, one after the other, so that timings do not compete with each
+other; results go to ``bench/results/`` and ``bench/results/paper/``.
 The full run takes about half an hour on two cores; ``--quick`` runs small versions of
 everything in a few minutes and writes them under ``bench/.cache/quick-results/`` instead.
 
@@ -39,6 +40,8 @@ STAGES: tuple[tuple[str, list[str]], ...] = (
                               "--out", f"{QUICK_OUT}/world.md"]),
     ("bench/bench_service.py", ["--sessions", "1,10", "--frames", "20,5",
                                 "--out", f"{QUICK_OUT}/service.md"]),
+    ("bench/bench_viewer.py", ["--seconds", "5", "--repeats", "1",
+                               "--out", f"{QUICK_OUT}/viewer.md"]),
     ("bench/bench_place.py", ["--map-images", "200", "--queries", "10", "--repeats", "1",
                               "--out", f"{QUICK_OUT}/place_timing.md"]),
     ("bench/eval_place.py", ["--variants", "none", "--seeds", "1", "--no-sift",
@@ -49,6 +52,11 @@ STAGES: tuple[tuple[str, list[str]], ...] = (
     ("bench/paper/weiss_table2.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),
     ("bench/paper/weiss_fig4.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),
     ("bench/paper/flyphone_fig7.py", ["--quick", "--out", f"{QUICK_OUT}/paper"]),
+    ("bench/bench_hybrid.py", ["--starts", "1", "--out", f"{QUICK_OUT}/hybrid.md"]),
+    ("bench/nav/relaxation.py", ["--length", "80", "--seeds", "0", "--extra", "10",
+                                 "--out", f"{QUICK_OUT}/nav_relaxation"]),
+    ("bench/nav/convergence.py", ["--starts", "5", "--length", "80",
+                                  "--out", f"{QUICK_OUT}/nav_convergence"]),
 )
 
 
@@ -60,7 +68,8 @@ def _missing_input(script: str) -> str | None:
     """Why a stage cannot run here, or None."""
     if not (ROOT / script).is_file():
         return "script not present"
-    seneca_stages = ("bench_service", "bench_place", "eval_place", "eval_seneca_place")
+    seneca_stages = ("bench_service", "bench_place", "eval_place", "eval_seneca_place",
+                     "bench_hybrid")
     if _name(script) in seneca_stages and not (SENECA / "images").is_dir():
         return f"data set {SENECA} not present"
     return None

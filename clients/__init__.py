@@ -12,12 +12,14 @@ if TYPE_CHECKING:
 # line and the world generator do not pay for httpx and pydantic when they do not need them.
 _SDK_NAMES = frozenset({
     "APIError", "AsyncClient", "AsyncConnect", "AsyncPoseStream", "BadRequest", "Client",
+    "Coverage", "Localization",
     "Conflict", "Connect", "Forbidden", "FrameAccepted", "FrameError", "FrameRejected",
-    "GeoExtent", "ImageRejection", "ImageSource", "Job", "JobFailed", "LocalExtent", "Map",
-    "MapImage", "Message", "NotFound", "Origin", "PayloadTooLarge", "Pose", "PoseStream",
+    "FRAME_METADATA", "GeoExtent", "GeoPose", "Gone", "ImageRejection", "ImageSource", "Job",
+    "JobFailed", "LocalExtent", "Map", "MapImage", "Message", "NotFound", "Origin",
+    "PayloadTooLarge", "Pose", "PoseStream", "Route",
     "RetryPolicy", "ServerError", "Session", "SessionRef", "SessionStats", "StreamError",
     "TooManyRequests", "TransportError", "Unauthorized", "UnsupportedMediaType",
-    "UploadResult", "ValidationError", "VlocError", "WaitTimeout",
+    "UploadResult", "UnprocessableEntity", "VlocError", "WaitTimeout",
 })
 
 __all__ = sorted(_SDK_NAMES)

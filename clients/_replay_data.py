@@ -29,6 +29,8 @@ class DeviceFrame:
     captured_at : datetime or None
     truth_lat, truth_lon : float
         Ground truth: the CSV's position where the data set has one, else the image's tag.
+    metadata : dict or None
+        The device's sensor reports sent with the frame (``FrameMetadata.to_dict()``).
     """
 
     index: int
@@ -38,6 +40,7 @@ class DeviceFrame:
     captured_at: datetime | None
     truth_lat: float
     truth_lon: float
+    metadata: dict | None = None
 
 
 @dataclass
@@ -50,7 +53,9 @@ class ReplayData:
 
 def load_replay_data(folder: str | Path, *, rule: str = "pass", map_pass: int | None = None,
                      query_pass: int | None = None, photometric: str = "none",
-                     seed: int = 0, limit: int | None = None) -> ReplayData:
+                     seed: int = 0, limit: int | None = None,
+                     metadata: tuple[str, ...] = (),
+                     gps_accuracy: float | None = None) -> ReplayData:
     """Split a data set folder into map images and the device's frames.
 
     Parameters
@@ -65,6 +70,10 @@ def load_replay_data(folder: str | Path, *, rule: str = "pass", map_pass: int | 
         Seeds the photometric variant of frame ``i`` (``variant_rng(seed, i)``).
     limit : int, optional
         Replay only the first ``limit`` query frames.
+    metadata : tuple of str
+        Kinds of device metadata to send with each frame (``heading``, ``gps``,
+        ``velocity``, ``altitude``), from the data set's CSV columns; ``gps`` without GPS
+        columns is simulated from the truth when ``gps_accuracy`` (metres) is given.
 
     Raises
     ------
@@ -80,7 +89,49 @@ def load_replay_data(folder: str | Path, *, rule: str = "pass", map_pass: int | 
     if limit is not None:
         query_images = query_images[:limit]
     frames = [_device_frame(i, img, photometric, seed) for i, img in enumerate(query_images)]
+    if metadata:
+        frames = _with_metadata(frames, query_images, tuple(metadata), gps_accuracy, seed)
     return ReplayData(ds, list(map_images), frames, photometric)
+
+
+def _with_metadata(frames: list[DeviceFrame], images: list[DatasetImage],
+                   kinds: tuple[str, ...], gps_accuracy: float | None,
+                   seed: int) -> list[DeviceFrame]:
+    """The frames with the named metadata: the data set's own, or a simulated GPS fix
+    (the truth plus Gaussian noise of ``gps_accuracy`` metres per axis, seeded)."""
+    import dataclasses
+
+    import numpy as np
+
+    from workers.core.geo import GeoOrigin
+    from workers.core.metadata import METADATA_KINDS, FrameMetadata
+
+    unknown = set(kinds) - set(METADATA_KINDS)
+    if unknown:
+        raise ValueError(f"unknown metadata kinds {sorted(unknown)}; valid: "
+                         f"{', '.join(METADATA_KINDS)}")
+    rng = np.random.default_rng(seed)
+    out = []
+    for frame, img in zip(frames, images, strict=True):
+        fields = (img.metadata.only(kinds) if img.metadata is not None else FrameMetadata()
+                  ).to_dict()
+        if "gps" in kinds and "gps_lat" not in fields:
+            if gps_accuracy is None:
+                raise ValueError("the data set has no GPS columns: give a GPS accuracy to "
+                                 "simulate a fix from the truth")
+            here = GeoOrigin(frame.truth_lat, frame.truth_lon)
+            lat, lon = here.to_wgs84(*rng.normal(0.0, gps_accuracy, size=2))
+            fields.update(gps_lat=float(lat), gps_lon=float(lon), gps_accuracy_m=gps_accuracy)
+        if "altitude" in kinds and "altitude_m" not in fields and img.alt is not None:
+            fields["altitude_m"] = float(img.alt)
+        out.append(dataclasses.replace(frame, metadata=FrameMetadata(**fields).to_dict()
+                                       if fields else None))
+    marker = {"heading": "heading_deg", "velocity": "velocity_east"}
+    missing = [k for k in kinds if k in marker
+               and not any(f.metadata and marker[k] in f.metadata for f in out)]
+    if missing:
+        raise ValueError(f"the data set has no {', '.join(missing)} columns to send")
+    return out
 
 
 def _device_frame(index: int, img: DatasetImage, photometric: str, seed: int) -> DeviceFrame:

@@ -123,6 +123,19 @@ def plot_replay(path, map_xy: np.ndarray, runs: list[DeviceRun], frames, origin,
                        {"replay": modes}, title=title or "true and estimated tracks")
 
 
+def replay_tracks(map_xy: np.ndarray, runs: list[DeviceRun], frames, origin) -> dict:
+    """Device 0's track per mode against the truth, for the web viewer
+    (:func:`workers.core.report.tracks_dict`; config ``"replay"``)."""
+    from workers.core.evaluate import ModeSummary
+    from workers.core.report import tracks_dict
+
+    truth = truth_in_map_frame(frames, origin)
+    modes = {r.mode: ModeSummary(r.mode, "replay", [as_eval_run(r, truth)], 0)
+             for r in runs if r.device == 0 and r.poses}
+    return tracks_dict(np.asarray(map_xy, dtype=np.float64).reshape(-1, 2),
+                       {"replay": modes})
+
+
 def mode_table(data: dict) -> str:
     """The per-mode summary: error, SIFT share, ms per frame and speed-up against SIFT."""
     lines = ["| mode | mean err (m) | median (m) | SIFT steps | ms/frame | speed-up vs sift |",

@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
                 "Sessions: create, show, delete, reset, initial pose, send frames, watch poses."),
     "replay": ("clients.commands.replay", "replay_cmd",
                "Simulated devices: play a dataset into a running server, print the error table."),
+    "navigate": ("clients.commands.navigate", "navigate_cmd",
+                 "Teach a route in the robot world and repeat it through the service (Li et al.)."),
     "demo": ("clients.commands.demo", "demo_cmd",
              "The whole product in one command: synthetic world, server, map, device replay, table."),
 }

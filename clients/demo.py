@@ -47,6 +47,8 @@ class DemoOptions:
     query_light: str = "cloudy"
     config: str = "weiss2008"
     workers: int | None = None
+    port: int | None = None
+    """The server's port on 127.0.0.1; a free one when None."""
     keep: bool = False
     quiet: bool = False
 
@@ -59,7 +61,7 @@ def free_port() -> int:
 
 @contextlib.contextmanager
 def server_process(data_dir: Path, *, log_path: Path, admin_key: str,
-                   workers: int | None = None,
+                   workers: int | None = None, port: int | None = None,
                    ready_timeout: float = 180.0) -> Iterator[tuple[str, int]]:
     """Run ``vloc serve`` on the embedded defaults in ``data_dir``; yields its base URL and
     process id.
@@ -71,7 +73,7 @@ def server_process(data_dir: Path, *, log_path: Path, admin_key: str,
     """
     from clients.sdk import Client, WaitTimeout
 
-    port = free_port()
+    port = port or free_port()
     env = {k: v for k, v in os.environ.items()
            if not k.startswith("VLOC_") or k == "VLOC_SHARED_DIR"}
     env.update(VLOC_DATA_DIR=str(data_dir), VLOC_ADMIN_KEY=admin_key, VLOC_LOG_JSON="false",
@@ -152,7 +154,8 @@ def make_world(folder: Path, opts: DemoOptions, say: Callable[[str], None]) -> P
     if stamp.exists() and json.loads(stamp.read_text()) == recipe:
         say(f"world: reusing {folder}")
         return folder
-    with tqdm(total=2 * opts.frames, unit="img", desc="world", disable=opts.quiet) as bar:
+    with tqdm(total=2 * opts.frames, unit="img", desc="world",
+              disable=opts.quiet or not sys.stderr.isatty()) as bar:
         info = generate_world(folder, kind="robot", seed=opts.seed,
                               passes=recipe["passes"], frames=opts.frames,
                               route_length=recipe["route_length"], overwrite=True,
@@ -180,16 +183,36 @@ def run_demo(opts: DemoOptions, say: Callable[[str], None] = print) -> dict:
     try:
         say("server: starting `vloc serve` on the embedded defaults (SQLite, local workers)")
         with server_process(data_dir, log_path=out / "server.log", admin_key=admin_key,
-                            workers=opts.workers) as (url, pid):
+                            workers=opts.workers, port=opts.port) as (url, pid):
             say(f"server: ready at {url} (pid {pid})")
+            say(f"viewer: {url}/ui/ (sign in with the admin key {admin_key})")
             results = _against_server(url, admin_key, world, opts, say)
+            results["timings_s"].update(world=t_world, total=time.perf_counter() - t0)
+            (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
+            if opts.keep:
+                say(f"server: kept running for the viewer at {url}/ui/ (data in "
+                    f"{data_dir}); Ctrl-C stops it")
+                hold_server(url)
         say("server: stopped")
     finally:
         if not opts.keep:
             shutil.rmtree(data_dir, ignore_errors=True)
-    results["timings_s"].update(world=t_world, total=time.perf_counter() - t0)
-    (out / "results.json").write_text(json.dumps(results, indent=2, default=str))
     return results
+
+
+def hold_server(url: str, poll_s: float = 1.0) -> None:
+    """Return on Ctrl-C, or once the server at ``url`` stops answering."""
+    import httpx
+
+    try:
+        while True:
+            try:
+                httpx.get(url + "/healthz", timeout=5.0)
+            except httpx.TransportError:
+                return
+            time.sleep(poll_s)
+    except KeyboardInterrupt:
+        return
 
 
 def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
@@ -200,7 +223,7 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
     from tqdm import tqdm
 
     from clients._replay_data import load_replay_data
-    from clients._replay_report import mode_table, plot_replay, summarise
+    from clients._replay_report import mode_table, plot_replay, replay_tracks, summarise
     from clients.commands._common import build_with_bar
     from clients.mapping import import_images
     from clients.replay import replay_async
@@ -211,7 +234,7 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
     with Client(url, admin_key=admin_key) as vloc:
         m = vloc.create_map("demo street")
         with tqdm(total=len(data.map_images), unit="img", desc="upload",
-                  disable=opts.quiet) as bar:
+                  disable=opts.quiet or not sys.stderr.isatty()) as bar:
             summary = import_images(vloc, m.id, data.map_images,
                                     on_progress=lambda n, s: bar.update(n))
         if summary.accepted != len(data.map_images):
@@ -227,7 +250,7 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
         f"{len(data.frames)} frames ({opts.query_light}) per localiser")
 
     with tqdm(total=len(data.frames) * len(DEMO_MODES), unit="frame", desc="replay",
-              disable=opts.quiet) as bar:
+              disable=opts.quiet or not sys.stderr.isatty()) as bar:
         async def main():
             async with AsyncClient(url, admin_key=admin_key) as client:
                 return await replay_async(
@@ -249,6 +272,7 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
     say("")
     say(verdict(results))
     say(f"tracks: {plot}")
+    results.update(replay_tracks(map_xy, runs, data.frames, origin))
     results.update(map_id=m.id, frames=len(data.frames), skip=skip,
                    query_light=opts.query_light, config=opts.config, plot=str(plot),
                    timings_s={"build": t_build, "replay": t_replay})

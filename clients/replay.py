@@ -128,11 +128,13 @@ async def _exchange(client, session, stream, frames, run: DeviceRun, *, rate, sp
             sent_at[f.index] = time.perf_counter()
             try:
                 if transport == "ws":
-                    await stream.send_frame(f.data, seq=f.index, captured_at=f.captured_at)
+                    await stream.send_frame(f.data, seq=f.index, captured_at=f.captured_at,
+                                            metadata=f.metadata)
                 else:
                     await client.send_frame(session, f.data, seq=f.index,
                                             captured_at=f.captured_at,
-                                            content_type=f.content_type)
+                                            content_type=f.content_type,
+                                            metadata=f.metadata)
             except APIError as exc:
                 run.refused.append(f"frame {f.index}: {exc}")
                 slots.release()

@@ -94,3 +94,61 @@ def redis_url() -> str:
     finally:
         client.close()
     return REDIS_URL
+
+
+# -- Ray: one real local cluster for every test that needs it -------------------------------
+
+@pytest.fixture(scope="session")
+def ray_cluster(tmp_path_factory) -> Iterator[str]:
+    """The address of a real Ray cluster on this machine (2 CPUs), started once and shared:
+    a head started with ``ray start --block``, so that API servers in other processes can
+    join it too; this process joins it as a driver. Stopped (its own process group) at the
+    end. Skipped where Ray is not installed, unless VLOC_REQUIRE_SERVICES=1."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    try:
+        import ray
+    except ImportError as exc:
+        _service_missing("Ray (pip install 'vloc[ray]')", exc)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    log = tmp_path_factory.mktemp("ray") / "head.log"
+    # A cluster for this machine's tests alone; the servers the tests start inherit this.
+    os.environ["RAY_AUTH_MODE"] = "disabled"
+    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), RAY_USAGE_STATS_ENABLED="0")
+    head = subprocess.Popen(
+        [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block",
+         f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
+         "--node-ip-address=127.0.0.1", "--disable-usage-stats"],
+        env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT, start_new_session=True)
+    address = f"127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 90
+        while True:
+            try:
+                ray.init(address=address, include_dashboard=False, log_to_driver=False)
+                break
+            except (ConnectionError, RuntimeError) as exc:
+                if head.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError("the Ray head did not start: "
+                                       + log.read_text(errors="replace")[-2000:]) from exc
+                time.sleep(0.5)
+        yield address
+    finally:
+        if ray.is_initialized():
+            ray.shutdown()
+        os.killpg(head.pid, signal.SIGTERM)
+        try:
+            head.wait(5)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait(10)
+        # ``ray start`` leaves its address for a later ray.init() without one: not ours now.
+        current = Path("/tmp/ray/ray_current_cluster")
+        if current.is_file() and current.read_text().strip().endswith(f":{port}"):
+            current.unlink()

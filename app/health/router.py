@@ -15,11 +15,14 @@ router = APIRouter(tags=["health"])
 
 @router.get("/healthz")
 async def healthz() -> dict:
+    """Liveness: the process answers (no dependency is checked)."""
     return {"status": "ok"}
 
 
 @router.get("/readyz")
 def readyz(ctx: Ctx) -> dict:
+    """Readiness: the database answers and every worker is alive and not stalled; 503
+    otherwise, naming what is not ready."""
     try:
         with ctx.db_engine.connect() as conn:
             conn.execute(text("SELECT 1"))

@@ -15,6 +15,7 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(requi
 
 @router.get("/{job_id}", response_model=JobRead)
 def get_job(job_id: str, db: DbSession) -> BuildJob:
+    """A build job: status, progress, counts, and the revision it made."""
     job = db.get(BuildJob, parse_id(job_id, "job"))
     if job is None:
         raise not_found("job", job_id)

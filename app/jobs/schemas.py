@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import uuid
 from datetime import datetime
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -13,7 +14,8 @@ class JobRead(BaseModel):
 
     id: uuid.UUID
     map_id: uuid.UUID
-    status: str = Field(description="queued, running, done or failed")
+    status: Literal["queued", "running", "done", "failed"] = Field(
+        description="queued, running, done or failed")
     progress: float = Field(ge=0, le=1)
     error: str | None
     n_images: int = Field(description="Images whose features this job extracts")

@@ -15,8 +15,11 @@ from dataclasses import dataclass
 from sqlalchemy import func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.background import BackgroundRunner
 from app.config import Settings
 from app.db import utcnow
+from app.engine import Engine
+from app.jobs import tasks
 from app.jobs.models import BuildJob, JobStatus
 from app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapStatus
 from app.maps.service import image_path
@@ -29,13 +32,26 @@ EXTRACT_SHARE = 0.9
 """Share of the progress bar that feature extraction fills; packing the map is the rest."""
 
 
-def start_build(db: Session, *, map_: Map) -> BuildJob:
-    """Queue a build of a map; 409 while one runs or when the map has no image."""
+def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
+    """Queue a build of a map; 409 while one runs, when the map has no image, or (unless
+    ``force``) when its current revision already holds every image with all its features:
+    the build would pack the same revision again."""
     if db.scalar(select(func.count(BuildJob.id)).where(
             BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
         raise Problem(409, "a build of this map is already running", kind="map-busy")
     if not db.scalar(select(func.count(MapImage.id)).where(MapImage.map_id == map_.id)):
         raise Problem(409, "the map has no images to build from", kind="map-empty")
+    if not force and map_.status == MapStatus.READY and map_.revision > 0 \
+            and not db.scalar(select(func.count(MapImage.id))
+                              .outerjoin(ImageSift, ImageSift.image_id == MapImage.id)
+                              .outerjoin(ImageOrb, ImageOrb.image_id == MapImage.id)
+                              .where(MapImage.map_id == map_.id,
+                                     or_(ImageSift.image_id.is_(None),
+                                         ImageOrb.image_id.is_(None)))):
+        raise Problem(409, f"revision {map_.revision} already holds every image of the map; "
+                      "add or delete images first, or pass force=true to pack it again",
+                      kind="map-up-to-date",
+                      revision=map_.revision)
     job = BuildJob(map_id=map_.id, status=JobStatus.QUEUED, progress=0.0)
     db.add(job)
     map_.status = MapStatus.BUILDING
@@ -57,36 +73,16 @@ def fail_interrupted(db: Session) -> int:
 
 
 @dataclass(eq=False)
-class BuildRunner:
+class BuildRunner(BackgroundRunner):
     """Runs build jobs on the event loop, with the engine doing the work."""
 
     settings: Settings
     db_sessions: sessionmaker[Session]
-    engine: object
+    engine: Engine
     metrics: Metrics
     loop: asyncio.AbstractEventLoop | None = None
 
-    def __post_init__(self) -> None:
-        self._tasks: set[asyncio.Task] = set()
-
-    def launch(self, job_id: uuid.UUID) -> None:
-        """Start a queued job; callable from any thread."""
-        assert self.loop is not None, "the runner starts with the application"
-        self.loop.call_soon_threadsafe(self._spawn, job_id)
-
-    def _spawn(self, job_id: uuid.UUID) -> None:
-        task = self.loop.create_task(self.run(job_id), name=f"build-{job_id}")
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-
-    async def wait_idle(self) -> None:
-        while self._tasks:
-            await asyncio.gather(*list(self._tasks), return_exceptions=True)
-
-    async def cancel_all(self) -> None:
-        for task in list(self._tasks):
-            task.cancel()
-        await asyncio.gather(*list(self._tasks), return_exceptions=True)
+    task_name = "build"
 
     async def run(self, job_id: uuid.UUID) -> None:
         try:
@@ -102,7 +98,7 @@ class BuildRunner:
         map_id, todo = await asyncio.to_thread(self._begin, job_id)
         url = self.settings.resolved_database_url
         futures = [asyncio.wrap_future(self.engine.call(
-            "app.jobs.tasks:extract_image", url, image_id, path,
+            tasks.extract_image, url, image_id, path,
             max_pixels=self.settings.max_pixels)) for image_id, path in todo]
         for done, fut in enumerate(asyncio.as_completed(futures), start=1):
             await fut
@@ -111,7 +107,7 @@ class BuildRunner:
         folder = self.settings.packed_map_dir(str(map_id), revision)
         lens_files = await asyncio.to_thread(self._lens_sample, map_id)
         packed = await asyncio.wrap_future(self.engine.call(
-            "app.jobs.tasks:pack_map", url, str(map_id), revision, str(folder),
+            tasks.pack_map, url, str(map_id), revision, str(folder),
             lens_files=lens_files))
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 

@@ -19,8 +19,7 @@ import numpy as np
 from sqlalchemy import delete, select
 
 from app.db import make_engine, make_session_factory
-from app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
-from workers.engine.build import (
+from app.engine import (
     decode_orb,
     decode_sift,
     decode_vector,
@@ -28,6 +27,8 @@ from workers.engine.build import (
     encode_vector,
     encode_vocabulary,
 )
+from app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
+from app.sessions.pose import write_image_ids
 
 
 @lru_cache(maxsize=8)
@@ -120,6 +121,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                                  binary=vocab.binary, dim=vocab.dim, centroids=centroids,
                                  idf=idf, projection=projection))
     data.save(folder)
+    write_image_ids(folder, ids)
     o = data.origin
     return {"origin": (o.lat, o.lon, o.alt), "image_ids": ids,
             "east": np.asarray(data.positions)[:, 0].tolist(),

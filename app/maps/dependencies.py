@@ -9,10 +9,10 @@ from typing import Annotated
 from fastapi import Depends
 
 from app.deps import Ctx, DbSession
+from app.engine import EngineClosed, WorkerDied, inspect_image
 from app.maps.models import Map
 from app.maps.service import Verifier
 from app.problems import Problem, not_found
-from workers.engine import EngineClosed, WorkerDied
 
 VERIFY_TIMEOUT_S = 120.0
 
@@ -42,7 +42,7 @@ async def get_verifier(ctx: Ctx) -> Verifier:
     async def verify(blobs: list[bytes]) -> list[str | None]:
         try:
             futures = [asyncio.wrap_future(engine.call(
-                "workers.engine.build:inspect_image", blob, max_pixels=max_pixels))
+                inspect_image, blob, max_pixels=max_pixels))
                 for blob in blobs]
         except (WorkerDied, EngineClosed) as exc:
             raise Problem(503, f"image check unavailable: {exc}",

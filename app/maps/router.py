@@ -2,53 +2,108 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
 from datetime import datetime
+from pathlib import Path
+from typing import Literal
 
-from fastapi import APIRouter, Depends, File, Form, Path, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse
 
 from app.deps import Ctx, DbSession, SettingsDep, require_admin
+from app.engine import EngineClosed, WorkerDied
+from app.imagecheck import check_image, kind_of_content_type
 from app.jobs.service import start_build
+from app.limits import read_body
 from app.maps import service
+from app.maps.coverage import Coverage, covering_maps
 from app.maps.dependencies import ImageVerifier, MapDep, parse_id
+from app.maps.localize import DEFAULT_PRIOR_SIGMA_M, check_prior, localize_in_worker
 from app.maps.models import MapImage
 from app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
 from app.problems import Problem
-from app.validation import MAX_ALT_M, MIN_ALT_M, aware
+from app.sessions.admission import revision_missing
+from app.sessions.dependencies import FrameMetadataDep
+from app.sessions.pose import pose_fields
+from app.sessions.schemas import MAX_INITIAL_SIGMA_M, InitialPose, Localization
+from app.sessions.service import check_initial_pose, map_frame
+from app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_captured_at
+from workers.core.localisers import validate_params
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(require_admin)])
 
 
 @router.post("", status_code=201, response_model=MapRead)
 def create_map(body: MapCreate, db: DbSession, response: Response) -> MapRead:
+    """Create an empty map; add images, then build it."""
     m = service.create_map(db, name=body.name)
     response.headers["Location"] = f"/v1/maps/{m.id}"
     return service.read_map(db, map_=m)
 
 
 @router.get("", response_model=list[MapRead])
-def list_maps(db: DbSession) -> list[MapRead]:
-    return service.list_maps(db)
+def list_maps(db: DbSession, limit: int = Query(100, ge=1, le=1000),
+              offset: int = Query(0, ge=0, le=2**31)) -> list[MapRead]:
+    """Maps, oldest first: ``limit`` of them from ``offset``."""
+    return service.list_maps(db, limit=limit, offset=offset)
+
+
+@router.get("/coverage", response_model=list[Coverage])
+def coverage(db: DbSession,
+             lat: float = Query(ge=-90, le=90, allow_inf_nan=False, description="WGS84"),
+             lon: float = Query(ge=-180, le=180, allow_inf_nan=False),
+             radius_m: float = Query(50.0, gt=0, le=100_000, allow_inf_nan=False,
+                                     description="How near a map image must be")
+             ) -> list[Coverage]:
+    """Is this position covered? The built maps with an image within ``radius_m`` of it,
+    nearest first; an empty list when none."""
+    return covering_maps(db, lat=lat, lon=lon, radius_m=radius_m)
 
 
 @router.get("/{map_id}", response_model=MapRead)
 def get_map(map_: MapDep, db: DbSession) -> MapRead:
+    """A map: build status, revision, image counts, extent and local frame."""
     return service.read_map(db, map_=map_)
 
 
 @router.delete("/{map_id}", status_code=204)
 def delete_map(map_: MapDep, db: DbSession, settings: SettingsDep) -> Response:
+    """Delete a map with its images and packed revisions (409 while sessions use it or
+    a build runs)."""
     service.delete_map(db, map_=map_, settings=settings)
     return Response(status_code=204)
 
 
 @router.get("/{map_id}/images", response_model=list[MapImageRead])
-def list_images(map_: MapDep, db: DbSession) -> list[MapImage]:
-    return service.list_images(db, map_=map_)
+def list_images(map_: MapDep, db: DbSession, limit: int = Query(1000, ge=1, le=10000),
+                after_id: int = Query(0, ge=0, lt=2**63,
+                                      description="Images with an id above this one")
+                ) -> list[MapImage]:
+    """The map's images in id order: ``limit`` of them after ``after_id`` (give the last
+    id of a page to read the next)."""
+    return service.list_images(db, map_=map_, limit=limit, after_id=after_id)
+
+
+@router.get("/{map_id}/images/{image_id}/file", response_class=FileResponse,
+            responses={200: {"content": {"image/jpeg": {}, "image/png": {}},
+                             "description": "The image as uploaded"}})
+def get_image_file(map_: MapDep, db: DbSession, settings: SettingsDep,
+                   image_id: int = PathParam(ge=1, lt=2**63)) -> FileResponse:
+    """The image file as it was uploaded (the viewer's thumbnails)."""
+    image = service.get_image(db, map_=map_, image_id=image_id)
+    path = service.image_path(settings, image)
+    if not path.is_file():
+        raise Problem(404, f"the file of image {image_id} is missing", kind="not-found")
+    # content-addressed: the file of an image id never changes
+    return FileResponse(path, media_type=image.content_type,
+                        headers={"Cache-Control": "private, max-age=86400"})
 
 
 @router.delete("/{map_id}/images/{image_id}", status_code=204)
 def delete_image(map_: MapDep, db: DbSession, settings: SettingsDep,
-                 image_id: int = Path(ge=1, lt=2**63)) -> Response:
+                 image_id: int = PathParam(ge=1, lt=2**63)) -> Response:
     """Delete one image (its features and file); the next build leaves it out."""
     service.delete_image(db, map_=map_, image_id=image_id, settings=settings)
     return Response(status_code=204)
@@ -84,9 +139,91 @@ async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: Image
 
 
 @router.post("/{map_id}/build", status_code=202, response_model=BuildAccepted)
-def build_map(map_: MapDep, db: DbSession, ctx: Ctx, response: Response) -> BuildAccepted:
-    """Extract the new images' features and pack a new revision, in the background."""
-    job = start_build(db, map_=map_)
+def build_map(map_: MapDep, db: DbSession, ctx: Ctx, response: Response,
+              force: bool = Query(False, description="Pack a new revision even when the "
+                                                     "current one holds every image")
+              ) -> BuildAccepted:
+    """Extract the new images' features and pack a new revision, in the background
+    (409 ``map-up-to-date`` when there is nothing new, unless ``force``)."""
+    job = start_build(db, map_=map_, force=force)
     ctx.builds.launch(job.id)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return BuildAccepted(job_id=job.id, status=job.status)
+
+
+@router.post("/{map_id}/localize", response_model=Localization,
+             responses={409: {"description": "The map has not been built (map-not-built)"},
+                        413: {"description": "Body or image too large"},
+                        415: {"description": "Not image/jpeg or image/png"},
+                        422: {"description": "Corrupt image, bad prior (bad-prior, "
+                                             "bad-initial-pose) or metadata (bad-metadata)"},
+                        503: {"description": "The map's files are missing, or the engine "
+                                             "is unavailable"},
+                        504: {"description": "No answer within VLOC_FRAME_WAIT_TIMEOUT_S"}},
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
+                 "image/png": {"schema": {"type": "string", "format": "binary"}}}}})
+async def localize_image(
+    request: Request, map_: MapDep, ctx: Ctx, metadata: FrameMetadataDep,
+    mode: Literal["sift", "global", "hybrid"] = Query(
+        "sift", description="The measurement of the one filter step"),
+    prior_lat: float | None = Query(None, ge=-90, le=90, allow_inf_nan=False,
+                                    description="Prior position, WGS84; with prior_lon"),
+    prior_lon: float | None = Query(None, ge=-180, le=180, allow_inf_nan=False),
+    prior_sigma_m: float | None = Query(
+        None, gt=0, le=MAX_INITIAL_SIGMA_M, allow_inf_nan=False,
+        description=f"Its standard deviation, metres (default {DEFAULT_PRIOR_SIGMA_M:g})"),
+    captured_at: datetime | None = Query(None, description="ISO 8601 or seconds since the "
+                                                           "epoch; echoed"),
+    seed: int = Query(0, ge=0, lt=2**63, description="Random seed of the filter step"),
+) -> Localization:
+    """Where was this image taken? One image (the raw body), answered synchronously.
+
+    Without a prior the filter starts over the whole map; with one (``prior_lat``,
+    ``prior_lon``, ``prior_sigma_m``) around it. The frame metadata query parameters of
+    ``POST /v1/sessions/{id}/frames`` are accepted too. Nothing is stored.
+    """
+    t0 = time.perf_counter()
+    declared = kind_of_content_type(request.headers.get("content-type"))
+    if declared is None:
+        raise Problem(415, "send the image as the raw body with Content-Type image/jpeg or "
+                      "image/png", kind="unsupported-media-type")
+    captured = check_captured_at(captured_at)
+    prior = check_prior(prior_lat, prior_lon, prior_sigma_m)
+    if map_.revision == 0:
+        raise Problem(409, "the map has not been built yet; POST /v1/maps/{id}/build",
+                      kind="map-not-built")
+    map_id, revision = str(map_.id), map_.revision
+    folder = str(ctx.settings.packed_map_dir(map_id, revision))
+    if not Path(folder).is_dir():
+        raise revision_missing(map_id, revision)
+    if prior is not None:
+        frame = await asyncio.to_thread(map_frame, folder, map_id, revision)
+        check_initial_pose(frame, InitialPose(lat=prior[0], lon=prior[1], sigma=prior[2]))
+    data = await read_body(request, ctx.settings.max_frame_bytes)
+    check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
+    try:
+        params = validate_params(mode, {})
+    except ValueError as exc:  # the server's own defaults: not the caller's fault
+        raise Problem(500, str(exc), kind="bad-params") from None
+    params.pop("seed", None)
+    try:
+        result = await asyncio.wait_for(asyncio.wrap_future(ctx.engine.call(
+            localize_in_worker, folder, data, mode=mode, params=params,
+            seed=seed, prior=prior, metadata=metadata, max_pixels=ctx.settings.max_pixels)),
+            ctx.settings.frame_wait_timeout_s)
+    except TimeoutError:
+        raise Problem(504, "no answer within "
+                      f"{ctx.settings.frame_wait_timeout_s:g} s", kind="estimate-timeout") \
+            from None
+    except ValueError as exc:
+        raise Problem(422, str(exc), kind="bad-image") from None
+    except (KeyError, RuntimeError, WorkerDied, EngineClosed) as exc:
+        raise Problem(503, f"the engine could not localise the image: {exc}",
+                      kind="engine-unavailable") from None
+    fields = pose_fields(result["estimate"], map_id=map_id, map_revision=revision,
+                         map_folder=folder, metadata=metadata,
+                         decode_ms=result["decode_ms"],
+                         bound_m=ctx.settings.converged_accuracy_m, converged_before=False)
+    return Localization(**fields, captured_at=captured,
+                        latency_ms=(time.perf_counter() - t0) * 1e3)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import uuid
 from datetime import datetime
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -40,7 +41,10 @@ class Origin(BaseModel):
 class MapRead(BaseModel):
     id: uuid.UUID
     name: str
-    status: str = Field(description="empty, unbuilt, building, ready or failed")
+    status: Literal["empty", "unbuilt", "building", "ready", "failed"] = Field(
+        description="empty (no images), unbuilt (images waiting for a build), building, "
+                    "ready (the current revision holds every image) or failed (the last "
+                    "build failed; an earlier revision may still serve)")
     revision: int = Field(description="0 until the first build; bumped by every build")
     image_count: int
     pending_images: int = Field(description="Images not yet in a built revision")
@@ -86,4 +90,4 @@ class ImageUploadResult(BaseModel):
 
 class BuildAccepted(BaseModel):
     job_id: uuid.UUID
-    status: str
+    status: Literal["queued", "running", "done", "failed"]

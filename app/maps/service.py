@@ -69,8 +69,9 @@ def create_map(db: Session, *, name: str) -> Map:
     return m
 
 
-def list_maps(db: Session) -> list[MapRead]:
-    return [read_map(db, map_=m) for m in db.scalars(select(Map).order_by(Map.created_at))]
+def list_maps(db: Session, *, limit: int | None = None, offset: int = 0) -> list[MapRead]:
+    query = select(Map).order_by(Map.created_at, Map.id).offset(offset).limit(limit)
+    return [read_map(db, map_=m) for m in db.scalars(query)]
 
 
 def read_map(db: Session, *, map_: Map) -> MapRead:
@@ -127,9 +128,7 @@ def delete_image(db: Session, *, map_: Map, image_id: int, settings: Settings) -
     no images left (``empty``). Revisions already packed, and the sessions on them, keep
     the image. Refused (409) while a build runs: the build may be reading it.
     """
-    image = db.get(MapImage, image_id)
-    if image is None or image.map_id != map_.id:
-        raise not_found("image", image_id)
+    image = get_image(db, map_=map_, image_id=image_id)
     if db.scalar(select(func.count(BuildJob.id)).where(
             BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
         raise Problem(409, "a build of this map is running", kind="map-busy")
@@ -142,9 +141,19 @@ def delete_image(db: Session, *, map_: Map, image_id: int, settings: Settings) -
     path.unlink(missing_ok=True)
 
 
-def list_images(db: Session, *, map_: Map) -> list[MapImage]:
-    return list(db.scalars(select(MapImage).where(MapImage.map_id == map_.id)
-                           .order_by(MapImage.id)))
+def get_image(db: Session, *, map_: Map, image_id: int) -> MapImage:
+    """One image of the map; 404 for an image of another map or none."""
+    image = db.get(MapImage, image_id)
+    if image is None or image.map_id != map_.id:
+        raise not_found("image", image_id)
+    return image
+
+
+def list_images(db: Session, *, map_: Map, limit: int | None = None,
+                after_id: int = 0) -> list[MapImage]:
+    return list(db.scalars(select(MapImage).where(MapImage.map_id == map_.id,
+                                                  MapImage.id > after_id)
+                           .order_by(MapImage.id).limit(limit)))
 
 
 async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,

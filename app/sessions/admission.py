@@ -6,17 +6,23 @@ from __future__ import annotations
 from pathlib import Path
 
 from app.config import Settings
+from app.engine import DEFAULT_FACTORY, SessionSpec
 from app.problems import Problem
 from app.sessions.models import LocalisationSession
 from app.sessions.schemas import MAX_SEQ
-from workers.engine import SessionSpec
 
 
 def spec_for(row: LocalisationSession, settings: Settings) -> SessionSpec:
     folder = settings.packed_map_dir(str(row.map_id), row.map_revision)
+    params, factory = dict(row.params), DEFAULT_FACTORY
+    if row.navigation is not None:
+        from workers.core.navigation.session import FACTORY
+
+        # the worker builds a localiser that also follows the session's route
+        params["navigation"], factory = row.navigation, FACTORY
     return SessionSpec(session_id=str(row.id), map_id=str(row.map_id),
                        revision=row.map_revision, map_folder=str(folder), mode=row.mode,
-                       params=dict(row.params), seed=int(row.seed))
+                       params=params, seed=int(row.seed), factory=factory)
 
 
 def next_seq(last_seq: int | None, seq: int | None) -> int:

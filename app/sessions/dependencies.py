@@ -5,7 +5,7 @@ from __future__ import annotations
 import uuid
 from typing import Annotated
 
-from fastapi import Depends, Security
+from fastapi import Depends, Query, Security
 from starlette.requests import HTTPConnection
 
 from app.context import AppContext
@@ -14,7 +14,8 @@ from app.maps.dependencies import parse_id
 from app.problems import Problem, not_found
 from app.security import matches, presented_secret
 from app.sessions.models import LocalisationSession
-from app.sessions.runtime import LiveSession
+from app.sessions.runtime import LiveSession, expired_problem
+from app.validation import check_metadata
 
 
 def authorise(secret: str | None, token_hash: str, ctx: AppContext, session_id: object) -> None:
@@ -48,7 +49,8 @@ SessionDep = Annotated[LocalisationSession, Depends(get_session)]
 async def get_live_session(session_id: str, conn: HTTPConnection, ctx: Ctx,
                            _token=SessionScheme, _bearer=AdminSchemes[0],
                            _key=AdminSchemes[1]) -> LiveSession:
-    """The live session (no database round trip once loaded), authorised."""
+    """The live session (no database round trip once loaded), authorised; 410
+    ``session-expired`` past its time to live."""
     secret = presented_secret(conn)
     if secret is None:
         raise unauthenticated("a session token is required: Authorization: Bearer <token>")
@@ -56,6 +58,9 @@ async def get_live_session(session_id: str, conn: HTTPConnection, ctx: Ctx,
     if live is None:
         raise not_found("session", session_id)
     authorise(secret, live.token_hash, ctx, session_id)
+    if live.expired() and not live.arrivals:
+        await ctx.runtime.expire(live)
+        raise expired_problem(session_id)
     return live
 
 
@@ -64,3 +69,32 @@ LiveSessionDep = Annotated[LiveSession, Depends(get_live_session)]
 
 def session_uuid(live: LiveSession) -> uuid.UUID:
     return uuid.UUID(live.id)
+
+
+def frame_metadata(
+    heading_deg: float | None = Query(
+        None, description="Compass bearing of the frame's top edge, degrees clockwise from "
+                          "north, [0, 360)"),
+    heading_accuracy_deg: float | None = Query(
+        None, description="Its standard deviation, degrees, (0, 180]; needs heading_deg"),
+    altitude_m: float | None = Query(None, description="Altitude, metres, [-500, 10000]"),
+    gps_lat: float | None = Query(None, description="GNSS latitude, WGS84 degrees; with "
+                                                    "gps_lon"),
+    gps_lon: float | None = Query(None, description="GNSS longitude; with gps_lat"),
+    gps_accuracy_m: float | None = Query(
+        None, description="The fix's horizontal accuracy (one standard deviation), metres, "
+                          "> 0; needs the fix"),
+    velocity_east: float | None = Query(
+        None, description="Ground velocity east, m/s; with velocity_north (at most 150 m/s)"),
+    velocity_north: float | None = Query(None, description="Ground velocity north, m/s"),
+) -> dict | None:
+    """The frame's optional sensor reports, validated (422 ``bad-metadata`` naming the
+    field); None when the request carries none."""
+    return check_metadata(dict(
+        heading_deg=heading_deg, heading_accuracy_deg=heading_accuracy_deg,
+        altitude_m=altitude_m, gps_lat=gps_lat, gps_lon=gps_lon,
+        gps_accuracy_m=gps_accuracy_m, velocity_east=velocity_east,
+        velocity_north=velocity_north))
+
+
+FrameMetadataDep = Annotated[dict | None, Depends(frame_metadata)]

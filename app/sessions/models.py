@@ -8,17 +8,24 @@ from datetime import datetime
 from sqlalchemy import (
     JSON,
     BigInteger,
+    Column,
     Float,
     ForeignKey,
     Integer,
     LargeBinary,
     String,
+    Table,
     Text,
     UniqueConstraint,
+    Uuid,
 )
 from sqlalchemy.orm import Mapped, mapped_column
 
 from app.db import Base, UTCDateTime, new_id, utcnow
+from app.sessions.pose import pose_columns
+
+DEFAULT_TTL_S = 3600
+"""A session's time to live when neither it nor the server's settings name one."""
 
 
 class LocalisationSession(Base):
@@ -43,44 +50,34 @@ class LocalisationSession(Base):
     """Sequence number of the frame after which ``state`` was taken."""
     frames_processed: Mapped[int] = mapped_column(Integer, default=0)
     frames_failed: Mapped[int] = mapped_column(Integer, default=0)
+    status: Mapped[str] = mapped_column(String(16), default="active", index=True)
+    """``active``, or ``expired`` once idle for longer than ``ttl_s`` (frames then get 410)."""
+    ttl_s: Mapped[int] = mapped_column(Integer, default=DEFAULT_TTL_S)
+    """Seconds without a frame or a keep-alive after which the session expires."""
+    last_active_at: Mapped[datetime | None] = mapped_column(UTCDateTime, default=utcnow)
+    """The last frame accepted or keep-alive, which the time to live counts from."""
+    navigation: Mapped[dict | None] = mapped_column(JSON)
+    """For a session that follows a route: the route id, the follower's parameters and the
+    path as it was when the session was created (``points``, ``node_s``, ``nodes``)."""
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
 
 
 class Pose(Base):
-    """One pose estimate of a session (Estimate fields plus the service's timing)."""
+    """One pose estimate of a session: the key, and a column (or, for ``cov``, four) for
+    each stored field of :class:`~app.sessions.schemas.PoseEstimate`
+    (:func:`app.sessions.pose.pose_columns`)."""
 
-    __tablename__ = "pose_estimates"
-    __table_args__ = (UniqueConstraint("session_id", "seq"),)
-
-    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"),
-                                    primary_key=True, autoincrement=True)
-    session_id: Mapped[uuid.UUID] = mapped_column(
-        ForeignKey("sessions.id", ondelete="CASCADE"), index=True)
-    seq: Mapped[int] = mapped_column(BigInteger)
-    captured_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
-    received_at: Mapped[datetime] = mapped_column(UTCDateTime)
-    x: Mapped[float] = mapped_column(Float)
-    y: Mapped[float] = mapped_column(Float)
-    lat: Mapped[float] = mapped_column(Float)
-    lon: Mapped[float] = mapped_column(Float)
-    sigma_x: Mapped[float] = mapped_column(Float)
-    sigma_y: Mapped[float] = mapped_column(Float)
-    cov_xx: Mapped[float] = mapped_column(Float)
-    cov_xy: Mapped[float] = mapped_column(Float)
-    cov_yx: Mapped[float] = mapped_column(Float)
-    cov_yy: Mapped[float] = mapped_column(Float)
-    feature: Mapped[str] = mapped_column(String(32))
-    next_feature: Mapped[str] = mapped_column(String(32))
-    n_particles: Mapped[int] = mapped_column(Integer)
-    status: Mapped[str] = mapped_column(String(16))
-    best_image: Mapped[int] = mapped_column(Integer)
-    decode_ms: Mapped[float] = mapped_column(Float)
-    """Decoding and resizing the frame in the worker."""
-    processing_ms: Mapped[float] = mapped_column(Float)
-    """Time in the core's step (decoding excluded)."""
-    latency_ms: Mapped[float] = mapped_column(Float)
-    """From the frame's arrival at the API to its estimate's return to the API."""
+    __table__ = Table(
+        "pose_estimates", Base.metadata,
+        Column("id", BigInteger().with_variant(Integer, "sqlite"), primary_key=True,
+               autoincrement=True),
+        Column("session_id", Uuid(), ForeignKey("sessions.id", ondelete="CASCADE"),
+               nullable=False, index=True),
+        Column("seq", BigInteger(), nullable=False),
+        *pose_columns(),
+        UniqueConstraint("session_id", "seq"),
+    )
 
 
 class FrameStatus:

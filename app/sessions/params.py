@@ -80,6 +80,17 @@ class FilterParams(_Params):
                                                            "position is wrong")
     refine_inject: float = _unset(ge=0, lt=1, description="Share of the particles drawn "
                                                           "around a refined position")
+    refine_global: bool = _unset(description="Register global steps with ORB against the "
+                                             "map's geometry")
+    refine_global_inliers: int = _unset(ge=4, le=10_000, description="Fewest pose inliers "
+                                                                     "for a global step's fix")
+    refine_gate: float = _unset(gt=0, le=1e3, description="A global step's fix counts "
+                                                          "within this many cloud spreads")
+    global_misses: int | None = _unset(ge=0, le=1000, description="Global steps in a row "
+                                                                  "without a fix allowed")
+    escalate: bool = _unset(description="Take back a global step without a fix and use "
+                                        "SIFT for the frame")
+    drift: bool = _unset(description="Move the cloud by the velocity tracked from fixes")
 
 
 class RetrievalParams(_Params):
@@ -97,10 +108,53 @@ class HierarchicalParams(_Params):
     sift_verify: Verification = _unset()
 
 
+class NavigationParams(BaseModel):
+    """Path following (Li et al.); see :class:`workers.core.navigation.FollowerConfig`."""
+
+    model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False,
+                              json_schema_extra=_no_defaults)
+
+    alpha: float = _unset(gt=0, le=100, description="Natural frequency per metre: "
+                                                    "k2 = alpha^2, k3 = 2 xi alpha")
+    xi: float = _unset(gt=0, le=10, description="Damping (1/sqrt(2) in the paper)")
+    v_max: float = _unset(gt=0, le=100, description="Forward speed, m/s")
+    w_max: float = _unset(gt=0, le=100, description="Largest turn rate, rad/s")
+    dt: float = _unset(gt=0, le=3600, description="Seconds between frames without "
+                                                  "capture times")
+    arrive_tolerance: float = _unset(gt=0, le=1000, description="Metres before the end")
+    command_sigma_v: float = _unset(gt=0, le=100)
+    command_sigma_w: float = _unset(gt=0, le=100)
+    heading_sigma: float = _unset(gt=0, le=10, description="Radians")
+    gate: bool = _unset(description="Reject fixes far from the filter's prediction")
+    visual: bool = _unset(description="Heading and bearings from the frame's relative pose "
+                                      "to the taught images behind the best one")
+    hfov_deg: float = _unset(ge=1, le=179, description="The robot camera's horizontal "
+                                                       "field of view")
+    views: int = _unset(ge=0, le=20, description="Taught images looked at for bearings")
+
+
+class NavigationCreate(BaseModel):
+    """Follow a ready route of the session's map, all of it or from one node to another."""
+
+    model_config = ConfigDict(strict=True, extra="forbid")
+
+    route_id: uuid.UUID = Field(strict=False)
+    from_node: int | None = Field(None, ge=0, le=1_000_000)
+    to_node: int | None = Field(None, ge=0, le=1_000_000)
+    params: NavigationParams = Field(default_factory=NavigationParams)
+
+
 class _SessionCreate(BaseModel):
     map_id: uuid.UUID
     seed: int | None = Field(None, ge=0, lt=SEED_BOUND, strict=True,
                              description="Random seed (or params.seed); random when unset")
+    navigation: NavigationCreate | None = Field(
+        None, description="Follow a route: each pose then carries the path following")
+
+    ttl_s: int | None = Field(None, ge=10, strict=True,
+                              description="Seconds without a frame or keep-alive after which "
+                                          "the session expires; the server's default "
+                                          "(VLOC_SESSION_TTL_S) when unset")
 
     def given_params(self) -> dict:
         """The parameters the client gave (the configuration fills in the others)."""

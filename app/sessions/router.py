@@ -11,10 +11,10 @@ from fastapi.responses import JSONResponse
 
 from app.deps import Ctx, DbSession, require_admin
 from app.imagecheck import check_image, kind_of_content_type
-from app.limits import too_large
+from app.limits import read_body
 from app.problems import Problem
 from app.sessions import service
-from app.sessions.dependencies import LiveSessionDep, SessionDep
+from app.sessions.dependencies import FrameMetadataDep, LiveSessionDep, SessionDep
 from app.sessions.models import LocalisationSession
 from app.sessions.params import SessionCreate
 from app.sessions.schemas import (
@@ -45,17 +45,22 @@ async def create_session(body: SessionCreate, ctx: Ctx, response: Response) -> S
 
 
 @router.get("", response_model=list[SessionRead], dependencies=[Depends(require_admin)])
-def list_sessions(db: DbSession, ctx: Ctx) -> list[SessionRead]:
-    return service.list_sessions(db, runtime=ctx.runtime)
+def list_sessions(db: DbSession, ctx: Ctx, limit: int = Query(100, ge=1, le=1000),
+                  offset: int = Query(0, ge=0, le=2**31)) -> list[SessionRead]:
+    """Sessions, oldest first: ``limit`` of them from ``offset``."""
+    return service.list_sessions(db, runtime=ctx.runtime, limit=limit, offset=offset)
 
 
 @router.get("/{session_id}", response_model=SessionRead)
 def get_session(row: SessionDep, db: DbSession, ctx: Ctx) -> SessionRead:
+    """A session: mode, parameters, state and time to live, counters, latency statistics
+    and the last pose."""
     return service.read_session(db, row=row, runtime=ctx.runtime)
 
 
 @router.delete("/{session_id}", status_code=204)
 def delete_session(row: SessionDep, db: DbSession, ctx: Ctx) -> Response:
+    """Close and delete a session with its poses; its streams are closed."""
     service.delete_session(db, row=row, runtime=ctx.runtime)
     return Response(status_code=204)
 
@@ -69,13 +74,31 @@ def list_poses(row: SessionDep, db: DbSession,
     return service.list_poses(db, row=row, after_seq=after_seq, limit=limit)
 
 
+@router.get("/{session_id}/frames/last", response_class=Response,
+            responses={200: {"content": {"image/jpeg": {}, "image/png": {}},
+                             "description": "The latest accepted frame; its seq in "
+                                            "the X-Frame-Seq header"},
+                       204: {"description": "No frame has arrived since the session was "
+                                            "opened on this server"}})
+def last_frame(live: LiveSessionDep) -> Response:
+    """The latest frame this server accepted for the session, as it was sent. Frames are
+    kept in memory only: before the first one, and after a restart, the answer is 204."""
+    if live.last_frame is None:
+        return Response(status_code=204, headers={"Cache-Control": "no-store"})
+    seq, data = live.last_frame
+    media = "image/png" if data.startswith(b"\x89PNG") else "image/jpeg"
+    return Response(data, media_type=media,
+                    headers={"X-Frame-Seq": str(seq), "Cache-Control": "no-store"})
+
+
 @router.post("/{session_id}/frames", status_code=202, response_model=FrameAccepted,
              responses={200: {"model": PoseEstimate, "description": "With ?wait=true"},
                         409: {"description": "Duplicate, stale or exhausted seq"},
                         413: {"description": "Body or image too large"},
                         415: {"description": "Not image/jpeg or image/png"},
-                        422: {"description": "Empty, corrupt or truncated image; seq out of "
-                                             "range"},
+                        422: {"description": "Empty, corrupt or truncated image; seq, "
+                                             "captured_at or metadata out of range "
+                                             "(bad-metadata names the field)"},
                         500: {"description": "With ?wait=true: the frame was accepted and "
                                              "gave no estimate (frame-error), or its outcome "
                                              "could not be stored (frame-not-stored)"},
@@ -85,12 +108,19 @@ def list_poses(row: SessionDep, db: DbSession,
                  "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
                  "image/png": {"schema": {"type": "string", "format": "binary"}}}}})
 async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
+                     metadata: FrameMetadataDep,
                      seq: int | None = Query(None, ge=0, le=MAX_SEQ),
                      captured_at: datetime | None = Query(
                          None, description="ISO 8601 or seconds since the epoch; from 1990 "
                                            "to one day from now"),
                      wait: bool = Query(False, description="Answer with the estimate")):
-    """Queue one frame (the raw image is the body); its estimate goes to the stream."""
+    """Queue one frame (the raw image is the body); its estimate goes to the stream.
+
+    The device's other sensors may come with it as query parameters (each optional, all
+    validated before the frame is accepted): ``heading_deg``, ``heading_accuracy_deg``,
+    ``altitude_m``, ``gps_lat`` + ``gps_lon`` (+ ``gps_accuracy_m``), ``velocity_east`` +
+    ``velocity_north``.
+    """
     t0 = time.perf_counter()
     declared = kind_of_content_type(request.headers.get("content-type"))
     if declared is None:
@@ -98,13 +128,14 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
                       "image/png", kind="unsupported-media-type")
     try:
         captured = check_captured_at(captured_at)
-        data = await _read_body(request, ctx.settings.max_frame_bytes)
+        data = await read_body(request, ctx.settings.max_frame_bytes)
         check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
         raise
     runtime = ctx.runtime
-    seq, queued = runtime.accept(live, data, seq=seq, captured_at=captured, t0=t0)
+    seq, queued = await runtime.accept(live, data, seq=seq, captured_at=captured, t0=t0,
+                                       metadata=metadata)
     fut = runtime.waiter(live, seq) if wait else None
     try:
         # Answered once the frame is recorded: an accepted frame survives a crash.
@@ -130,7 +161,8 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
 @router.post("/{session_id}/reset", response_model=SessionRead)
 async def reset(live: LiveSessionDep, ctx: Ctx) -> SessionRead:
     """Global re-initialisation of the filter, after the frames already queued."""
-    await _control(ctx, live.id, "reset")
+    await _control(ctx, live, "reset")
+    ctx.runtime.restart_convergence(live)
     return await asyncio.to_thread(_read, ctx, live.id)
 
 
@@ -146,14 +178,27 @@ async def set_initial_pose(body: InitialPose, live: LiveSessionDep, ctx: Ctx) ->
         args = {"lat": body.lat, "lon": body.lon}
     else:
         args = {"x": body.x, "y": body.y}
-    await _control(ctx, live.id, "set_initial_pose", sigma=body.sigma, **args)
+    if body.heading_deg is not None:
+        args["heading_deg"] = body.heading_deg
+        if body.heading_sigma_deg is not None:
+            args["heading_sigma_deg"] = body.heading_sigma_deg
+    await _control(ctx, live, "set_initial_pose", sigma=body.sigma, **args)
+    ctx.runtime.restart_convergence(live)
     return await asyncio.to_thread(_read, ctx, live.id)
 
 
-async def _control(ctx, session_id: str, op: str, **kwargs) -> None:
-    await ctx.runtime.queued_before()  # in order after the frames already accepted
+@router.post("/{session_id}/keepalive", response_model=SessionRead,
+             responses={410: {"description": "The session has expired (session-expired)"}})
+async def keep_alive(live: LiveSessionDep, ctx: Ctx) -> SessionRead:
+    """Restart the session's time to live without sending a frame."""
+    await ctx.runtime.keep_alive_stored(live)
+    return await asyncio.to_thread(_read, ctx, live.id)
+
+
+async def _control(ctx, live, op: str, **kwargs) -> None:
     try:
-        await asyncio.wrap_future(ctx.engine.control(session_id, op, **kwargs))
+        # in order after the frames already accepted
+        await ctx.runtime.control(live, op, **kwargs)
     except ValueError as exc:
         raise Problem(422, str(exc), kind="bad-control") from None
     except (KeyError, RuntimeError) as exc:
@@ -169,16 +214,3 @@ def _read(ctx, session_id: str) -> SessionRead:
         if row is None:
             raise Problem(404, f"session {session_id} was deleted", kind="not-found")
         return service.read_session(db, row=row, runtime=ctx.runtime)
-
-
-async def _read_body(request: Request, limit: int) -> bytes:
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise too_large(limit)
-    chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limit:
-            raise too_large(limit)
-        chunks.append(chunk)
-    return b"".join(chunks)

@@ -25,31 +25,32 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timedelta
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.config import Settings
 from app.db import utcnow
-from app.metrics import Metrics
-from app.problems import Problem
-from app.sessions import store
-from app.sessions.admission import check_revision, next_seq, spec_for
-from app.sessions.models import LocalisationSession
-from app.sessions.schemas import FrameError, PoseEstimate
-from app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
-from app.sessions.writer import Accepted, Barrier, Writer
-from app.stream.hub import LocalHub
-from workers.engine import (
+from app.engine import (
     Checkpoint,
+    Engine,
     EngineClosed,
     FrameDone,
     FrameFailed,
-    LocalEngine,
     Outcome,
+    SeqRefused,
     SessionSpec,
     WorkerDied,
 )
+from app.metrics import Metrics
+from app.problems import Problem
+from app.sessions import pose, store
+from app.sessions.admission import check_revision, next_seq, spec_for
+from app.sessions.models import LocalisationSession
+from app.sessions.schemas import MAX_SEQ, FrameError
+from app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
+from app.sessions.writer import Accepted, Barrier, Writer
+from app.stream.hub import LocalHub
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +69,8 @@ class Arrival:
     """Resolves with the seq once the frame is recorded and queued in the engine."""
     previous_seq: int | None
     """The session's last seq before this frame: restored if the record fails."""
+    metadata: dict | None = None
+    """The frame's :class:`~workers.core.metadata.FrameMetadata`, as its ``to_dict()``."""
 
 
 @dataclass(eq=False)
@@ -79,11 +82,21 @@ class LiveSession:
     """Highest sequence number accepted (processed, queued, or recorded before a restart)."""
     arrivals: dict[int, Arrival] = field(default_factory=dict)
     """Frames accepted and not yet answered, by sequence number."""
+    converged: bool = False
+    """Whether an estimate converged since the start, the last reset or initial pose."""
+    ttl_s: int = 3600
+    last_active: datetime = field(default_factory=utcnow)
+    """The last frame accepted or keep-alive; the session expires ``ttl_s`` after it."""
+
+    def expired(self, now: datetime | None = None) -> bool:
+        return (now or utcnow()) > self.last_active + timedelta(seconds=self.ttl_s)
+    last_frame: tuple[int, bytes] | None = None
+    """The latest accepted frame (seq, image bytes), for viewers; kept in memory only."""
 
 
 class SessionRuntime:
     def __init__(self, *, settings: Settings, db_sessions: sessionmaker[Session],
-                 engine: LocalEngine, hub: LocalHub, metrics: Metrics) -> None:
+                 engine: Engine, hub: LocalHub, metrics: Metrics) -> None:
         self.settings = settings
         self.db_sessions = db_sessions
         self.engine = engine
@@ -139,7 +152,8 @@ class SessionRuntime:
         except BaseException:
             self.engine.close_session(spec.session_id)
             raise
-        live = LiveSession(str(row.id), row.token_hash, spec, row.last_seq)
+        live = LiveSession(str(row.id), row.token_hash, spec, row.last_seq,
+                           ttl_s=row.ttl_s, last_active=row.last_active_at or utcnow())
         with self._lock:
             self._live[live.id] = live
         self.metrics.live_sessions.set(len(self._live))
@@ -170,36 +184,64 @@ class SessionRuntime:
             del self._opening[key]
 
     async def _load(self, session_id: uuid.UUID) -> LiveSession | None:
-        row, recorded = await asyncio.to_thread(self._read_row, session_id)
+        row, recorded, converged = await asyncio.to_thread(self._read_row, session_id)
         if row is None:
             return None
+        if row.status == store.EXPIRED:
+            raise expired_problem(session_id)
         spec = spec_for(row, self.settings)
-        check_revision(spec)
-        try:
-            await asyncio.wrap_future(self.engine.open_session(spec, state=row.state))
-        except Exception as exc:
-            # The worker's message may name files under the data directory: logged only.
-            log.warning("session %s could not be restored", spec.session_id, exc_info=exc)
-            raise Problem(503, f"the session could not be restored ({type(exc).__name__}); "
-                          "see the server log", kind="session-unavailable") from None
         # Never reuse a seq: the highest ever accepted, answered or not, counts.
         known = [s for s in (row.last_seq, recorded, self._seq_floor.pop(spec.session_id, None))
                  if s is not None]
-        live = LiveSession(spec.session_id, row.token_hash, spec, max(known, default=None))
+        last_seq = max(known, default=None)
+        await self._restore(spec, row.state, last_seq)
+        live = LiveSession(spec.session_id, row.token_hash, spec, last_seq,
+                           converged=converged, ttl_s=row.ttl_s,
+                           last_active=row.last_active_at or row.created_at)
         with self._lock:
             self._live[live.id] = live
         self.metrics.live_sessions.set(len(self._live))
         return live
 
-    def _read_row(self, session_id: uuid.UUID) -> tuple[LocalisationSession | None, int | None]:
+    async def _restore(self, spec: SessionSpec, state: bytes | None,
+                       last_seq: int | None) -> None:
+        """Open a stored session in the engine from its checkpoint (on a shared engine, one
+        that another API process opened stays as it is)."""
+        check_revision(spec)
+        try:
+            await asyncio.wrap_future(self.engine.open_session(spec, state=state,
+                                                               last_seq=last_seq))
+        except Exception as exc:
+            # The worker's message may name files under the data directory: logged only.
+            log.warning("session %s could not be restored", spec.session_id, exc_info=exc)
+            raise Problem(503, f"the session could not be restored ({type(exc).__name__}); "
+                          "see the server log", kind="session-unavailable") from None
+
+    async def _reopen(self, live: LiveSession) -> None:
+        """The engine lost the session (its actor died and came back empty): open it again
+        from the checkpoint in the database."""
+        row, recorded, _ = await asyncio.to_thread(self._read_row, uuid.UUID(live.id))
+        if row is None:
+            raise Problem(404, f"session {live.id} was deleted", kind="not-found")
+        known = [s for s in (row.last_seq, recorded, live.last_seq) if s is not None]
+        log.warning("session %s: reopened in the engine from its checkpoint (seq %s)",
+                    live.id, row.state_seq)
+        await self._restore(live.spec, row.state, max(known, default=None))
+
+    def _read_row(self, session_id: uuid.UUID
+                  ) -> tuple[LocalisationSession | None, int | None, bool]:
         with self.db_sessions() as db:
             row = db.get(LocalisationSession, session_id)
             if row is None:
-                return None, None
-            if (n := store.interrupt_orphans(db, session_id=session_id, owner=self.owner)):
+                return None, None, False
+            # On a shared engine other API processes hold the session too, and their queued
+            # frames are theirs to answer (or to report when they start again).
+            if not self.engine.shared and (n := store.interrupt_orphans(
+                    db, session_id=session_id, owner=self.owner)):
                 log.warning("session %s: %d frame(s) left queued by another server "
                             "reported interrupted", session_id, n)
-            return row, store.last_recorded_seq(db, session_id=session_id)
+            return (row, store.last_recorded_seq(db, session_id=session_id),
+                    store.converged_since_start(db, session_id=session_id))
 
     def forget(self, session_id: uuid.UUID) -> None:
         """Drop a deleted session: close it in the engine and end its streams."""
@@ -209,6 +251,43 @@ class SessionRuntime:
         self.metrics.live_sessions.set(len(self._live))
         self.engine.close_session(key)
         self.loop.call_soon_threadsafe(self.hub.close_session, key)
+
+    def restart_convergence(self, live: LiveSession) -> None:
+        """After a reset or an initial pose: the next estimates are initialising until one
+        converges again."""
+        live.converged = False
+
+    def keep_alive(self, live: LiveSession) -> None:
+        live.last_active = utcnow()
+
+    async def expire(self, live: LiveSession) -> None:
+        """Mark the session expired and release it: its worker drops the localiser, its
+        streams close. Its record and poses stay readable."""
+        session_id = uuid.UUID(live.id)
+        await asyncio.to_thread(self._write, store.expire, session_id)
+        self.forget(session_id)
+        log.info("session %s expired after %d s without activity", live.id, live.ttl_s)
+
+    async def keep_alive_stored(self, live: LiveSession) -> None:
+        self.keep_alive(live)
+        await asyncio.to_thread(self._write, store.keep_alive, uuid.UUID(live.id))
+
+    async def expire_idle(self) -> int:
+        """Expire the live sessions past their time to live; how many."""
+        idle = self.idle_expired()
+        for live in idle:
+            await self.expire(live)
+        return len(idle)
+
+    def _write(self, fn, session_id: uuid.UUID) -> None:
+        with self.db_sessions() as db:
+            fn(db, session_id=session_id)
+
+    def idle_expired(self) -> list[LiveSession]:
+        """Live sessions past their time to live with no frame in flight."""
+        now = utcnow()
+        return [live for live in list(self._live.values())
+                if not live.arrivals and live.expired(now)]
 
     def pending(self, session_id: uuid.UUID) -> int:
         live = self._live.get(str(session_id))
@@ -228,13 +307,17 @@ class SessionRuntime:
 
     # -- frames (event loop) ----------------------------------------------------------------
 
-    def accept(self, live: LiveSession, data: bytes, *, seq: int | None,
-               captured_at: datetime | None, t0: float) -> tuple[int, asyncio.Future]:
+    async def accept(self, live: LiveSession, data: bytes, *, seq: int | None,
+                     captured_at: datetime | None, t0: float,
+                     metadata: dict | None = None) -> tuple[int, asyncio.Future]:
         """Number a frame whose bytes passed the header checks and queue its record.
 
         Returns the frame's seq and a future that resolves (with the seq) once the frame is
         recorded and queued in the engine, or fails with a 503 :class:`Problem` when it
         could not be recorded (nothing was done with it then).
+
+        A local engine's frames are numbered here, with no await between the sequence
+        check and the queueing; a shared engine numbers them itself, across API processes.
 
         Raises
         ------
@@ -245,18 +328,64 @@ class SessionRuntime:
         if self._closing:
             raise Problem(503, "the server is shutting down; send the frame again later",
                           kind="shutting-down", headers={"Retry-After": "5"})
-        seq = next_seq(live.last_seq, seq)
+        if not self.engine.shared:
+            seq = next_seq(live.last_seq, seq)
         if len(live.arrivals) >= self.settings.max_pending_frames:
             raise Problem(429, f"{len(live.arrivals)} frames of this session are still queued",
                           kind="too-many-pending", headers={"Retry-After": "1"})
+        if self.engine.shared:
+            seq = await self._reserve(live, seq)
         arrival = Arrival(t0, utcnow(), captured_at, data, self.loop.create_future(),
-                          live.last_seq)
+                          live.last_seq, metadata or None)
         live.arrivals[seq] = arrival
-        live.last_seq = seq
+        live.last_seq = seq if live.last_seq is None else max(live.last_seq, seq)
+        live.last_active = arrival.received_at
+        live.last_frame = (seq, data)
         self._writer.put(Accepted(live, FrameRecord(live.id, seq, arrival.received_at,
                                                     captured_at)))
         self.metrics.frames_accepted.inc()
         return seq, arrival.queued
+
+    async def _reserve(self, live: LiveSession, seq: int | None) -> int:
+        """The frame's seq from the shared engine, which numbers the session's frames for
+        every API process; the session is reopened from its checkpoint once when the
+        engine no longer holds it."""
+        for attempt in range(2):
+            try:
+                got = await asyncio.wrap_future(self.engine.reserve_seq(live.id, seq))
+            except SeqRefused as exc:
+                raise Problem(409, str(exc), kind=exc.kind, last_seq=exc.last_seq) from None
+            except KeyError:
+                if attempt:
+                    raise Problem(503, "the engine could not reopen the session; retry",
+                                  kind="session-unavailable",
+                                  headers={"Retry-After": "1"}) from None
+                await self._reopen(live)
+                continue
+            except (EngineClosed, WorkerDied) as exc:
+                raise Problem(503, f"the engine could not take the frame: {exc}",
+                              kind="engine-unavailable", headers={"Retry-After": "1"}) from None
+            if got > MAX_SEQ:
+                self.engine.release_seq(live.id, got)
+                raise Problem(409, f"the session has used every seq up to {MAX_SEQ}",
+                              kind="seq-exhausted", last_seq=MAX_SEQ)
+            return got
+        raise AssertionError("unreachable")
+
+    async def control(self, live: LiveSession, op: str, **kwargs) -> object:
+        """Run a control on the session's localiser after the frames already accepted.
+
+        Raises ValueError for a control the localiser refuses; KeyError, EngineClosed or
+        WorkerDied when the engine cannot run it.
+        """
+        await self.queued_before()
+        try:
+            return await asyncio.wrap_future(self.engine.control(live.id, op, **kwargs))
+        except KeyError:
+            if not self.engine.shared:
+                raise
+        await self._reopen(live)
+        return await asyncio.wrap_future(self.engine.control(live.id, op, **kwargs))
 
     async def queued_before(self) -> None:
         """Return once every frame accepted so far has gone to the engine (or failed), so
@@ -283,7 +412,9 @@ class SessionRuntime:
             return
         if error is not None:
             del live.arrivals[seq]
-            if live.last_seq == seq:
+            if self.engine.shared:
+                self.engine.release_seq(live.id, seq)
+            elif live.last_seq == seq:
                 live.last_seq = arrival.previous_seq
             _resolve(arrival.queued, exception=Problem(
                 503, "the frame could not be recorded, so it was not processed; retry",
@@ -292,7 +423,8 @@ class SessionRuntime:
         data, arrival.data = arrival.data, None
         captured = arrival.captured_at.timestamp() if arrival.captured_at is not None else None
         try:
-            self.engine.submit_frame(live.id, seq, data, captured_at=captured)
+            self.engine.submit_frame(live.id, seq, data, captured_at=captured,
+                                     metadata=arrival.metadata)
         except (KeyError, EngineClosed, WorkerDied) as exc:
             if isinstance(exc, KeyError):
                 with self._lock:
@@ -311,7 +443,7 @@ class SessionRuntime:
         """Engine reader thread: publish the message now, store it later."""
         msg = self._message(outcome, time.perf_counter())
         if msg is not None and self.loop is not None and not self.loop.is_closed():
-            self.loop.call_soon_threadsafe(self.hub.publish, msg[0], msg[2])
+            self.loop.call_soon_threadsafe(self.hub.publish, msg[0], _streamed(outcome, msg[2]))
         self._writer.put(OutcomeRecord(outcome, msg[2] if msg is not None else None))
 
     def _message(self, outcome: Outcome, t_back: float) -> tuple[str, int, dict] | None:
@@ -323,16 +455,20 @@ class SessionRuntime:
         received = arrival.received_at if arrival is not None else utcnow()
         captured = arrival.captured_at if arrival is not None else None
         if isinstance(outcome, FrameDone):
-            e = outcome.estimate
-            msg = PoseEstimate(
-                session_id=outcome.session_id, seq=outcome.seq, captured_at=captured,
-                received_at=received, x=e["x"], y=e["y"], lat=e["lat"], lon=e["lon"],
-                sigma_x=e["sigma_x"], sigma_y=e["sigma_y"], cov=list(e["cov"]),
-                feature=e["feature"], next_feature=e["next_feature"],
-                n_particles=e["n_particles"], status=e["status"],
-                best_image=e.get("best_image", -1), decode_ms=outcome.decode_ms,
-                processing_ms=e["processing_ms"],
-                latency_ms=latency_ms)
+            if live is None:
+                return None  # the session was deleted meanwhile: nothing to tell or keep
+            spec = live.spec
+            ctx = pose.FrameContext(
+                session_id=outcome.session_id, seq=outcome.seq, map_id=spec.map_id,
+                map_revision=spec.revision, map_folder=spec.map_folder, captured_at=captured,
+                received_at=received,
+                metadata=arrival.metadata if arrival is not None else None,
+                decode_ms=outcome.decode_ms, latency_ms=latency_ms)
+            msg = pose.from_estimate(outcome.estimate, ctx,
+                                     bound_m=self.settings.converged_accuracy_m,
+                                     converged_before=live.converged)
+            if msg.converged:
+                live.converged = True
         else:
             msg = FrameError(session_id=outcome.session_id, seq=outcome.seq,
                              captured_at=captured, kind=outcome.kind, reason=outcome.reason,
@@ -359,6 +495,25 @@ class SessionRuntime:
                     fut.set_result(msg)
         if not self.pending_total():
             self._idle.set()
+
+
+def expired_problem(session_id) -> Problem:
+    return Problem(410, f"session {session_id} expired after its time to live without a "
+                   "frame or keep-alive; create a new session", kind="session-expired")
+
+
+STREAM_ONLY = ("cloud",)
+"""Estimate fields a pose message carries on the stream and nowhere else: the particle
+sample is for watching, too bulky to keep for every frame."""
+
+
+def _streamed(outcome: Outcome, message: dict) -> dict:
+    """The stream's copy of a pose message: the stored message plus :data:`STREAM_ONLY`."""
+    if not isinstance(outcome, FrameDone):
+        return message
+    extra = {k: outcome.estimate[k] for k in STREAM_ONLY
+             if k in outcome.estimate and k not in message}
+    return message | extra if extra else message
 
 
 def _resolve(fut: asyncio.Future, value=None, *, exception: BaseException | None = None) -> None:

@@ -7,7 +7,9 @@ import uuid
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
+
+from workers.core.estimate import Status
 
 MAX_SEQ = 2**63 - 1
 """The largest frame sequence number: the database stores it as a signed 64-bit integer."""
@@ -26,30 +28,156 @@ class SessionStats(BaseModel):
     processing_ms_mean: float | None
 
 
-class PoseEstimate(BaseModel):
-    """One estimate, as stored and as streamed (``type: "pose"``)."""
+class NavigationState(BaseModel):
+    """Path following after one estimate (Li et al.): the EKF state, the command of the
+    control law, the reference point on the path, and where along the route."""
+
+    state: dict[str, float] = Field(description="EKF mean: x, y (m), theta (rad from east), "
+                                                "v (m/s), omega (rad/s)")
+    command: dict[str, float] = Field(description="v (m/s), omega (rad/s) to drive")
+    reference: dict[str, float] = Field(description="Closest path point x, y and the path's "
+                                                    "heading theta there")
+    cross_track: float = Field(description="Signed distance to the path, m, left positive")
+    heading_error: float = Field(description="Radians")
+    curvature: float = Field(description="Path curvature at the reference point, 1/m")
+    node: int = Field(description="Route node of the reference point")
+    progress: float = Field(description="Metres of path behind the reference point")
+    length: float = Field(description="Metres of path in all")
+    arrived: bool
+    fused: bool = Field(description="Whether this frame's fix was fused (not gated out)")
+    views: int | None = Field(None, description="Taught views that gave a bearing this frame")
+
+
+
+class Quaternion(BaseModel):
+    """A unit quaternion (``x``, ``y``, ``z`` vector part, ``w`` scalar)."""
+
+    x: float
+    y: float
+    z: float
+    w: float
+
+
+class GeoPosePosition(BaseModel):
+    lat: float
+    lon: float
+    h: float | None = Field(description="Height in metres (``altitude_m``); null when "
+                                        "unknown")
+
+
+class GeoPose(BaseModel):
+    """The pose in the form of OGC GeoPose 1.0 Basic-Quaternion.
+
+    The quaternion turns the local East-North-Up tangent frame at ``position`` into the
+    camera's frame, the heading as a rotation about Up (yaw = 90 deg - heading); the
+    localiser estimates no pitch or roll, so none is applied. It is null when the heading
+    is unknown: an orientation is never made up.
+    """
+
+    position: GeoPosePosition
+    quaternion: Quaternion | None
+
+
+class PoseFields(BaseModel):
+    """What a pose says of where the camera is: a session's estimate
+    (:class:`PoseEstimate`) and a single image's (:class:`Localization`).
+
+    The fields are declared here once: the table ``pose_estimates`` is generated from them
+    (:mod:`app.sessions.pose`), and an estimate's fields of the same name are copied into
+    them, so a new field of the core's estimate is added in this class only.
+    """
+
+    map_id: uuid.UUID = Field(description="The map localised against")
+    map_revision: int = Field(description="Its packed revision (a session's is fixed at "
+                                          "creation)")
+    status: Status = Field(
+        description="initialising (no converged estimate yet, since the start or a reset), "
+                    "tracking, or lost (the estimate spread out after converging)")
+    converged: bool = Field(description="Tracking with ``horizontal_accuracy_m`` within the "
+                                        "server's bound (VLOC_CONVERGED_ACCURACY_M)")
+    x: float = Field(description="East, metres in the map's local frame")
+    y: float = Field(description="North, metres in the map's local frame")
+    lat: float = Field(description="WGS84 latitude, degrees")
+    lon: float = Field(description="WGS84 longitude, degrees")
+    altitude_m: float | None = Field(
+        description="Altitude in metres as the device reported it with the frame "
+                    "(``altitude_m``); null when it did not: the localiser estimates none")
+    horizontal_accuracy_m: float = Field(
+        description="Radius in metres of the circle about (lat, lon) that holds the "
+                    "position with 68 % probability, from ``cov``")
+    heading_deg: float | None = Field(
+        description="Compass bearing of the frame's top edge, degrees clockwise from north; "
+                    "null when unknown")
+    heading_sigma_deg: float | None = Field(description="Its standard deviation, degrees")
+    heading_source: Literal["geometry", "device"] | None = Field(
+        description="geometry: solved against the map's camera geometry this "
+                                   "step; device: the frame's own heading, reported back "
+                                   "when the step solved none; null with no heading")
+    sigma_x: float = Field(description="Standard deviation east, metres")
+    sigma_y: float = Field(description="Standard deviation north, metres")
+    cov: list[float] = Field(min_length=4, max_length=4,
+                             description="Row-major 2x2 position covariance, m^2")
+    feature: str = Field(max_length=32, description="Feature type this step used")
+    next_feature: str = Field(max_length=32,
+                              description="Feature type the next step will use")
+    measurement: str = Field(
+        "", max_length=64, description="What weighed the estimate: sift, global, registered "
+                                   "(a camera pose solved against the map) or interpolated, "
+                                   "joined by +; empty when not known")
+    metadata_used: str = Field(
+        "", max_length=64, description="Which of the frame's metadata the step used (heading, "
+                                   "gps, altitude, velocity, joined by +); empty for none")
+    gps_gate: Literal["", "used", "rejected"] = Field(
+        "", description="Empty when the frame carried no GPS fix; used: fused; "
+                                   "rejected: ignored for disagreeing with the images")
+    n_particles: int = Field(description="Particles of the filter; 0 for localisers "
+                                         "without")
+    image_id: int | None = Field(description="The map image that matched best this step "
+                                             "(its id under /v1/maps/{id}/images); null "
+                                             "when none")
+    image_filename: str | None = Field(max_length=255, description="Its file name")
+    decode_ms: float = Field(description="Decoding and resizing the frame in the worker")
+    processing_ms: float = Field(description="The core's step time")
+    cloud: list[tuple[float, float]] = Field(
+        default_factory=list, max_length=1000,
+        description="On the stream only (not stored): a sample of up to 64 particles, "
+                    "[[x, y], ...] in metres, drawn in proportion to their weights")
+
+    @computed_field(description="The pose as an OGC GeoPose (Basic-Quaternion)")
+    @property
+    def geopose(self) -> GeoPose:
+        return GeoPose(position=GeoPosePosition(lat=self.lat, lon=self.lon,
+                                                h=self.altitude_m),
+                       quaternion=None if self.heading_deg is None
+                       else heading_quaternion(self.heading_deg))
+
+
+class PoseEstimate(PoseFields):
+    """One estimate of a session, as stored, returned and streamed (``type: "pose"``)."""
 
     type: Literal["pose"] = "pose"
     session_id: uuid.UUID
     seq: int
     captured_at: datetime | None
     received_at: datetime
-    x: float = Field(description="East, metres in the map's local frame")
-    y: float = Field(description="North, metres in the map's local frame")
-    lat: float
-    lon: float
-    sigma_x: float
-    sigma_y: float
-    cov: list[float] = Field(min_length=4, max_length=4,
-                             description="Row-major 2x2 position covariance, m^2")
-    feature: str = Field(description="Feature type this step used")
-    next_feature: str
-    n_particles: int
-    status: str = Field(description="initialising, tracking or lost")
-    best_image: int
-    decode_ms: float = Field(description="Decoding and resizing the frame in the worker")
-    processing_ms: float = Field(description="The core's step time")
     latency_ms: float = Field(description="Frame arrival to estimate back in the API")
+    navigation: NavigationState | None = Field(
+        None, description="For a session that follows a route; null otherwise")
+
+
+class Localization(PoseFields):
+    """Where a single image was taken (``POST /v1/maps/{id}/localize``)."""
+
+    type: Literal["localization"] = "localization"
+    captured_at: datetime | None
+    latency_ms: float = Field(description="Request arrival to answer, in the API")
+
+
+def heading_quaternion(heading_deg: float) -> Quaternion:
+    """The ENU-frame rotation about Up of a compass heading (clockwise from north): yaw,
+    counter-clockwise from east, is 90 deg - heading."""
+    half = math.radians(90.0 - heading_deg) / 2.0
+    return Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half))
 
 
 class FrameError(BaseModel):
@@ -66,11 +194,20 @@ class FrameError(BaseModel):
         description="Frame arrival to its failure back in the API; null when interrupted")
 
 
+class NavigationRead(BaseModel):
+    """The route a session follows."""
+
+    route_id: uuid.UUID
+    params: dict[str, Any]
+    nodes: list[int] = Field(description="First and last route node followed")
+    points: int = Field(description="Taught path points followed")
+
+
 class SessionRead(BaseModel):
     id: uuid.UUID
     map_id: uuid.UUID
     map_revision: int
-    mode: str
+    mode: Literal["hybrid", "global", "sift", "hierarchical", "retrieval"]
     params: dict[str, Any]
     seed: int
     created_at: datetime
@@ -80,6 +217,13 @@ class SessionRead(BaseModel):
     frames_pending: int
     stats: SessionStats
     last_pose: PoseEstimate | None
+    state: Literal["active", "expired"] = Field(
+        description="active, or expired once idle for ttl_s: frames and controls then get "
+                    "410 session-expired; poses stay readable")
+    ttl_s: int = Field(description="Seconds of inactivity after which the session expires")
+    last_active_at: datetime = Field(description="The last frame or keep-alive")
+    expires_at: datetime = Field(description="When it expires without further activity")
+    navigation: NavigationRead | None = None
 
 
 class SessionCreated(SessionRead):
@@ -106,6 +250,12 @@ class InitialPose(BaseModel):
     y: float | None = Field(None, ge=-1e7, le=1e7, description="North, metres")
     sigma: float = Field(5.0, gt=0, le=MAX_INITIAL_SIGMA_M,
                          description="Standard deviation, metres")
+    heading_deg: float | None = Field(
+        None, ge=0, lt=360, description="Compass bearing of the camera's top edge, degrees "
+                                        "clockwise from north; only for a localiser that "
+                                        "keeps a heading (422 bad-control otherwise)")
+    heading_sigma_deg: float | None = Field(None, gt=0, le=180,
+                                            description="Its standard deviation, degrees")
 
     @model_validator(mode="after")
     def _one_pair(self) -> InitialPose:
@@ -116,4 +266,6 @@ class InitialPose(BaseModel):
         pair = (self.lat, self.lon) if geo else (self.x, self.y)
         if any(v is None or not math.isfinite(v) for v in pair):
             raise ValueError("both coordinates are needed, as finite numbers")
+        if self.heading_sigma_deg is not None and self.heading_deg is None:
+            raise ValueError("heading_sigma_deg needs heading_deg")
         return self

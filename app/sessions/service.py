@@ -6,15 +6,19 @@ import asyncio
 import math
 import secrets
 from dataclasses import dataclass
+from datetime import timedelta
 from functools import lru_cache
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.db import new_id
+from app.db import new_id, utcnow
+from app.engine import WorkerDied
 from app.maps.models import Map
 from app.problems import Problem, not_found
+from app.routes.service import navigation_path
 from app.security import hash_secret, new_token
+from app.sessions import pose, store
 from app.sessions.admission import revision_missing
 from app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
 from app.sessions.params import SessionCreate
@@ -22,12 +26,12 @@ from app.sessions.runtime import SessionRuntime
 from app.sessions.schemas import (
     FrameError,
     InitialPose,
+    NavigationRead,
     PoseEstimate,
     SessionRead,
     SessionStats,
 )
 from workers.core.geo import GeoOrigin
-from workers.engine import WorkerDied
 
 LATENCY_WINDOW = 1000
 """Latency percentiles are over the session's most recent estimates."""
@@ -90,8 +94,7 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
     The engine may take a while (the worker loads the map, it may be busy with frames);
     nothing holds a database connection or a request thread while it does.
     """
-    row, token = await asyncio.to_thread(_plan, db_sessions, body,
-                                         runtime.settings.max_sessions)
+    row, token = await asyncio.to_thread(_plan, db_sessions, body, runtime.settings)
     try:
         await runtime.open_new(row)
     except ValueError as exc:
@@ -109,11 +112,12 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
 
 
 def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
-          max_sessions: int) -> tuple[LocalisationSession, str]:
+          settings) -> tuple[LocalisationSession, str]:
     from workers.core.localisers import validate_params
 
     with db_sessions() as db:
         existing = db.scalar(select(func.count(LocalisationSession.id)))
+        max_sessions = settings.max_sessions
         if existing >= max_sessions:
             raise Problem(429, f"{existing} sessions exist, the most this server keeps "
                           f"(VLOC_MAX_SESSIONS); delete finished sessions first",
@@ -126,18 +130,44 @@ def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
             raise Problem(409, "the map has not been built yet; POST /v1/maps/{id}/build",
                           kind="map-not-built")
         map_id, revision = map_.id, map_.revision
+        navigation = _navigation(db, body, map_id)
     try:
         params = validate_params(body.mode, body.given_params())
     except ValueError as exc:
         raise Problem(422, str(exc), kind="bad-params") from None
     seed = resolve_seed(body)
+    ttl_s = body.ttl_s if body.ttl_s is not None else settings.session_ttl_s
+    if ttl_s > settings.max_session_ttl_s:
+        raise Problem(422, f"ttl_s {ttl_s} is longer than this server allows "
+                      f"({settings.max_session_ttl_s} s, VLOC_MAX_SESSION_TTL_S)",
+                      kind="bad-params")
     params.pop("seed", None)  # the seed travels as its own argument
     token = new_token()
     row = LocalisationSession(id=new_id(), map_id=map_id, map_revision=revision,
                               mode=body.mode, params=params, seed=seed,
                               token_hash=hash_secret(token), frames_processed=0,
-                              frames_failed=0, last_seq=None)
+                              frames_failed=0, last_seq=None, status=store.ACTIVE,
+                              ttl_s=ttl_s, last_active_at=utcnow(),
+                              navigation=navigation)
     return row, token
+
+
+def _navigation(db: Session, body: SessionCreate, map_id) -> dict | None:
+    """The route part a session follows, copied into the session (a later rebuild or
+    deletion of the route leaves the session's path as it was), and its parameters."""
+    from workers.core.navigation.session import navigation_params
+
+    nav = body.navigation
+    if nav is None:
+        return None
+    given = nav.params.model_dump(exclude_unset=True)
+    try:
+        params = navigation_params(given)
+    except ValueError as exc:
+        raise Problem(422, f"navigation.params: {exc}", kind="bad-params") from None
+    path = navigation_path(db, map_id=map_id, route_id=nav.route_id,
+                           from_node=nav.from_node, to_node=nav.to_node)
+    return {**path, "params": params}
 
 
 def _save(db_sessions: sessionmaker[Session], row: LocalisationSession,
@@ -148,8 +178,11 @@ def _save(db_sessions: sessionmaker[Session], row: LocalisationSession,
         return read_session(db, row=row, runtime=runtime)
 
 
-def list_sessions(db: Session, *, runtime: SessionRuntime) -> list[SessionRead]:
-    rows = db.scalars(select(LocalisationSession).order_by(LocalisationSession.created_at))
+def list_sessions(db: Session, *, runtime: SessionRuntime, limit: int | None = None,
+                  offset: int = 0) -> list[SessionRead]:
+    rows = db.scalars(select(LocalisationSession)
+                      .order_by(LocalisationSession.created_at, LocalisationSession.id)
+                      .offset(offset).limit(limit))
     return [read_session(db, row=row, runtime=runtime) for row in rows]
 
 
@@ -172,7 +205,25 @@ def read_session(db: Session, *, row: LocalisationSession,
         params=row.params, seed=row.seed, created_at=row.created_at, last_seq=row.last_seq,
         frames_processed=row.frames_processed, frames_failed=row.frames_failed,
         frames_pending=runtime.pending(row.id), stats=stats,
-        last_pose=pose_read(last) if last is not None else None)
+        last_pose=pose_read(last, row) if last is not None else None,
+        navigation=_navigation_read(row.navigation), **lifetime(row))
+
+
+def lifetime(row: LocalisationSession) -> dict:
+    """The session's state and time to live, as :class:`SessionRead` fields."""
+    last = row.last_active_at or row.created_at
+    expires_at = last + timedelta(seconds=row.ttl_s)
+    state = row.status if row.status == store.EXPIRED or expires_at >= utcnow() \
+        else store.EXPIRED
+    return {"state": state, "ttl_s": row.ttl_s, "last_active_at": last,
+            "expires_at": expires_at}
+
+
+def _navigation_read(nav: dict | None) -> NavigationRead | None:
+    if nav is None:
+        return None
+    return NavigationRead(route_id=nav["route_id"], params=nav["params"],
+                          nodes=[nav["nodes"][0], nav["nodes"][-1]], points=len(nav["points"]))
 
 
 def list_poses(db: Session, *, row: LocalisationSession, after_seq: int | None,
@@ -183,7 +234,7 @@ def list_poses(db: Session, *, row: LocalisationSession, after_seq: int | None,
         (FrameStatus.FAILED, FrameStatus.INTERRUPTED)))
     if after_seq is not None:
         poses, errors = poses.where(Pose.seq > after_seq), errors.where(Frame.seq > after_seq)
-    found = [pose_read(p) for p in db.scalars(poses.order_by(Pose.seq).limit(limit))]
+    found = [pose_read(p, row) for p in db.scalars(poses.order_by(Pose.seq).limit(limit))]
     found += [frame_error_read(f) for f in db.scalars(errors.order_by(Frame.seq).limit(limit))]
     return sorted(found, key=lambda m: m.seq)[:limit]
 
@@ -195,14 +246,8 @@ def delete_session(db: Session, *, row: LocalisationSession, runtime: SessionRun
     runtime.forget(session_id)
 
 
-def pose_read(p: Pose) -> PoseEstimate:
-    return PoseEstimate(
-        session_id=p.session_id, seq=p.seq, captured_at=p.captured_at,
-        received_at=p.received_at, x=p.x, y=p.y, lat=p.lat, lon=p.lon, sigma_x=p.sigma_x,
-        sigma_y=p.sigma_y, cov=[p.cov_xx, p.cov_xy, p.cov_yx, p.cov_yy], feature=p.feature,
-        next_feature=p.next_feature, n_particles=p.n_particles, status=p.status,
-        best_image=p.best_image, decode_ms=p.decode_ms, processing_ms=p.processing_ms,
-        latency_ms=p.latency_ms)
+def pose_read(p: Pose, row: LocalisationSession) -> PoseEstimate:
+    return pose.from_row(p, map_id=row.map_id, map_revision=row.map_revision)
 
 
 def frame_error_read(f: Frame) -> FrameError:

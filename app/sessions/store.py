@@ -23,11 +23,15 @@ from datetime import datetime
 from sqlalchemy import bindparam, func, insert, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.db import utcnow
+from app.engine import Checkpoint, FrameFailed, Outcome
+from app.sessions import pose
 from app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
-from workers.engine import Checkpoint, FrameFailed, Outcome
 
 log = logging.getLogger(__name__)
 
+ACTIVE, EXPIRED = "active", "expired"
+"""A session's ``status``."""
 INTERRUPTED_REASON = "the server stopped before answering this frame"
 REASON_CHARS = 2000
 
@@ -101,8 +105,10 @@ class FrameStore:
                      "received_at": r.received_at, "captured_at": r.captured_at,
                      "status": FrameStatus.QUEUED, "owner": self.owner} for r in records])
             settled = []
-            for session_id, outcomes in by_session.items():
-                row = db.get(LocalisationSession, uuid.UUID(session_id))
+            # Locked (PostgreSQL), in one order: API processes sharing an engine store
+            # outcomes of the same session, and the counters are read, then written.
+            for session_id, outcomes in sorted(by_session.items()):
+                row = db.get(LocalisationSession, uuid.UUID(session_id), with_for_update=True)
                 if row is None:
                     continue  # deleted meanwhile: its frames went with it
                 for item in outcomes:
@@ -120,6 +126,7 @@ def _apply(db: Session, row: LocalisationSession, outcome: Outcome,
         row.state = outcome.state
         return None
     row.last_seq = outcome.seq if row.last_seq is None else max(row.last_seq, outcome.seq)
+    row.last_active_at = utcnow()
     frame = {"b_session": row.id, "b_seq": outcome.seq, "b_status": FrameStatus.ANSWERED,
              "b_kind": None, "b_reason": None,
              "b_latency": msg["latency_ms"] if msg is not None else None}
@@ -128,20 +135,12 @@ def _apply(db: Session, row: LocalisationSession, outcome: Outcome,
         return frame | {"b_status": FrameStatus.FAILED, "b_kind": outcome.kind,
                         "b_reason": outcome.reason[:REASON_CHARS]}
     row.frames_processed += 1
-    if outcome.state is not None:
+    # Several API processes store a shared engine's outcomes: an older checkpoint stored
+    # after a newer one must not replace it.
+    if outcome.state is not None and (row.state_seq is None or outcome.seq >= row.state_seq):
         row.state, row.state_seq = outcome.state, outcome.seq
-    cov = msg["cov"]
-    db.add(Pose(session_id=row.id, seq=outcome.seq,
-                captured_at=datetime.fromisoformat(msg["captured_at"])
-                if msg["captured_at"] else None,
-                received_at=datetime.fromisoformat(msg["received_at"]),
-                x=msg["x"], y=msg["y"], lat=msg["lat"], lon=msg["lon"],
-                sigma_x=msg["sigma_x"], sigma_y=msg["sigma_y"], cov_xx=cov[0],
-                cov_xy=cov[1], cov_yx=cov[2], cov_yy=cov[3], feature=msg["feature"],
-                next_feature=msg["next_feature"], n_particles=msg["n_particles"],
-                status=msg["status"], best_image=msg["best_image"],
-                decode_ms=msg["decode_ms"], processing_ms=msg["processing_ms"],
-                latency_ms=msg["latency_ms"]))
+    if msg is not None:
+        db.add(Pose(session_id=row.id, seq=outcome.seq, **pose.to_row(msg)))
     return frame
 
 
@@ -191,3 +190,23 @@ def take_interrupted(db: Session, *, session_id: uuid.UUID) -> list[Frame]:
 def last_recorded_seq(db: Session, *, session_id: uuid.UUID) -> int | None:
     """The highest ``seq`` ever accepted for the session, answered or not."""
     return db.scalar(select(func.max(Frame.seq)).where(Frame.session_id == session_id))
+
+
+def converged_since_start(db: Session, *, session_id: uuid.UUID) -> bool:
+    """Whether the session's estimates had converged by its last stored pose (which is no
+    longer ``initialising`` then)."""
+    status = db.scalar(select(Pose.status).where(Pose.session_id == session_id)
+                       .order_by(Pose.seq.desc()).limit(1))
+    return status is not None and status != "initialising"
+
+
+def expire(db: Session, *, session_id: uuid.UUID) -> None:
+    db.execute(update(LocalisationSession).where(LocalisationSession.id == session_id)
+               .values(status=EXPIRED))
+    db.commit()
+
+
+def keep_alive(db: Session, *, session_id: uuid.UUID) -> None:
+    db.execute(update(LocalisationSession).where(LocalisationSession.id == session_id)
+               .values(last_active_at=utcnow()))
+    db.commit()

@@ -8,12 +8,16 @@ order; ``error`` (with a ``problem`` object) for a frame sent on the socket that
 session is deleted.
 
 In: binary messages are frames (JPEG or PNG bytes). A text message
-``{"type": "frame_meta", "seq": 12, "captured_at": "..."}`` sets the sequence number and
-capture time of the next binary frame; ``{"type": "ping"}`` is answered with ``pong``.
+``{"type": "frame_meta", "seq": 12, "captured_at": "...", "metadata": {"heading_deg": 80}}``
+sets the sequence number, capture time and sensor reports (as the POST's query parameters)
+of the next binary frame; ``{"type": "ping"}`` is answered with ``pong``.
 
 The token comes as ``Authorization: Bearer <token>``, as a subprotocol
 (``Sec-WebSocket-Protocol: vloc, vloc.token.<token>``; the server answers ``vloc``) or,
 for old clients, as ``?token=`` (redacted from the logs).
+
+Offering the subprotocol ``vloc.geojson`` (the server answers with it) asks for every
+``pose`` as a GeoJSON ``Feature`` (:mod:`app.stream.geojson`); other messages are the same.
 
 Close codes: 4401 no token, 4403 wrong token, 4404 unknown session, 1011 the session
 could not be restored, 1013 the client read too slowly, 1001 the server shuts down (after
@@ -39,8 +43,9 @@ from app.problems import Problem
 from app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
 from app.sessions.runtime import LiveSession
 from app.sessions.schemas import Seq
+from app.stream.geojson import GEOJSON_SUBPROTOCOL, as_feature
 from app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
-from app.validation import check_captured_at
+from app.validation import check_captured_at, check_metadata
 
 router = APIRouter(tags=["stream"])
 
@@ -49,6 +54,8 @@ class FrameMeta(BaseModel):
     type: str
     seq: Seq | None = None
     captured_at: datetime | None = None
+    metadata: dict[str, float | None] | None = None
+    """The frame's sensor reports, by the names of the POST's query parameters."""
 
 
 @router.websocket("/v1/sessions/{session_id}/stream")
@@ -56,7 +63,10 @@ async def stream(websocket: WebSocket, session_id: str) -> None:
     ctx: AppContext = websocket.app.state.ctx
     secret = presented_secret(websocket)
     offered = websocket.scope.get("subprotocols", ())
-    await websocket.accept(subprotocol=TOKEN_SUBPROTOCOL if TOKEN_SUBPROTOCOL in offered else None)
+    geojson = GEOJSON_SUBPROTOCOL in offered
+    accepted = GEOJSON_SUBPROTOCOL if geojson else (
+        TOKEN_SUBPROTOCOL if TOKEN_SUBPROTOCOL in offered else None)
+    await websocket.accept(subprotocol=accepted)
     live = await _authorise(websocket, ctx, session_id, secret)
     if live is None:
         return
@@ -64,7 +74,7 @@ async def stream(websocket: WebSocket, session_id: str) -> None:
     interrupted = await ctx.runtime.interrupted(live)
     sub = ctx.hub.subscribe(live.id)
     ctx.metrics.stream_subscribers.inc()
-    sender = asyncio.create_task(_send_loop(websocket, sub))
+    sender = asyncio.create_task(_send_loop(websocket, sub, as_feature if geojson else None))
     try:
         await ctx.hub.ready(live.id)
         sub.put({"type": "hello", "session_id": live.id, "last_seq": live.last_seq})
@@ -102,8 +112,9 @@ async def _authorise(websocket: WebSocket, ctx: AppContext, session_id: str,
     return live
 
 
-async def _send_loop(websocket: WebSocket, sub: Subscription) -> None:
-    """The only writer of the socket: everything it sends goes through the subscription."""
+async def _send_loop(websocket: WebSocket, sub: Subscription, encode=None) -> None:
+    """The only writer of the socket: everything it sends goes through the subscription
+    (and ``encode``, where the client asked for another form of the messages)."""
     while True:
         msg = await sub.get()
         if msg is OVERFLOW:
@@ -112,7 +123,7 @@ async def _send_loop(websocket: WebSocket, sub: Subscription) -> None:
         if msg is GOING_AWAY:
             await websocket.close(1001, "the server is shutting down")
             return
-        await websocket.send_text(json.dumps(msg))
+        await websocket.send_text(json.dumps(encode(msg) if encode else msg))
         if msg.get("type") == CLOSED["type"]:
             await websocket.close(1000, "session deleted")
             return
@@ -126,21 +137,23 @@ async def _receive_loop(websocket: WebSocket, ctx: AppContext, live: LiveSession
         if message["type"] == "websocket.disconnect":
             return
         if message.get("bytes") is not None:
-            _frame(ctx, live, sub, message["bytes"], meta)
+            await _frame(ctx, live, sub, message["bytes"], meta)
             meta = FrameMeta(type="frame_meta")
         elif message.get("text") is not None:
             meta = _text(sub, message["text"], meta)
 
 
-def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: bytes,
-           meta: FrameMeta) -> None:
+async def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: bytes,
+                 meta: FrameMeta) -> None:
     t0 = time.perf_counter()
     try:
         if len(data) > ctx.settings.max_frame_bytes:
             raise too_large(ctx.settings.max_frame_bytes)
         check_image(data, max_pixels=ctx.settings.max_pixels)
         captured = check_captured_at(meta.captured_at)
-        _, queued = ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured, t0=t0)
+        metadata = check_metadata(meta.metadata or {})
+        _, queued = await ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured,
+                                             t0=t0, metadata=metadata)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
         sub.put({"type": "error", "problem": p.body()})

@@ -105,13 +105,31 @@ def model_json(model) -> Any:
     return model.model_dump(mode="json")
 
 
+def no_bar(quiet: bool) -> bool:
+    """Progress bars only on a terminal: piped or logged stderr gets the plain lines."""
+    return quiet or not sys.stderr.isatty()
+
+
 def build_with_bar(vloc, map_id: str, *, quiet: bool = False, timeout: float = 3600.0):
     """Build a map and wait for it behind a progress bar; returns the finished job."""
+    from clients.sdk import Conflict
+
+    try:
+        return _build(vloc, map_id, quiet=quiet, timeout=timeout)
+    except Conflict as exc:
+        if exc.kind != "map-up-to-date":
+            raise
+        click.echo(f"map {map_id} is up to date: revision {exc.body.get('revision')} holds "
+                   "every image", err=True)
+        return None
+
+
+def _build(vloc, map_id: str, *, quiet: bool, timeout: float):
     from tqdm import tqdm
 
     from clients.mapping import build_and_wait
 
-    with tqdm(total=100, unit="%", desc="build", disable=quiet,
+    with tqdm(total=100, unit="%", desc="build", disable=no_bar(quiet),
               bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}") as bar:
         def progress(job) -> None:
             bar.update(round(100 * job.progress) - bar.n)

@@ -24,14 +24,19 @@ import click
                    "UAV imagery: more SIFT steps, slower).")
 @click.option("--workers", type=click.IntRange(1), default=None,
               help="Server worker processes [default: one per core].")
+@click.option("--port", type=click.IntRange(1, 65535), default=None,
+              help="Port of the demo's server on 127.0.0.1 [default: a free one].")
 @click.option("--keep", is_flag=True,
-              help="Keep the server's data folder (database, images, packed map) in --out.")
+              help="Keep the server running after the replay, for the web viewer (its "
+                   "address is printed), until Ctrl-C; and keep its data folder "
+                   "(database, images, packed map) in --out.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def demo_cmd(out: Path, frames: int, seed: int, query_light: str, config: str, workers,
-             keep: bool, quiet: bool) -> None:
+             port, keep: bool, quiet: bool) -> None:
     """Generate a synthetic street world, start a server on the embedded defaults, build
     the map over HTTP, replay a traversal under other light as a device for the hybrid,
-    global and SIFT localisers, print their table, write OUT/tracks.png, stop the server.
+    global and SIFT localisers, print their table, write OUT/tracks.png, stop the server
+    (or, with --keep, leave it running for the web viewer at the printed address).
 
     Needs nothing but this package: no data, no database server, no network.
     """
@@ -39,7 +44,7 @@ def demo_cmd(out: Path, frames: int, seed: int, query_light: str, config: str, w
     from clients.sdk import VlocError
 
     opts = DemoOptions(out=out, frames=frames, seed=seed, query_light=query_light,
-                       config=config, workers=workers, keep=keep, quiet=quiet)
+                       config=config, workers=workers, port=port, keep=keep, quiet=quiet)
     try:
         results = run_demo(opts, say=click.echo)
     except (DemoError, VlocError) as exc:

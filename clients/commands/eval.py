@@ -45,20 +45,37 @@ def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
               help="Also the feature x measure retrieval table (Flyphone Fig. 7).")
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path),
               help="Write a PNG of the true and estimated tracks.")
+@click.option("--use-metadata", "use_metadata", default="", metavar="KINDS",
+              help="Comma-separated device metadata to give the localisers: heading, gps, "
+                   "velocity, altitude; from the data set's CSV, else simulated from the "
+                   "truth (see --gps-accuracy, --heading-sigma).")
+@click.option("--gps-accuracy", type=click.FloatRange(min=0.1), default=None,
+              help="Simulated GPS fix accuracy (m, one sigma per axis) where the data set "
+                   "has no GPS columns.")
+@click.option("--heading-sigma", type=click.FloatRange(min=0.1, max=180.0), default=5.0,
+              show_default=True, help="Simulated compass noise (degrees).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photometric, starts,
-             skip, seed, param_items, retrieval_grid, plot, as_json) -> None:
+             skip, seed, param_items, retrieval_grid, plot, use_metadata, gps_accuracy,
+             heading_sigma, as_json) -> None:
     """Run the localisers over DATASET (a folder of geotagged images, optionally with a CSV
     of positions and a `pass` column) and report error and speed per mode."""
     from workers.core.datasets import DatasetError
     from workers.core.evaluate import evaluate
     from workers.core.evaluate import retrieval_grid as run_grid
-    from workers.core.experiment import load_experiment
+    from workers.core.experiment import frame_metadata, load_experiment
     from workers.core.features import FEATURE_NAMES
     from workers.core.measures import MEASURES
+    from workers.core.metadata import METADATA_KINDS
     from workers.core.pf.config import CONFIGS
     from workers.core.photometric import VARIANTS
-    from workers.core.report import grid_table, markdown_table, plot_tracks, results_dict
+    from workers.core.report import (
+        grid_table,
+        markdown_table,
+        plot_tracks,
+        results_dict,
+        tracks_dict,
+    )
 
     mode_list = _csv(modes, MODES, "mode")
     config_list = _csv(configs, tuple(CONFIGS), "config")
@@ -73,6 +90,18 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
         raise click.ClickException(str(exc)) from exc
     say(f"{exp.dataset.summary()}\nmap: {len(exp.map_data)} images, "
         f"queries: {len(exp.queries)} frames, photometric: {photometric}")
+    metadata_summary = None
+    if use_metadata:
+        kinds = tuple(_csv(use_metadata, METADATA_KINDS, "metadata kind"))
+        try:
+            metas = frame_metadata(exp, kinds, gps_accuracy=gps_accuracy,
+                                   heading_sigma=heading_sigma, seed=seed)
+        except ValueError as exc:
+            raise click.ClickException(str(exc)) from exc
+        for q, m in zip(exp.queries, metas, strict=True):
+            q.metadata = m
+        metadata_summary = _metadata_summary(exp, metas, kinds, skip)
+        say(f"metadata: {metadata_summary['text']}")
     for name, reason in exp.dataset.skipped:
         say(f"  skipped {name}: {reason}", err=True)
 
@@ -89,6 +118,8 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
     data = results_dict(results)
     data.update(dataset=str(dataset), photometric=photometric, starts=starts, skip=skip,
                 seed=seed, map_images=len(exp.map_data), query_frames=len(exp.queries))
+    if metadata_summary is not None:
+        data["metadata"] = {k: v for k, v in metadata_summary.items() if k != "text"}
     if retrieval_grid:
         data["retrieval_grid"] = run_grid(exp.map_data, exp.queries, exp.truth,
                                           features=FEATURE_NAMES, measures=MEASURES, skip=skip)
@@ -96,6 +127,8 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
         plot_tracks(plot, exp.map_data.positions, results)
         data["plot"] = str(plot)
     if as_json:
+        # the tracks are for the web viewer's replay page; the table does not show them
+        data |= tracks_dict(exp.map_data.positions, results)
         json.dump(data, sys.stdout, indent=2)
         sys.stdout.write("\n")
         return
@@ -105,3 +138,23 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
         click.echo(grid_table(data["retrieval_grid"]))
     if plot:
         click.echo(f"\ntracks written to {plot}")
+
+
+def _metadata_summary(exp, metas, kinds: tuple[str, ...], skip: int) -> dict:
+    """What the frames carry, and the error of their GPS fixes alone (frames after skip)."""
+    import numpy as np
+
+    have = {k: sum(1 for m in metas if m is not None and k in m.kinds()) for k in kinds}
+    out: dict = {"kinds": list(kinds), "frames_with": have}
+    text = ", ".join(f"{k} on {n}/{len(metas)} frames" for k, n in have.items())
+    fixes = [(i, m) for i, m in enumerate(metas) if i >= skip and m is not None and m.has_gps]
+    if fixes:
+        east, north = exp.map_data.origin.to_local([m.gps_lat for _, m in fixes],
+                                                   [m.gps_lon for _, m in fixes])
+        err = np.hypot(np.atleast_1d(east) - exp.truth[[i for i, _ in fixes], 0],
+                       np.atleast_1d(north) - exp.truth[[i for i, _ in fixes], 1])
+        out["gps_alone_mean_m"] = float(err.mean())
+        out["gps_alone_median_m"] = float(np.median(err))
+        text += f"; GPS alone: mean {err.mean():.1f} m, median {np.median(err):.1f} m"
+    out["text"] = text
+    return out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import click
@@ -11,6 +12,7 @@ from clients.commands._common import (
     build_with_bar,
     make_client,
     model_json,
+    no_bar,
     print_json,
     reports_errors,
     server_options,
@@ -24,6 +26,14 @@ def map_group() -> None:
     A map is filled with images (`vloc map import FOLDER`) and then built
     (`vloc map build ID`); sessions open on a built map.
     """
+
+
+_OBJECT_REPR = re.compile(r"\s*<[\w.]+ object at 0x[0-9a-f]+>")
+
+
+def readable(reason: str) -> str:
+    """A reason without the object reprs a decoder's message may carry."""
+    return _OBJECT_REPR.sub("", str(reason)).strip()
 
 
 def _describe(m) -> str:
@@ -123,17 +133,21 @@ def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | 
         ds = load_dataset(folder)
     except (DatasetError, FileNotFoundError) as exc:
         raise CommandError(str(exc)) from exc
+    for skipped, reason in ds.skipped:
+        click.echo(f"  skipped {skipped}: {readable(reason)}", err=True)
     images = [im for im in ds.images if pass_ is None or im.pass_ == pass_]
     if not images:
-        raise CommandError(f"no images of pass {pass_} in {folder}; passes present: "
-                           f"{', '.join(map(str, ds.passes)) or 'none'}")
-    for skipped, reason in ds.skipped:
-        click.echo(f"  skipped {skipped}: {reason}", err=True)
+        if ds.images:
+            raise CommandError(f"no images of pass {pass_} in {folder}; passes present: "
+                               f"{', '.join(map(str, ds.passes))}")
+        raise CommandError(f"no usable image in {folder}: "
+                           + (f"all {len(ds.skipped)} were skipped (reasons above)"
+                              if ds.skipped else "it holds no JPEG or PNG files"))
     with make_client(server, admin_key) as vloc:
         if map_id is None:
             map_id = vloc.create_map(name or folder.resolve().name).id
             click.echo(f"created map {map_id}", err=True)
-        with tqdm(total=len(images), unit="img", desc="upload", disable=quiet) as bar:
+        with tqdm(total=len(images), unit="img", desc="upload", disable=no_bar(quiet)) as bar:
             summary = import_images(vloc, map_id, images,
                                     on_progress=lambda n, s: bar.update(n))
         for r in summary.rejected:

@@ -12,6 +12,7 @@ from clients.commands._common import (
     build_with_bar,
     make_async_client,
     make_client,
+    no_bar,
     parse_params,
     print_json,
     reports_errors,
@@ -64,13 +65,20 @@ def _modes(value: str) -> list[str]:
 @click.option("--limit", type=click.IntRange(1), help="Replay only the first N frames.")
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path),
               help="Write a PNG of the true and estimated tracks.")
+@click.option("--use-metadata", "use_metadata", default="", metavar="KINDS",
+              help="Comma-separated device metadata sent with each frame: heading, gps, "
+                   "velocity, altitude (from the data set's CSV; gps simulated with "
+                   "--gps-accuracy where it has none).")
+@click.option("--gps-accuracy", type=click.FloatRange(min=0.1), default=None,
+              help="Simulated GPS fix accuracy (m, one sigma per axis).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 @server_options
 @reports_errors
 def replay_cmd(dataset: Path, map_id, build_map: bool, map_pass, query_pass, rule, modes_text,
                seed, param_items, rate, speed, transport, devices, window, photometric, skip,
-               limit, plot, as_json, quiet, server, admin_key) -> None:
+               limit, plot, use_metadata, gps_accuracy, as_json, quiet, server,
+               admin_key) -> None:
     """Play the query pass of DATASET into a running server as one or more devices, read
     the pose streams, and print the error table (comparable with `vloc eval`).
 
@@ -87,8 +95,10 @@ def replay_cmd(dataset: Path, map_id, build_map: bool, map_pass, query_pass, rul
     if (map_id is None) == (not build_map):
         raise click.UsageError("give --map-id ID (a built map) or --build-map")
     try:
+        kinds = tuple(k.strip() for k in use_metadata.split(",") if k.strip())
         data = load_replay_data(dataset, rule=rule, map_pass=map_pass, query_pass=query_pass,
-                                photometric=photometric, seed=seed, limit=limit)
+                                photometric=photometric, seed=seed, limit=limit,
+                                metadata=kinds, gps_accuracy=gps_accuracy)
     except (DatasetError, FileNotFoundError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
     if not data.frames:
@@ -117,15 +127,17 @@ def _prepare_map(server, admin_key, map_id, data, *, quiet: bool):
 
     with make_client(server, admin_key) as vloc:
         if map_id is None:
-            from tqdm import tqdm
-
             passes = sorted({im.pass_ for im in data.map_images if im.pass_ is not None})
             name = f"{data.dataset.folder.resolve().name}" + (
                 f" pass {passes[0]}" if len(passes) == 1 else "")
+            map_id = _existing_map(vloc, name, len(data.map_images))
+        if map_id is None:
+            from tqdm import tqdm
+
             map_id = vloc.create_map(name).id
             click.echo(f"created map {map_id} ({name})", err=True)
             with tqdm(total=len(data.map_images), unit="img", desc="upload",
-                      disable=quiet) as bar:
+                      disable=no_bar(quiet)) as bar:
                 summary = import_images(vloc, map_id, data.map_images,
                                         on_progress=lambda n, s: bar.update(n))
             if summary.accepted == 0:
@@ -140,6 +152,16 @@ def _prepare_map(server, admin_key, map_id, data, *, quiet: bool):
     return map_id, GeoOrigin(m.origin.lat, m.origin.lon, m.origin.alt), map_xy
 
 
+def _existing_map(vloc, name: str, n_images: int) -> str | None:
+    """A built map an earlier ``--build-map`` made of the same images: same name, ready,
+    as many images. Reused rather than built again."""
+    for m in vloc.list_maps():
+        if m.name == name and m.status == "ready" and m.image_count == n_images:
+            click.echo(f"using map {m.id} ({name}), built from the same images", err=True)
+            return m.id
+    return None
+
+
 def _run(server, admin_key, map_id, frames, origin, *, modes, devices, quiet, **options):
     import asyncio
 
@@ -150,7 +172,7 @@ def _run(server, admin_key, map_id, frames, origin, *, modes, devices, quiet, **
 
     truth = truth_in_map_frame(frames, origin)
     total = len(frames) * devices * len(modes)
-    with tqdm(total=total, unit="frame", desc="replay", disable=quiet) as bar:
+    with tqdm(total=total, unit="frame", desc="replay", disable=no_bar(quiet)) as bar:
         def on_answer(run, msg) -> None:
             bar.update(1)
             if isinstance(msg, Pose):
@@ -167,14 +189,14 @@ def _run(server, admin_key, map_id, frames, origin, *, modes, devices, quiet, **
 
 
 def _report(runs, data, origin, map_xy, *, skip, plot, as_json, extra) -> None:
-    from clients._replay_report import plot_replay, replay_table, summarise
+    from clients._replay_report import plot_replay, replay_table, replay_tracks, summarise
 
     results = summarise(runs, data.frames, origin, skip=skip) | extra
     if plot is not None:
         plot_replay(plot, map_xy, runs, data.frames, origin)
         results["plot"] = str(plot)
     if as_json:
-        print_json(results)
+        print_json(results | replay_tracks(map_xy, runs, data.frames, origin))
         return
     click.echo(replay_table(results))
     if plot is not None:

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import click
 
 from clients.commands._common import (
+    CommandError,
     make_client,
     model_json,
     parse_params,
@@ -148,38 +150,102 @@ def initial_pose_cmd(session_id: str, lat, lon, x, y, sigma: float, token, serve
 @click.argument("images", nargs=-1, required=True,
                 type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--seq", type=click.IntRange(0), help="Sequence number of the first image.")
+@click.option("--captured-at", "captured_at", multiple=True, metavar="TIME",
+              help="Capture time: ISO 8601 or seconds since the epoch, once per image in "
+                   "order, or once with --interval; 'exif' reads each image's EXIF time. "
+                   "The motion model needs it to know how far the device may have moved.")
+@click.option("--interval", type=click.FloatRange(0, min_open=True), metavar="SECONDS",
+              help="With one --captured-at: the time between consecutive images.")
 @click.option("--wait/--no-wait", default=True, show_default=True,
               help="Print each frame's estimate (else only its sequence number).")
 @token_option
 @server_options
 @reports_errors
-def send_cmd(session_id: str, images, seq, wait: bool, token, server: str, admin_key) -> None:
+def send_cmd(session_id: str, images, seq, captured_at, interval, wait: bool, token,
+             server: str, admin_key) -> None:
     """Send IMAGES (JPEG/PNG) as frames, in order; prints one JSON line per frame."""
+    times = capture_times(images, captured_at, interval)
     with make_client(server, admin_key) as vloc:
         for i, path in enumerate(images):
             got = vloc.send_frame(session_id, path, seq=None if seq is None else seq + i,
-                                  wait=wait, token=token)
+                                  captured_at=times[i], wait=wait, token=token)
             click.echo(json.dumps(got.model_dump(mode="json") | {"file": path.name}))
+
+
+def capture_times(images, given: tuple[str, ...], interval: float | None) -> list:
+    """One capture time (or None) per image from ``--captured-at`` and ``--interval``."""
+    if not given:
+        if interval is not None:
+            raise click.UsageError("--interval needs a --captured-at for the first image")
+        return [None] * len(images)
+    if given == ("exif",):
+        from workers.core.exif import GpsError, read_gps
+
+        times = []
+        for path in images:
+            try:
+                tag = read_gps(path.read_bytes())
+            except (GpsError, ValueError):
+                tag = None
+            if tag is None or tag.captured_at is None:
+                raise click.UsageError(f"{path.name} has no EXIF capture time")
+            times.append(tag.captured_at)
+        return times
+    parsed = [_parse_time(t) for t in given]
+    if len(parsed) == len(images) and interval is None:
+        return parsed
+    if len(parsed) == 1 and interval is not None:
+        return [parsed[0] + timedelta(seconds=i * interval) for i in range(len(images))]
+    raise click.UsageError(f"{len(parsed)} --captured-at for {len(images)} images: give one "
+                           "per image, or one with --interval")
+
+
+def _parse_time(text: str) -> datetime:
+    try:
+        return datetime.fromtimestamp(float(text), UTC)
+    except ValueError:
+        pass
+    try:
+        t = datetime.fromisoformat(text)
+    except ValueError:
+        raise click.BadParameter(f"{text!r} is neither ISO 8601 nor seconds since the epoch",
+                                 param_hint="--captured-at") from None
+    return t if t.tzinfo is not None else t.replace(tzinfo=UTC)
 
 
 @session_group.command("watch")
 @click.argument("session_id")
 @click.option("--count", type=click.IntRange(1), help="Stop after this many messages.")
+@click.option("--timeout", type=click.FloatRange(0, min_open=True), metavar="SECONDS",
+              help="Give up when no message comes for this long [default: wait for ever; "
+                   "60 s with --count].")
 @token_option
 @server_options
 @reports_errors
-def watch_cmd(session_id: str, count, token, server: str, admin_key) -> None:
-    """Print the session's pose stream, one JSON line per message, until it ends."""
-    from clients.sdk import FrameRejected
+def watch_cmd(session_id: str, count, timeout, token, server: str, admin_key) -> None:
+    """Print the session's pose stream, one JSON line per message, until it ends (or
+    --count messages came, or none came for --timeout seconds)."""
+    from clients.sdk import FrameRejected, WaitTimeout
 
-    with make_client(server, admin_key) as vloc, vloc.stream(session_id, token=token) as poses:
-        for n, msg in enumerate(poses, start=1):
-            data = ({"type": "error", "problem": msg.error.body}
-                    if isinstance(msg, FrameRejected) else msg.model_dump(mode="json"))
-            click.echo(json.dumps(data), nl=True)
-            if count is not None and n >= count:
-                break
-    if count is None:
-        click.echo("stream ended", err=True)
+    if timeout is None and count is not None:
+        timeout = 60.0
+    n = 0
+    try:
+        with make_client(server, admin_key) as vloc, \
+                vloc.stream(session_id, token=token, timeout=timeout) as poses:
+            for msg in poses:
+                n += 1
+                data = ({"type": "error", "problem": msg.error.body}
+                        if isinstance(msg, FrameRejected) else msg.model_dump(mode="json"))
+                click.echo(json.dumps(data), nl=True)
+                if count is not None and n >= count:
+                    return
+    except WaitTimeout:
+        raise CommandError(f"no message for {timeout:g} s after {n}"
+                           + (f" of {count}" if count else "") + " messages") from None
+    click.echo("stream ended" + (f" after {n} of {count} messages" if count else ""),
+               err=True)
+    if count is not None:
+        raise SystemExit(1)
 
 

@@ -14,47 +14,62 @@ client at the in-process app.
 from ._async_client import AsyncClient
 from ._client import Client, SessionRef
 from ._exceptions import (
-                          APIError,
-                          BadRequest,
-                          Conflict,
-                          Forbidden,
-                          JobFailed,
-                          NotFound,
-                          PayloadTooLarge,
-                          ServerError,
-                          StreamError,
-                          TooManyRequests,
-                          TransportError,
-                          Unauthorized,
-                          UnsupportedMediaType,
-                          ValidationError,
-                          VlocError,
-                          WaitTimeout,
+    APIError,
+    BadRequest,
+    Conflict,
+    Forbidden,
+    Gone,
+    JobFailed,
+    NotFound,
+    PayloadTooLarge,
+    ServerError,
+    StreamError,
+    TooManyRequests,
+    TransportError,
+    Unauthorized,
+    UnprocessableEntity,
+    UnsupportedMediaType,
+    VlocError,
+    WaitTimeout,
 )
 from ._models import (
-                          FrameAccepted,
-                          FrameError,
-                          GeoExtent,
-                          ImageRejection,
-                          Job,
-                          LocalExtent,
-                          Map,
-                          MapImage,
-                          Origin,
-                          Pose,
-                          Session,
-                          SessionStats,
-                          UploadResult,
+    Coverage,
+    FrameAccepted,
+    FrameError,
+    GeoExtent,
+    GeoPose,
+    ImageRejection,
+    Job,
+    LocalExtent,
+    Localization,
+    Map,
+    MapImage,
+    Origin,
+    Pose,
+    Route,
+    Session,
+    SessionStats,
+    UploadResult,
 )
-from ._requests import ImageSource, RetryPolicy
+from ._requests import FRAME_METADATA, ImageSource, RetryPolicy
 from ._stream import AsyncConnect, AsyncPoseStream, Connect, FrameRejected, Message, PoseStream
 
 __all__ = [
+    "FRAME_METADATA",
     "APIError", "AsyncClient", "AsyncConnect", "AsyncPoseStream", "BadRequest", "Client",
+    "Coverage", "Localization",
     "Conflict", "Connect", "Forbidden", "FrameAccepted", "FrameError", "FrameRejected",
-    "GeoExtent", "ImageRejection", "ImageSource", "Job", "JobFailed", "LocalExtent", "Map",
+    "GeoExtent", "GeoPose", "Gone", "ImageRejection", "ImageSource", "Job", "JobFailed", "LocalExtent", "Map",
     "MapImage", "Message", "NotFound", "Origin", "PayloadTooLarge", "Pose", "PoseStream",
-    "RetryPolicy", "ServerError", "Session", "SessionRef", "SessionStats", "StreamError",
+    "RetryPolicy", "Route", "ServerError", "Session", "SessionRef", "SessionStats", "StreamError",
     "TooManyRequests", "TransportError", "Unauthorized", "UnsupportedMediaType",
-    "UploadResult", "ValidationError", "VlocError", "WaitTimeout",
+    "UploadResult", "UnprocessableEntity", "VlocError", "WaitTimeout",
 ]
+
+
+def __getattr__(name: str):
+    if name == "ValidationError":  # the old name of UnprocessableEntity
+        from . import _exceptions
+
+        return _exceptions.__getattr__(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

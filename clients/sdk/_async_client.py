@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Awaitable, Callable, Sequence
-from datetime import datetime
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import httpx
@@ -20,12 +19,13 @@ from ._client import (
     stream_url,
 )
 from ._exceptions import JobFailed, TransportError, VlocError, WaitTimeout
-from ._models import FrameAccepted, FrameError, Job, Map, MapImage, Pose, Session, UploadResult
-from ._requests import Call, ImageSource, RetryPolicy
+from ._models import Job
+from ._requests import Call, RetryPolicy
+from ._routes import Routes
 from ._stream import AsyncConnect, AsyncPoseStream, async_websockets_connect
 
 
-class AsyncClient:
+class AsyncClient(Routes):
     """An asyncio client for every route of the vloc API.
 
     Parameters are those of :class:`~clients.sdk.Client`; ``transport`` takes an
@@ -108,12 +108,6 @@ class AsyncClient:
 
     # -- health -----------------------------------------------------------------------------
 
-    async def health(self) -> dict:
-        return await self._call(rq.healthz())
-
-    async def ready(self) -> dict:
-        return await self._call(rq.readyz())
-
     async def wait_ready(self, timeout: float = 60.0, *, interval: float = 0.2) -> dict:
         deadline = time.monotonic() + timeout
         while True:
@@ -126,34 +120,6 @@ class AsyncClient:
             await self._sleep(interval)
 
     # -- maps -------------------------------------------------------------------------------
-
-    async def create_map(self, name: str) -> Map:
-        return await self._call(rq.create_map(name))
-
-    async def list_maps(self) -> list[Map]:
-        return await self._call(rq.list_maps())
-
-    async def get_map(self, map_id: str) -> Map:
-        return await self._call(rq.get_map(map_id))
-
-    async def delete_map(self, map_id: str) -> None:
-        await self._call(rq.delete_map(map_id))
-
-    async def list_images(self, map_id: str) -> list[MapImage]:
-        return await self._call(rq.list_images(map_id))
-
-    async def upload_images(self, map_id: str, images: Sequence[ImageSource], *,
-                            lat: float | None = None, lon: float | None = None,
-                            alt: float | None = None,
-                            captured_at: datetime | None = None) -> UploadResult:
-        return await self._call(rq.upload_images(map_id, images, lat=lat, lon=lon, alt=alt,
-                                                 captured_at=captured_at))
-
-    async def build_map(self, map_id: str) -> Job:
-        return await self._call(rq.build_map(map_id))
-
-    async def get_job(self, job_id: str) -> Job:
-        return await self._call(rq.get_job(job_id))
 
     async def wait_for_job(self, job_id: str, timeout: float = 600.0, *,
                            on_progress: Callable[[Job], None] | None = None,
@@ -175,43 +141,14 @@ class AsyncClient:
 
     # -- sessions ---------------------------------------------------------------------------
 
-    async def create_session(self, map_id: str, *, mode: str = "hybrid",
-                             params: dict[str, Any] | None = None,
-                             seed: int | None = None) -> Session:
-        return await self._call(rq.create_session(map_id, mode=mode, params=params, seed=seed))
-
-    async def list_sessions(self) -> list[Session]:
-        return await self._call(rq.list_sessions())
-
-    async def get_session(self, session: SessionRef, *, token: str | None = None) -> Session:
-        return await self._call(rq.get_session(*session_ref(session, token)))
-
-    async def delete_session(self, session: SessionRef, *, token: str | None = None) -> None:
-        await self._call(rq.delete_session(*session_ref(session, token)))
-
-    async def list_poses(self, session: SessionRef, *, after_seq: int | None = None,
-                         limit: int = 1000, token: str | None = None) -> list[Pose | FrameError]:
-        return await self._call(rq.list_poses(*session_ref(session, token),
-                                              after_seq=after_seq, limit=limit))
-
-    async def send_frame(self, session: SessionRef, image: ImageSource, *,
-                         seq: int | None = None, captured_at: datetime | float | None = None,
-                         wait: bool = False, content_type: str | None = None,
-                         token: str | None = None) -> FrameAccepted | Pose:
-        return await self._call(rq.send_frame(*session_ref(session, token), image, seq=seq,
-                                              captured_at=captured_at, wait=wait,
-                                              content_type=content_type))
-
-    async def reset_session(self, session: SessionRef, *,
-                            token: str | None = None) -> Session:
-        return await self._call(rq.reset_session(*session_ref(session, token)))
-
-    async def set_initial_pose(self, session: SessionRef, *, lat: float | None = None,
-                               lon: float | None = None, x: float | None = None,
-                               y: float | None = None, sigma: float = 5.0,
-                               token: str | None = None) -> Session:
-        return await self._call(rq.set_initial_pose(*session_ref(session, token), lat=lat,
-                                                    lon=lon, x=x, y=y, sigma=sigma))
+    async def _every(self, call: Callable[..., rq.Call], *args) -> list:
+        found, offset = [], 0
+        while True:
+            page = await self._call(call(*args, offset=offset))
+            found += page
+            if len(page) < rq.PAGE:
+                return found
+            offset = rq.next_offset(call, page, offset)
 
     async def stream(self, session: SessionRef, *, token: str | None = None,
                      timeout: float | None = None) -> AsyncPoseStream:

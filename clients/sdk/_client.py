@@ -4,37 +4,26 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Sequence
-from datetime import datetime
+from collections.abc import Callable
 from typing import Any
 
 import httpx
 
 from . import _requests as rq
 from ._exceptions import JobFailed, TransportError, VlocError, WaitTimeout
-from ._models import FrameAccepted, FrameError, Job, Map, MapImage, Pose, Session, UploadResult
-from ._requests import Call, ImageSource, RetryPolicy
+from ._models import Job, Route
+from ._requests import Call, RetryPolicy
+from ._routes import Routes, SessionRef, session_ref
 from ._stream import Connect, PoseStream, websockets_connect
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT = httpx.Timeout(30.0, connect=5.0)
-
-SessionRef = Session | str
-"""A session, or its id."""
-
 
 def resolve_settings(base_url: str | None, admin_key: str | None) -> tuple[str, str | None]:
     """Explicit values, else ``VLOC_URL`` / ``VLOC_ADMIN_KEY``, else the local default."""
     url = base_url or os.environ.get("VLOC_URL") or DEFAULT_URL
     key = admin_key if admin_key is not None else os.environ.get("VLOC_ADMIN_KEY") or None
     return url.rstrip("/"), key
-
-
-def session_ref(session: SessionRef, token: str | None) -> tuple[str, str | None]:
-    """``(id, token)``: an explicit token wins over the one a created Session carries."""
-    if isinstance(session, Session):
-        return session.id, token or session.token
-    return str(session), token
 
 
 def stream_url(base_url: str, session_id: str) -> str:
@@ -47,7 +36,7 @@ def auth_headers(token: str | None) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"} if token else {}
 
 
-class Client:
+class Client(Routes):
     """A blocking client for every route of the vloc API.
 
     Parameters
@@ -151,14 +140,6 @@ class Client:
 
     # -- health -----------------------------------------------------------------------------
 
-    def health(self) -> dict:
-        """``GET /healthz``: the process answers."""
-        return self._call(rq.healthz())
-
-    def ready(self) -> dict:
-        """``GET /readyz``: database and workers up (503 ServerError otherwise)."""
-        return self._call(rq.readyz())
-
     def wait_ready(self, timeout: float = 60.0, *, interval: float = 0.2) -> dict:
         """Poll ``/readyz`` until it answers 200; :class:`WaitTimeout` after ``timeout``."""
         deadline = time.monotonic() + timeout
@@ -172,41 +153,6 @@ class Client:
             self._sleep(interval)
 
     # -- maps -------------------------------------------------------------------------------
-
-    def create_map(self, name: str) -> Map:
-        return self._call(rq.create_map(name))
-
-    def list_maps(self) -> list[Map]:
-        return self._call(rq.list_maps())
-
-    def get_map(self, map_id: str) -> Map:
-        return self._call(rq.get_map(map_id))
-
-    def delete_map(self, map_id: str) -> None:
-        """Delete a map, its images and builds (409 while sessions use it)."""
-        self._call(rq.delete_map(map_id))
-
-    def list_images(self, map_id: str) -> list[MapImage]:
-        return self._call(rq.list_images(map_id))
-
-    def upload_images(self, map_id: str, images: Sequence[ImageSource], *,
-                      lat: float | None = None, lon: float | None = None,
-                      alt: float | None = None,
-                      captured_at: datetime | None = None) -> UploadResult:
-        """Add JPEG/PNG images positioned by their EXIF GPS, or one image at ``lat``/``lon``.
-
-        Files the server refuses are listed in ``rejected``; when none is accepted the
-        call raises the problem (422, 413, 409...) instead.
-        """
-        return self._call(rq.upload_images(map_id, images, lat=lat, lon=lon, alt=alt,
-                                           captured_at=captured_at))
-
-    def build_map(self, map_id: str) -> Job:
-        """Start a build of the images added since the last one; returns the queued job."""
-        return self._call(rq.build_map(map_id))
-
-    def get_job(self, job_id: str) -> Job:
-        return self._call(rq.get_job(job_id))
 
     def wait_for_job(self, job_id: str, timeout: float = 600.0, *,
                      on_progress: Callable[[Job], None] | None = None,
@@ -241,53 +187,36 @@ class Client:
 
     # -- sessions ---------------------------------------------------------------------------
 
-    def create_session(self, map_id: str, *, mode: str = "hybrid",
-                       params: dict[str, Any] | None = None,
-                       seed: int | None = None) -> Session:
-        """Open a session on a built map; the returned Session carries its token."""
-        return self._call(rq.create_session(map_id, mode=mode, params=params, seed=seed))
+    def wait_for_route(self, map_id: str, route_id: str, timeout: float = 600.0, *,
+                       poll_interval: float = 0.5) -> Route:
+        """Poll a route until it is built.
 
-    def list_sessions(self) -> list[Session]:
-        return self._call(rq.list_sessions())
-
-    def get_session(self, session: SessionRef, *, token: str | None = None) -> Session:
-        return self._call(rq.get_session(*session_ref(session, token)))
-
-    def delete_session(self, session: SessionRef, *, token: str | None = None) -> None:
-        """Close a session; its open streams end."""
-        self._call(rq.delete_session(*session_ref(session, token)))
-
-    def list_poses(self, session: SessionRef, *, after_seq: int | None = None,
-                   limit: int = 1000, token: str | None = None) -> list[Pose | FrameError]:
-        """Stored outcomes in sequence order, after ``after_seq``: the estimates, and a
-        :class:`FrameError` for each frame that gave none."""
-        return self._call(rq.list_poses(*session_ref(session, token), after_seq=after_seq,
-                                        limit=limit))
-
-    def send_frame(self, session: SessionRef, image: ImageSource, *, seq: int | None = None,
-                   captured_at: datetime | float | None = None, wait: bool = False,
-                   content_type: str | None = None,
-                   token: str | None = None) -> FrameAccepted | Pose:
-        """POST one frame; :class:`FrameAccepted` (its seq), or with ``wait`` the Pose.
-
-        Give ``seq`` (increasing) to make the call safe to retry. ``captured_at`` is a
-        datetime or seconds since the epoch.
+        Raises
+        ------
+        VlocError
+            The route ended ``failed`` (its error in the message).
+        WaitTimeout
+            Still building after ``timeout`` seconds.
         """
-        return self._call(rq.send_frame(*session_ref(session, token), image, seq=seq,
-                                        captured_at=captured_at, wait=wait,
-                                        content_type=content_type))
+        deadline = time.monotonic() + timeout
+        while True:
+            route = self.get_route(map_id, route_id)
+            if route.status == "failed":
+                raise VlocError(f"route {route_id} failed to build: {route.error}")
+            if route.status == "ready":
+                return route
+            if time.monotonic() >= deadline:
+                raise WaitTimeout(f"route {route_id} still {route.status} after {timeout:g} s")
+            self._sleep(poll_interval)
 
-    def reset_session(self, session: SessionRef, *, token: str | None = None) -> Session:
-        """Global re-initialisation of the filter (after the frames already queued)."""
-        return self._call(rq.reset_session(*session_ref(session, token)))
-
-    def set_initial_pose(self, session: SessionRef, *, lat: float | None = None,
-                         lon: float | None = None, x: float | None = None,
-                         y: float | None = None, sigma: float = 5.0,
-                         token: str | None = None) -> Session:
-        """Restart the filter around ``lat``/``lon`` or map ``x``/``y`` (sigma metres)."""
-        return self._call(rq.set_initial_pose(*session_ref(session, token), lat=lat, lon=lon,
-                                              x=x, y=y, sigma=sigma))
+    def _every(self, call: Callable[..., rq.Call], *args) -> list:
+        found, offset = [], 0
+        while True:
+            page = self._call(call(*args, offset=offset))
+            found += page
+            if len(page) < rq.PAGE:
+                return found
+            offset = rq.next_offset(call, page, offset)
 
     def stream(self, session: SessionRef, *, token: str | None = None,
                timeout: float | None = None) -> PoseStream:

@@ -12,7 +12,8 @@ Every error the client raises is a :class:`VlocError`::
     │   ├── Conflict .......... 409  duplicate or stale frame ``seq``, map busy building
     │   ├── PayloadTooLarge ... 413
     │   ├── UnsupportedMediaType 415 not a JPEG/PNG image
-    │   ├── ValidationError ... 422  a body, query or form field the server refused
+    │   ├── Gone .............. 410  the session expired
+    │   ├── UnprocessableEntity 422  a body, query or form field the server refused
     │   ├── TooManyRequests ... 429  too many frames of the session still queued
     │   └── ServerError ....... 5xx
     ├── StreamError ........... the pose stream ended abnormally
@@ -103,8 +104,13 @@ class UnsupportedMediaType(APIError):
     """415."""
 
 
-class ValidationError(APIError):
-    """422: a field was refused; ``body["errors"]`` lists each one where the server says."""
+class Gone(APIError):
+    """410: the session expired (``session-expired``); create a new one."""
+
+
+class UnprocessableEntity(APIError):
+    """422: a field was refused; ``body["errors"]`` lists each one where the server says,
+    ``body["field"]`` names a refused frame metadata field."""
 
 
 class TooManyRequests(APIError):
@@ -150,7 +156,7 @@ class WaitTimeout(VlocError, TimeoutError):
 
 _BY_STATUS: dict[int, type[APIError]] = {
     400: BadRequest, 401: Unauthorized, 403: Forbidden, 404: NotFound, 409: Conflict,
-    413: PayloadTooLarge, 415: UnsupportedMediaType, 422: ValidationError,
+    413: PayloadTooLarge, 415: UnsupportedMediaType, 410: Gone, 422: UnprocessableEntity,
     429: TooManyRequests,
 }
 
@@ -185,3 +191,14 @@ def error_for_response(response: httpx.Response) -> APIError:
         detail=str(body.get("detail") or ""),
         instance=body.get("instance"),
         body=body)
+
+
+def __getattr__(name: str):
+    # The 422 class was once called ValidationError, which read as pydantic's.
+    if name == "ValidationError":
+        import warnings
+
+        warnings.warn("clients.sdk.ValidationError is now UnprocessableEntity",
+                      DeprecationWarning, stacklevel=2)
+        return UnprocessableEntity
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -123,35 +123,105 @@ class Job(_Model):
         return self.status in ("done", "failed")
 
 
-class Pose(_Model):
-    """One estimate of a session (stream message ``type: "pose"``).
+class Quaternion(_Model):
+    x: float
+    y: float
+    z: float
+    w: float
 
-    ``x``/``y`` are east/north metres in the map's frame; ``cov`` is the row-major 2x2
-    position covariance in m^2; ``processing_ms`` is the core's step time and
-    ``latency_ms`` the time from the frame's arrival to its estimate.
-    """
 
-    type: Literal["pose"] = "pose"
-    session_id: str = ""
-    seq: int
+class GeoPosePosition(_Model):
+    lat: float
+    lon: float
+    h: float | None = None
+
+
+class GeoPose(_Model):
+    """OGC GeoPose 1.0 Basic-Quaternion: position, and orientation in the local
+    East-North-Up frame (None when the heading is unknown)."""
+
+    position: GeoPosePosition
+    quaternion: Quaternion | None = None
+
+
+class PoseFields(_Model):
+    """Where the camera is: the fields a session's :class:`Pose` and a single image's
+    :class:`Localization` share. docs/api.md describes every one."""
+
+    map_id: str = ""
+    map_revision: int = 0
     captured_at: datetime | None = None
-    received_at: datetime | None = None
+    status: Literal["initialising", "tracking", "lost"]
+    converged: bool = False
     x: float
     y: float
     lat: float
     lon: float
+    altitude_m: float | None = None
+    horizontal_accuracy_m: float | None = None
+    """None only from a server older than this field."""
+    heading_deg: float | None = None
+    heading_sigma_deg: float | None = None
+    heading_source: Literal["geometry", "device"] | None = None
     sigma_x: float
     sigma_y: float
     cov: tuple[float, float, float, float]
     feature: str
     next_feature: str = ""
+    measurement: str = ""
+    metadata_used: str = ""
+    gps_gate: Literal["", "used", "rejected"] = ""
     n_particles: int = 0
-    status: str = ""
-    best_image: int = -1
+    image_id: int | None = None
+    image_filename: str | None = None
+    decode_ms: float = 0.0
     processing_ms: float = 0.0
     latency_ms: float = 0.0
+    cloud: list[tuple[float, float]] = []
+    geopose: GeoPose | None = None
+
+    _map_id = field_validator("map_id", mode="before")(_str_id)
+
+
+class Pose(PoseFields):
+    """One estimate of a session (stream message ``type: "pose"``).
+
+    ``x``/``y`` are east/north metres in the map's frame; ``cov`` is the row-major 2x2
+    position covariance in m^2 and ``horizontal_accuracy_m`` the radius of its 68 % circle;
+    ``heading_deg`` is None where the localiser knows no heading; ``image_id`` and
+    ``image_filename`` name the map image that matched best. ``decode_ms`` and
+    ``processing_ms`` are the worker's decoding and the core's step time, ``latency_ms``
+    the time from the frame's arrival to its estimate.
+    """
+
+    type: Literal["pose"] = "pose"
+    session_id: str = ""
+    seq: int
+    received_at: datetime | None = None
+    navigation: dict[str, Any] | None = Field(
+        None, description="Path following, for a session that follows a route: state (EKF "
+                          "x, y, theta, v, omega), command (v, omega), reference, cross_track, "
+                          "heading_error, node, progress, length, arrived")
 
     _ids = field_validator("session_id", mode="before")(_str_id)
+
+
+class Localization(PoseFields):
+    """Where a single image was taken (:meth:`Client.localize`)."""
+
+    type: Literal["localization"] = "localization"
+
+
+class Coverage(_Model):
+    """A built map near a position (:meth:`Client.coverage`)."""
+
+    map_id: str
+    name: str
+    revision: int
+    distance_m: float
+    image_count: int
+
+    _ids = field_validator("map_id", mode="before")(_str_id)
 
 
 class FrameError(_Model):
@@ -193,6 +263,11 @@ class Session(_Model):
     frames_pending: int = 0
     stats: SessionStats = Field(default_factory=SessionStats)
     last_pose: Pose | None = None
+    state: Literal["active", "expired"] = "active"
+    ttl_s: int | None = None
+    last_active_at: datetime | None = None
+    expires_at: datetime | None = None
+    navigation: dict[str, Any] | None = None
     token: str | None = None
 
     _ids = field_validator("id", "map_id", mode="before")(_str_id)
@@ -216,3 +291,26 @@ def parse_message(data: dict[str, Any]) -> StreamMessage | dict[str, Any]:
     if kind == "frame_error":
         return FrameError.model_validate(data)
     return data
+
+
+class Route(_Model):
+    """A taught route of a map: its images in driving order with odometry, partitioned into
+    topological nodes and relaxed. ``nodes``, ``arcs`` and ``images`` (the taught path) are
+    filled in by :meth:`Client.get_route`."""
+
+    id: str
+    map_id: str
+    name: str
+    status: str = Field(description="building, ready or failed")
+    error: str | None = None
+    params: dict[str, Any] = Field(default_factory=dict)
+    n_images: int = 0
+    n_nodes: int | None = None
+    n_loops: int | None = None
+    length_m: float | None = None
+    sweeps: int | None = None
+    nodes: list[dict[str, Any]] = Field(default_factory=list)
+    arcs: list[dict[str, Any]] = Field(default_factory=list)
+    images: list[dict[str, Any]] = Field(default_factory=list)
+
+    _ids = field_validator("id", "map_id", mode="before")(_str_id)

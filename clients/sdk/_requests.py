@@ -3,9 +3,10 @@ the answer. Shared by the sync and async clients, which only differ in how they 
 
 from __future__ import annotations
 
+import json
 import mimetypes
 import random
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from os import PathLike
@@ -16,11 +17,14 @@ import httpx
 
 from ._exceptions import APIError, error_for_response
 from ._models import (
+    Coverage,
     FrameAccepted,
     Job,
+    Localization,
     Map,
     MapImage,
     Pose,
+    Route,
     Session,
     UploadResult,
     parse_message,
@@ -127,8 +131,13 @@ def create_map(name: str) -> Call:
     return Call("POST", "/v1/maps", _model(Map), json={"name": name})
 
 
-def list_maps() -> Call:
-    return Call("GET", "/v1/maps", _models(Map), idempotent=True)
+PAGE = 500
+"""Items per page when the client reads a whole listing."""
+
+
+def list_maps(*, offset: int = 0, limit: int | None = None) -> Call:
+    return Call("GET", "/v1/maps", _models(Map), idempotent=True,
+                params={"offset": offset, "limit": limit or PAGE})
 
 
 def get_map(map_id: str) -> Call:
@@ -139,8 +148,10 @@ def delete_map(map_id: str) -> Call:
     return Call("DELETE", f"/v1/maps/{map_id}", idempotent=True)
 
 
-def list_images(map_id: str) -> Call:
-    return Call("GET", f"/v1/maps/{map_id}/images", _models(MapImage), idempotent=True)
+def list_images(map_id: str, *, offset: int = 0, limit: int | None = None) -> Call:
+    """``offset`` is the id after which to list (the service pages by image id)."""
+    return Call("GET", f"/v1/maps/{map_id}/images", _models(MapImage), idempotent=True,
+                params={"after_id": offset, "limit": limit or PAGE})
 
 
 def upload_images(map_id: str, images: Sequence[ImageSource], *, lat: float | None = None,
@@ -167,18 +178,48 @@ def get_job(job_id: str) -> Call:
     return Call("GET", f"/v1/jobs/{job_id}", _model(Job), idempotent=True)
 
 
+# -- routes -----------------------------------------------------------------------------------
+
+def create_route(map_id: str, odometry: bytes, *, name: str, params: dict[str, Any] | None,
+                 max_step_m: float | None) -> Call:
+    form: dict[str, Any] = {"name": name}
+    if params:
+        form["params"] = json.dumps(params)
+    if max_step_m is not None:
+        form["max_step_m"] = repr(float(max_step_m))
+    return Call("POST", f"/v1/maps/{map_id}/routes", _model(Route), data=form,
+                files=[("odometry", ("odometry.csv", odometry, "text/csv"))])
+
+
+def get_route(map_id: str, route_id: str) -> Call:
+    return Call("GET", f"/v1/maps/{map_id}/routes/{route_id}", _model(Route), idempotent=True)
+
+
+def list_routes(map_id: str) -> Call:
+    return Call("GET", f"/v1/maps/{map_id}/routes", _models(Route), idempotent=True)
+
+
 # -- sessions ---------------------------------------------------------------------------------
 
 def create_session(map_id: str, *, mode: str, params: dict[str, Any] | None,
-                   seed: int | None) -> Call:
+                   seed: int | None, navigation: dict[str, Any] | None = None) -> Call:
     body: dict[str, Any] = {"map_id": str(map_id), "mode": mode, "params": dict(params or {})}
     if seed is not None:
         body["seed"] = seed
+    if navigation is not None:
+        body["navigation"] = navigation
     return Call("POST", "/v1/sessions", _model(Session), json=body)
 
 
-def list_sessions() -> Call:
-    return Call("GET", "/v1/sessions", _models(Session), idempotent=True)
+def list_sessions(*, offset: int = 0, limit: int | None = None) -> Call:
+    return Call("GET", "/v1/sessions", _models(Session), idempotent=True,
+                params={"offset": offset, "limit": limit or PAGE})
+
+
+def next_offset(call: Callable[..., Call], items: list, offset: int) -> int:
+    """Where the page after ``items`` starts: the last image id for images (listed by id),
+    else the count so far."""
+    return items[-1].id if call is list_images else offset + len(items)
 
 
 def get_session(session_id: str, token: str | None) -> Call:
@@ -200,18 +241,57 @@ def list_poses(session_id: str, token: str | None, *, after_seq: int | None,
                 idempotent=True, token=token)
 
 
+FRAME_METADATA = ("heading_deg", "heading_accuracy_deg", "altitude_m", "gps_lat", "gps_lon",
+                  "gps_accuracy_m", "velocity_east", "velocity_north")
+"""The optional sensor reports a frame may carry (docs/api.md, "Frame metadata")."""
+
+CapturedAt = datetime | float | str
+"""A capture time: an aware datetime (a naive one is taken as UTC, as the server does), an
+ISO 8601 string, or seconds since the epoch."""
+
+
+def captured_at_param(captured_at: CapturedAt) -> str | float:
+    """The wire form of a capture time; ValueError for a string that is not ISO 8601."""
+    if isinstance(captured_at, datetime):
+        return captured_at.isoformat()
+    if isinstance(captured_at, str):
+        try:
+            datetime.fromisoformat(captured_at)
+        except ValueError:
+            raise ValueError(f"captured_at {captured_at!r} is not an ISO 8601 time") from None
+        return captured_at
+    if isinstance(captured_at, bool) or not isinstance(captured_at, int | float):
+        raise TypeError("captured_at must be a datetime, an ISO 8601 string or seconds since "
+                        f"the epoch, not {type(captured_at).__name__}")
+    return float(captured_at)
+
+
+def metadata_params(metadata: Mapping[str, float | None] | None) -> dict[str, float]:
+    """The frame's metadata as query parameters; ValueError for a name the server does not
+    know (it would otherwise be ignored silently)."""
+    if not metadata:
+        return {}
+    unknown = sorted(set(metadata) - set(FRAME_METADATA))
+    if unknown:
+        raise ValueError(f"unknown frame metadata {unknown}; known: {', '.join(FRAME_METADATA)}")
+    return {k: float(v) for k, v in metadata.items() if v is not None}
+
+
 def send_frame(session_id: str, token: str | None, image: ImageSource, *,
-               seq: int | None, captured_at: datetime | float | None, wait: bool,
-               content_type: str | None) -> Call:
+               seq: int | None, captured_at: CapturedAt | None, wait: bool,
+               content_type: str | None,
+               metadata: Mapping[str, float | None] | None = None) -> Call:
     """The raw image as the body. With ``seq`` the server refuses a second copy, so the
-    POST is safe to retry; without one it is not."""
+    POST is safe to retry; without one it is not. ``metadata`` (:data:`FRAME_METADATA`)
+    goes as query parameters."""
     name, data = _read_source(image, 0)
     params: dict[str, Any] = {}
     if seq is not None:
         params["seq"] = seq
     if captured_at is not None:
-        params["captured_at"] = (captured_at.isoformat() if isinstance(captured_at, datetime)
-                                 else repr(float(captured_at)))
+        value = captured_at_param(captured_at)
+        params["captured_at"] = repr(value) if isinstance(value, float) else value
+    params.update(metadata_params(metadata))
     if wait:
         params["wait"] = "true"
 
@@ -225,6 +305,43 @@ def send_frame(session_id: str, token: str | None, image: ImageSource, *,
                 content=data, headers={"Content-Type": ctype}, idempotent=seq is not None,
                 token=token, accepted_seq=seq if not wait else None,
                 read_timeout=WAIT_READ_TIMEOUT_S if wait else None)
+
+
+def localize(map_id: str, image: ImageSource, *, prior: tuple[float, float] | None,
+             prior_sigma_m: float | None, mode: str | None,
+             captured_at: CapturedAt | None, seed: int | None,
+             metadata: Mapping[str, float | None] | None,
+             content_type: str | None) -> Call:
+    """One image, answered synchronously; safe to retry (nothing is stored)."""
+    name, data = _read_source(image, 0)
+    params: dict[str, Any] = metadata_params(metadata)
+    if prior is not None:
+        params["prior_lat"], params["prior_lon"] = float(prior[0]), float(prior[1])
+    if prior_sigma_m is not None:
+        params["prior_sigma_m"] = float(prior_sigma_m)
+    if mode is not None:
+        params["mode"] = mode
+    if seed is not None:
+        params["seed"] = int(seed)
+    if captured_at is not None:
+        value = captured_at_param(captured_at)
+        params["captured_at"] = repr(value) if isinstance(value, float) else value
+    return Call("POST", f"/v1/maps/{map_id}/localize", _model(Localization), params=params,
+                content=data, headers={"Content-Type": content_type
+                                       or image_content_type(data, name)},
+                idempotent=True, read_timeout=WAIT_READ_TIMEOUT_S)
+
+
+def coverage(lat: float, lon: float, radius_m: float | None) -> Call:
+    params: dict[str, Any] = {"lat": lat, "lon": lon}
+    if radius_m is not None:
+        params["radius_m"] = radius_m
+    return Call("GET", "/v1/maps/coverage", _models(Coverage), params=params, idempotent=True)
+
+
+def keep_alive(session_id: str, token: str | None) -> Call:
+    return Call("POST", f"/v1/sessions/{session_id}/keepalive", _model(Session), token=token,
+                idempotent=True)
 
 
 def reset_session(session_id: str, token: str | None) -> Call:

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, Protocol
 
 from ._exceptions import APIError, StreamError, WaitTimeout, error_class
 from ._models import FrameError, Pose, parse_message
+from ._requests import captured_at_param, metadata_params
 
 NORMAL_CLOSURE = (1000, 1001)
 
@@ -105,16 +106,19 @@ def closed_error(code: int | None, reason: str) -> Exception | None:
     return StreamError(reason or "the stream closed", code=code)
 
 
-def frame_meta(seq: int | None, captured_at: datetime | float | None) -> str | None:
-    """The text message that numbers and timestamps the next binary frame."""
-    if seq is None and captured_at is None:
+def frame_meta(seq: int | None, captured_at: datetime | float | str | None,
+               metadata: Mapping[str, float | None] | None = None) -> str | None:
+    """The text message that numbers, timestamps and describes the next binary frame."""
+    extra = metadata_params(metadata)
+    if seq is None and captured_at is None and not extra:
         return None
     meta: dict[str, Any] = {"type": "frame_meta"}
     if seq is not None:
         meta["seq"] = int(seq)
     if captured_at is not None:
-        meta["captured_at"] = (captured_at.isoformat() if isinstance(captured_at, datetime)
-                               else float(captured_at))
+        meta["captured_at"] = captured_at_param(captured_at)
+    if extra:
+        meta["metadata"] = extra
     return json.dumps(meta)
 
 
@@ -183,9 +187,11 @@ class PoseStream:
             yield msg
 
     def send_frame(self, image: bytes, *, seq: int | None = None,
-                   captured_at: datetime | float | None = None) -> None:
-        """Send a JPEG/PNG frame on the socket; its estimate arrives on this stream."""
-        meta = frame_meta(seq, captured_at)
+                   captured_at: datetime | float | str | None = None,
+                   metadata: Mapping[str, float | None] | None = None) -> None:
+        """Send a JPEG/PNG frame on the socket; its estimate arrives on this stream.
+        ``captured_at`` and ``metadata`` as for :meth:`Client.send_frame`."""
+        meta = frame_meta(seq, captured_at, metadata)
         if meta is not None:
             self._conn.send(meta)
         self._conn.send(bytes(image))
@@ -265,8 +271,9 @@ class AsyncPoseStream:
             yield msg
 
     async def send_frame(self, image: bytes, *, seq: int | None = None,
-                         captured_at: datetime | float | None = None) -> None:
-        meta = frame_meta(seq, captured_at)
+                         captured_at: datetime | float | str | None = None,
+                         metadata: Mapping[str, float | None] | None = None) -> None:
+        meta = frame_meta(seq, captured_at, metadata)
         if meta is not None:
             await self._conn.send(meta)
         await self._conn.send(bytes(image))

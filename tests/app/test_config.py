@@ -42,3 +42,55 @@ def test_admin_key_from_the_environment_wins(tmp_path, monkeypatch):
     assert ensure_admin_key(s, announce=lambda k, p: (_ for _ in ()).throw(AssertionError)) \
         == "k" * 32
     assert not (tmp_path / ADMIN_KEY_FILE).exists()
+
+
+def test_the_engine_is_chosen_by_the_settings(monkeypatch, tmp_path):
+    import pytest
+    from pydantic import ValidationError
+
+    from app.engine import Engine, engine_for
+    from workers.engine import LocalEngine
+
+    local = engine_for(Settings(data_dir=tmp_path, workers=3))
+    assert isinstance(local, LocalEngine) and isinstance(local, Engine)
+    assert (local.n_workers, local.shared) == (3, False)
+    pytest.importorskip("ray")
+    from workers.engine.ray_engine import RayEngine
+
+    monkeypatch.setenv("VLOC_ENGINE", "ray")
+    monkeypatch.setenv("VLOC_RAY_ADDRESS", "head:6379")
+    monkeypatch.setenv("VLOC_RAY_NAMESPACE", "fleet-a")
+    ray = engine_for(Settings(data_dir=tmp_path, workers=3))
+    # Not started: nothing is reached until the application starts.
+    assert isinstance(ray, RayEngine) and isinstance(ray, Engine) and ray.shared
+    assert (ray.n_workers, ray.address, ray.namespace) == (3, "head:6379", "fleet-a")
+    monkeypatch.setenv("VLOC_RAY_SHARDS", "8")
+    assert engine_for(Settings(data_dir=tmp_path, workers=3)).n_workers == 8
+    monkeypatch.setenv("VLOC_ENGINE", "spark")
+    with pytest.raises(ValidationError, match="engine"):
+        Settings(data_dir=tmp_path)
+
+
+def test_serve_processes_needs_a_shared_engine_database_and_redis(monkeypatch, tmp_path):
+    from click.testing import CliRunner
+
+    from clients.commands.serve import serve_cmd
+
+    monkeypatch.setenv("VLOC_DATA_DIR", str(tmp_path))
+    for var in ("VLOC_ENGINE", "VLOC_DATABASE_URL", "VLOC_REDIS_URL"):
+        monkeypatch.delenv(var, raising=False)
+    result = CliRunner().invoke(serve_cmd, ["--processes", "2"])
+    assert result.exit_code == 2
+    for needed in ("VLOC_ENGINE=ray", "VLOC_DATABASE_URL", "VLOC_REDIS_URL"):
+        assert needed in result.output
+    monkeypatch.setenv("VLOC_ENGINE", "ray")
+    monkeypatch.setenv("VLOC_DATABASE_URL", "postgresql+psycopg://u@h/db")
+    result = CliRunner().invoke(serve_cmd, ["--processes", "2"])
+    assert result.exit_code == 2 and "VLOC_REDIS_URL" in result.output
+    assert "VLOC_ENGINE" not in result.output
+
+
+def test_the_generated_key_is_not_written_where_the_logs_go(tmp_path, capsys):
+    key = ensure_admin_key(Settings(data_dir=tmp_path / "d"))
+    err = capsys.readouterr().err
+    assert key not in err and str(tmp_path / "d" / ADMIN_KEY_FILE) in err

@@ -12,7 +12,8 @@ from sqlalchemy import select
 
 from app.main import create_app
 from app.sessions.models import Frame, FrameStatus
-from app.sessions.schemas import MAX_SEQ, PoseEstimate
+from app.sessions.pose import FrameContext, from_estimate
+from app.sessions.schemas import MAX_SEQ
 from app.sessions.store import FrameRecord, OutcomeRecord
 from tests.app.conftest import ADMIN, FAST, PROBLEM, build_map, service_settings, snapshot
 from tests.app.test_sessions import open_stream, post_frame
@@ -76,10 +77,12 @@ def _estimate_message(session_id: str, seq: int, **change) -> tuple[FrameDone, d
                 "cov": [1.0, 0.0, 0.0, 1.0], "feature": "sift", "next_feature": "sift",
                 "n_particles": 60, "status": "tracking", "best_image": 3,
                 "processing_ms": 5.0} | change
-    now = datetime.now(UTC)
-    msg = PoseEstimate(session_id=session_id, seq=seq, captured_at=None, received_at=now,
-                       decode_ms=1.0, latency_ms=9.0, **estimate).model_dump(mode="json")
-    return FrameDone(session_id, seq, estimate, None, 1.0), msg
+    ctx = FrameContext(session_id=session_id, seq=seq, map_id=str(uuid.uuid4()),
+                       map_revision=1, map_folder="", captured_at=None,
+                       received_at=datetime.now(UTC), metadata=None, decode_ms=1.0,
+                       latency_ms=9.0)
+    msg = from_estimate(estimate, ctx, bound_m=25.0, converged_before=False)
+    return FrameDone(session_id, seq, estimate, None, 1.0), msg.model_dump(mode="json")
 
 
 def test_a_row_the_database_refuses_costs_only_that_row(service):
@@ -89,7 +92,7 @@ def test_a_row_the_database_refuses_costs_only_that_row(service):
     b, b_auth = service.new_session()
     now = datetime.now(UTC)
     good_a, good_b = _estimate_message(a, 0), _estimate_message(b, 0)
-    bad_b = _estimate_message(b, 1, best_image=2**63)  # out of range for its column
+    bad_b = _estimate_message(b, 1, n_particles=2**63)  # out of range for its column
     batch = [FrameRecord(a, 0, now, None), FrameRecord(b, 0, now, None),
              FrameRecord(b, 1, now, None), FrameRecord(b, MAX_SEQ + 9, now, None),
              OutcomeRecord(*good_a), OutcomeRecord(*bad_b), OutcomeRecord(*good_b)]
@@ -115,7 +118,7 @@ def test_an_estimate_that_cannot_be_stored_is_reported_not_stored(service, shots
 
     def corrupt(outcome):
         if isinstance(outcome, FrameDone) and outcome.session_id == a:
-            outcome = FrameDone(a, outcome.seq, outcome.estimate | {"best_image": 2**63},
+            outcome = FrameDone(a, outcome.seq, outcome.estimate | {"n_particles": 2**63},
                                 outcome.state, outcome.decode_ms)
         deliver(outcome)
 

@@ -118,3 +118,14 @@ def test_openapi_states_the_frame_and_readiness_failures(module_client):
     seq = next(p for p in paths["/v1/sessions/{session_id}/frames"]["post"]["parameters"]
                if p["name"] == "seq")
     assert seq["schema"]["anyOf"][0]["maximum"] == 2**63 - 1
+
+
+def test_docs_page_loads_its_assets_from_this_server(client):
+    page = client.get("/docs")
+    assert page.status_code == 200 and "swagger-ui" in page.text
+    assert "cdn" not in page.text.lower() and "https://" not in page.text
+    for asset in ("swagger-ui-bundle.js", "swagger-ui.css"):
+        assert f"/docs/assets/{asset}" in page.text
+        r = client.get(f"/docs/assets/{asset}")
+        assert r.status_code == 200 and len(r.content) > 10_000
+    assert client.get("/redoc").status_code == 404

@@ -73,3 +73,12 @@ def test_our_handler_redacts_messages_and_fields(configured):
                                         extra={"url": f"/a?token={TOKEN}"})
     err = out.getvalue()
     assert TOKEN not in err and err.count("[redacted]") == 2
+
+
+def test_json_lines_carry_no_terminal_colour_copy():
+    record = logging.makeLogRecord({"name": "uvicorn.error", "levelname": "INFO",
+                                    "msg": "Started server process [%d]", "args": (7,),
+                                    "color_message": "Started server process [\x1b[36m%d\x1b[0m]"})
+    line = logs.JsonFormatter().format(record)
+    assert "color_message" not in line and "\\u001b" not in line
+    assert '"msg": "Started server process [7]"' in line

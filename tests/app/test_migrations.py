@@ -22,6 +22,8 @@ TABLES_AT = {
     "0006": {"maps", "map_images", "image_global_features", "image_sift", "build_jobs",
              "sessions", "pose_estimates", "frames", "image_orb", "map_vocabularies"},
 }
+TABLES_AT["0007"] = TABLES_AT["0006"]
+TABLES_AT["0008"] = TABLES_AT["0006"] | {"routes", "route_images", "route_nodes", "route_arcs"}
 
 
 def _tables(engine) -> set[str]:
@@ -32,8 +34,8 @@ def test_upgrade_to_head_matches_the_models(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        assert migrate.current_revision(engine) == migrate.head_revision() == "0006"
-        assert _tables(engine) == TABLES_AT["0006"]
+        assert migrate.current_revision(engine) == migrate.head_revision() == "0008"
+        assert _tables(engine) == TABLES_AT["0008"]
         with engine.connect() as conn:
             diff = compare_metadata(MigrationContext.configure(
                 conn, opts={"compare_type": True}), Base.metadata)
@@ -46,11 +48,11 @@ def test_each_step_downgrades_and_upgrades_again(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        for revision in ("0005", "0004", "0003", "0002", "0001", None):
+        for revision in ("0006", "0005", "0004", "0003", "0002", "0001", None):
             migrate.downgrade(engine, revision or "base")
             assert migrate.current_revision(engine) == revision
             assert _tables(engine) == TABLES_AT[revision]
-        for revision in ("0001", "0002", "0003", "0004", "0005", "0006"):
+        for revision in ("0001", "0002", "0003", "0004", "0005", "0006", "0007", "0008"):
             migrate.upgrade(engine, revision)
             assert _tables(engine) == TABLES_AT[revision]
         names = {c["name"] for c in inspect(engine).get_unique_constraints("map_images")}
@@ -59,5 +61,50 @@ def test_each_step_downgrades_and_upgrades_again(database_url):
         assert pk["constrained_columns"] == ["session_id", "seq"]
         assert {i["name"] for i in inspect(engine).get_indexes("frames")} == {
             "ix_frames_status"}
+    finally:
+        engine.dispose()
+
+
+def test_0007_keeps_stored_poses_and_gives_them_an_accuracy(database_url):
+    """A pose stored at 0006 is still there at 0007, with the 68 % radius of its
+    covariance, no heading and an active session with the default time to live."""
+    import math
+    import uuid
+    from datetime import UTC, datetime
+
+    from sqlalchemy import text
+
+    engine = make_engine(database_url)
+    sid, mid = uuid.uuid4(), uuid.uuid4()
+    now = datetime.now(UTC)
+    try:
+        migrate.upgrade(engine, "0006")
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                              "VALUES (:id, 'm', 'ready', 1, :t)"), {"id": mid.hex, "t": now}
+                         if engine.dialect.name == "sqlite" else {"id": mid, "t": now})
+            ids = (lambda u: u.hex) if engine.dialect.name == "sqlite" else (lambda u: u)
+            conn.execute(text(
+                "INSERT INTO sessions (id, map_id, map_revision, mode, params, seed, token_hash,"
+                " frames_processed, frames_failed, created_at, updated_at) VALUES (:id, :m, 1,"
+                " 'hybrid', '{}', 1, 'h', 1, 0, :t, :t)"), {"id": ids(sid), "m": ids(mid), "t": now})
+            conn.execute(text(
+                "INSERT INTO pose_estimates (session_id, seq, received_at, x, y, lat, lon, "
+                "sigma_x, sigma_y, cov_xx, cov_xy, cov_yx, cov_yy, feature, next_feature, "
+                "n_particles, status, best_image, decode_ms, processing_ms, latency_ms) VALUES "
+                "(:s, 0, :t, 0, 0, 41, -83, 2, 2, 4, 0, 0, 4, 'sift', 'sift', 60, 'tracking', 3,"
+                " 1, 1, 1)"), {"s": ids(sid), "t": now})
+        migrate.upgrade(engine)
+        with engine.connect() as conn:
+            pose = conn.execute(text("SELECT horizontal_accuracy_m, heading_deg, image_id, "
+                                     "converged, gps_gate FROM pose_estimates")).one()
+            session = conn.execute(text("SELECT status, ttl_s, last_active_at FROM sessions"))\
+                .one()
+        assert math.isclose(pose[0], 2.0 * math.sqrt(-2.0 * math.log(0.32)), rel_tol=1e-9)
+        assert pose[1:] == (None, None, False, "")
+        assert session[0] == "active" and session[1] == 3600 and session[2] is not None
+        migrate.downgrade(engine, "0006")
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT best_image FROM pose_estimates")).scalar() == -1
     finally:
         engine.dispose()

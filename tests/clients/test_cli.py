@@ -219,3 +219,76 @@ def test_flags_override_the_environment_and_the_stored_key(vloc, live_server, tm
     (other / "admin_key").write_text("wrong-key\n")
     vloc("map", "list", env_extra={"VLOC_ADMIN_KEY": "", "VLOC_DATA_DIR": str(other)},
          code=1)
+
+
+def test_import_of_a_folder_without_a_usable_image_says_why(vloc, shots, tmp_path):
+    import cv2
+    import numpy as np
+
+    folder = tmp_path / "unusable"
+    folder.mkdir()
+    grey = cv2.imdecode(np.frombuffer(shots[0][0].jpeg, np.uint8), cv2.IMREAD_COLOR)
+    (folder / "no_gps.jpg").write_bytes(cv2.imencode(".jpg", grey)[1].tobytes())
+    (folder / "broken.jpg").write_bytes(b"this is not an image at all")
+    out = vloc("map", "import", str(folder), code=1)
+    assert "no_gps.jpg" in out.stderr and "broken.jpg" in out.stderr
+    assert "no usable image" in out.stderr and "all 2 were skipped" in out.stderr
+    assert "pass None" not in out.stderr and "object at 0x" not in out.stderr
+
+
+def test_no_progress_bar_when_stderr_is_not_a_terminal(vloc, dataset_dir):
+    out = vloc("map", "import", str(dataset_dir), "--pass", "1", "--build")
+    assert "%|" not in out.stderr and "img/s" not in out.stderr
+    map_id = out.stdout.strip()
+    # nothing new: no empty revision, and the command says so
+    again = vloc("map", "build", map_id)
+    assert "up to date: revision 1" in again.stderr
+    assert json.loads(vloc("map", "show", map_id, "--json").stdout)["revision"] == 1
+    vloc("map", "delete", map_id)
+
+
+def test_send_with_capture_times_and_watch_that_gives_up(vloc, sdk, shots, tmp_path):
+    maps, queries = shots
+    m = sdk.create_map("times")
+    sdk.upload_images(m.id, [(s.name, s.jpeg) for s in maps])
+    sdk.wait_for_job(sdk.build_map(m.id).id, timeout=120, poll_interval=0.1)
+    session_id, token = vloc("session", "create", m.id, "--param",
+                             f"n_particles={FAST['n_particles']}").stdout.split()
+    images = [tmp_path / f"t{i}.jpg" for i in range(3)]
+    for path, q in zip(images, queries, strict=False):
+        path.write_bytes(q.jpeg)
+    env = {"VLOC_SESSION_TOKEN": token}
+    sent = [json.loads(line) for line in vloc(
+        "session", "send", session_id, *map(str, images[:2]), "--captured-at",
+        "2013-06-04T13:45:09Z", "--interval", "0.5", env_extra=env).stdout.splitlines()]
+    assert [p["captured_at"] for p in sent] == ["2013-06-04T13:45:09Z",
+                                                "2013-06-04T13:45:09.500000Z"]
+    exif = json.loads(vloc("session", "send", session_id, str(images[2]), "--captured-at",
+                           "exif", env_extra=env).stdout)
+    assert exif["captured_at"].startswith(queries[2].captured_at.strftime("%Y-%m-%dT%H:%M:%S"))
+    vloc("session", "send", session_id, *map(str, images), "--captured-at", "1370353509",
+         "--captured-at", "1370353510", code=2, env_extra=env)
+    vloc("session", "send", session_id, str(images[0]), "--captured-at", "yesterday",
+         code=2, env_extra=env)
+    # two messages wanted, none comes: it gives up instead of hanging
+    out = vloc("session", "watch", session_id, "--count", "2", "--timeout", "0.5",
+               env_extra=env, code=1)
+    assert "no message for 0.5 s after 0 of 2 messages" in out.stderr
+    vloc("session", "delete", session_id, env_extra=env)
+
+
+def test_demo_takes_a_port():
+    assert "--port" in CliRunner().invoke(cli, ["demo", "--help"]).output
+
+
+def test_replay_build_map_reuses_the_map_it_built(sdk, shots):
+    from clients.commands.replay import _existing_map
+
+    maps, _ = shots
+    m = sdk.create_map("replayed pass 1")
+    sdk.upload_images(m.id, [(s.name, s.jpeg) for s in maps])
+    assert _existing_map(sdk, "replayed pass 1", len(maps)) is None  # not built yet
+    sdk.wait_for_job(sdk.build_map(m.id).id, timeout=120, poll_interval=0.1)
+    assert _existing_map(sdk, "replayed pass 1", len(maps)) == m.id
+    assert _existing_map(sdk, "replayed pass 1", len(maps) + 1) is None
+    sdk.delete_map(m.id)

@@ -48,7 +48,8 @@ class FakeStream:
     async def receive(self, timeout=None):
         return await self.server.outbox.get()
 
-    async def send_frame(self, data, *, seq=None, captured_at=None):
+    async def send_frame(self, data, *, seq=None, captured_at=None, metadata=None):
+        self.server.metadata[seq] = metadata
         self.server.take(seq, data, via="ws")
 
     async def __aenter__(self):
@@ -70,6 +71,7 @@ class FakeServer:
         self.max_in_flight = 0
         self.deleted = False
         self.closed = False
+        self.metadata: dict[int, dict | None] = {}
 
     def take(self, seq, data, via) -> None:
         loop = asyncio.get_running_loop()
@@ -95,7 +97,8 @@ class FakeServer:
     async def stream(self, session, timeout=None):
         return FakeStream(self)
 
-    async def send_frame(self, session, data, *, seq, captured_at, content_type):
+    async def send_frame(self, session, data, *, seq, captured_at, content_type, metadata=None):
+        self.metadata[seq] = metadata
         if seq in self.refuse:
             raise Conflict(409, type="urn:vloc:problem:stale-seq", detail="no")
         self.take(seq, data, via="http")
@@ -226,6 +229,32 @@ def test_relit_frames_are_the_pixels_eval_uses(dataset_dir):
         load_replay_data(dataset_dir, photometric="neon")
 
 
+def test_metadata_goes_with_each_frame(dataset_dir):
+    from workers.core.geo import GeoOrigin
+
+    data = load_replay_data(dataset_dir, metadata=("gps", "altitude"), gps_accuracy=5.0)
+    again = load_replay_data(dataset_dir, metadata=("gps", "altitude"), gps_accuracy=5.0)
+    assert [f.metadata for f in data.frames] == [f.metadata for f in again.frames]  # seeded
+    offsets = []
+    for f in data.frames:
+        assert f.metadata["gps_accuracy_m"] == 5.0 and "altitude_m" in f.metadata
+        e, n = GeoOrigin(f.truth_lat, f.truth_lon).to_local(f.metadata["gps_lat"],
+                                                            f.metadata["gps_lon"])
+        offsets.append(float(np.hypot(e, n)))
+    assert 0.0 < np.median(offsets) < 20.0  # about 5 m per axis off the truth
+    for transport in ("http", "ws"):
+        server = FakeServer()
+        run_fake(server, data.frames, transport=transport)
+        assert [server.metadata[f.index] for f in data.frames] == [f.metadata
+                                                                   for f in data.frames]
+    with pytest.raises(ValueError, match="give a GPS accuracy"):
+        load_replay_data(dataset_dir, metadata=("gps",))
+    with pytest.raises(ValueError, match="no heading columns"):
+        load_replay_data(dataset_dir, metadata=("heading",))
+    with pytest.raises(ValueError, match="unknown metadata kinds"):
+        load_replay_data(dataset_dir, metadata=("compass",))
+
+
 # -- against the real app: the same numbers as vloc eval -------------------------------------
 
 
@@ -264,6 +293,18 @@ def test_replay_reproduces_eval(replayed, dataset_dir):
                 offline["modes"][mode][key], abs=1e-6), (mode, key)
     assert replayed["query_frames"] == 9 and replayed["map_images"] == 10
     assert replayed["modes"]["hybrid"]["frames_answered"] == 9
+    # the tracks for the web viewer: the same frames, truth and estimates on both sides
+    assert len(replayed["map_xy"]) == len(offline["map_xy"]) == 10
+    online = {t["mode"]: t for t in replayed["tracks"]}
+    for t in offline["tracks"]:
+        r = online[t["mode"]]
+        assert r["frames"] == t["frames"] == list(range(9))
+        assert r["feature"] == t["feature"]
+        for key in ("truth", "estimate"):
+            assert np.allclose(r[key], t[key], atol=0.011), (t["mode"], key)
+        assert np.allclose(r["error_m"], t["error_m"], atol=0.021)
+        assert np.allclose(t["error_m"], np.linalg.norm(np.subtract(t["estimate"], t["truth"]),
+                                                        axis=1), atol=0.021)
 
 
 def test_replay_over_the_socket_with_two_devices(live_server, dataset_dir, replayed):

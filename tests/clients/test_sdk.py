@@ -36,12 +36,12 @@ from clients.sdk import (
     TooManyRequests,
     TransportError,
     Unauthorized,
+    UnprocessableEntity,
     UnsupportedMediaType,
-    ValidationError,
     VlocError,
     WaitTimeout,
 )
-from clients.sdk._exceptions import error_for_response
+from clients.sdk._exceptions import error_class, error_for_response
 from clients.sdk.testing import in_process_client
 from tests.clients.conftest import ADMIN_KEY, FAST
 
@@ -123,13 +123,13 @@ def test_upload_errors(vloc, shots):
 
     maps, _ = shots
     m = vloc.create_map("bad uploads")
-    with pytest.raises(ValidationError) as info:
+    with pytest.raises(UnprocessableEntity) as info:
         vloc.upload_images(m.id, [("a.jpg", plain_jpeg())])
     assert info.value.kind == "no-image-accepted"
     assert info.value.body["rejected"][0]["reason"] == "no-gps"
     with pytest.raises(PayloadTooLarge):
         vloc.upload_images(m.id, [("bomb.png", png_bomb())], lat=41.0, lon=-83.0)
-    with pytest.raises(ValidationError) as info:
+    with pytest.raises(UnprocessableEntity) as info:
         vloc.upload_images(m.id, [("x.jpg", maps[0].jpeg)], lat=95.0, lon=0.0)
     assert info.value.kind == "validation" and "lat" in info.value.body["detail"]
     vloc.upload_images(m.id, [("a.jpg", maps[0].jpeg)])
@@ -222,9 +222,9 @@ def test_session_errors(vloc, app_client, built_map, session):
     with pytest.raises(Conflict) as info:
         vloc.create_session(vloc.create_map("unbuilt").id)
     assert "built" in info.value.detail
-    with pytest.raises(ValidationError):
+    with pytest.raises(UnprocessableEntity):
         vloc.create_session(built_map, mode="no-such-mode")
-    with pytest.raises(ValidationError) as info:
+    with pytest.raises(UnprocessableEntity) as info:
         vloc.create_session(built_map, params={"n_particles": -5})
     assert info.value.status == 422
     with pytest.raises(NotFound):
@@ -257,6 +257,26 @@ def test_frames_queue_wait_and_read_back(vloc, session, shots):
     assert s.last_pose.seq == 2 and s.stats.sift_share is not None
 
 
+def test_iso_capture_times_and_frame_metadata(vloc, session, shots):
+    _, queries = shots
+    iso = queries[0].captured_at.isoformat().replace("+00:00", "Z")
+    pose = vloc.send_frame(session, queries[0].jpeg, wait=True, captured_at=iso,
+                           metadata={"altitude_m": 250.0, "heading_deg": 10.0,
+                                     "gps_lat": None})
+    assert pose.captured_at == queries[0].captured_at
+    assert pose.altitude_m == 250.0 and pose.decode_ms > 0
+    assert pose.horizontal_accuracy_m > 0 and pose.map_id == session.map_id
+    assert pose.geopose.position.h == 250.0
+    with pytest.raises(ValueError, match="ISO 8601"):
+        vloc.send_frame(session, queries[1].jpeg, captured_at="yesterday")
+    with pytest.raises(ValueError, match="unknown frame metadata"):
+        vloc.send_frame(session, queries[1].jpeg, metadata={"heading": 10.0})
+    with pytest.raises(UnprocessableEntity) as err:
+        vloc.send_frame(session, queries[1].jpeg, metadata={"gps_lat": 41.0})
+    assert "gps_lat" in str(err.value)
+    assert vloc.get_session(session).last_seq == 0
+
+
 def test_frame_errors(vloc, app_client, session, shots):
     from tests.app.imagery import png
 
@@ -272,12 +292,12 @@ def test_frame_errors(vloc, app_client, session, shots):
         vloc.send_frame(session, png(), content_type="image/jpeg")
     with pytest.raises(UnsupportedMediaType):
         vloc.send_frame(session, b"GIF89a....", content_type="image/gif")
-    with pytest.raises(ValidationError) as info:
+    with pytest.raises(UnprocessableEntity) as info:
         vloc.send_frame(session, queries[0].jpeg[:2000], content_type="image/jpeg")
     assert info.value.kind in ("truncated-image", "bad-image")
     with pytest.raises(PayloadTooLarge):
         vloc.send_frame(session, queries[0].jpeg + b"\0" * 500_000)
-    with pytest.raises(ValidationError):
+    with pytest.raises(UnprocessableEntity):
         vloc.send_frame(session, queries[0].jpeg, seq=-1)
     with pytest.raises(Forbidden):
         anonymous(app_client).send_frame(session.id, queries[0].jpeg, token="nope")
@@ -295,9 +315,9 @@ def test_reset_and_initial_pose(vloc, session, shots):
     vloc.set_initial_pose(session, x=1.0, y=-2.0)
     pose = vloc.send_frame(session, queries[2].jpeg, seq=0, wait=True)
     assert pose.n_particles == 60
-    with pytest.raises(ValidationError):
+    with pytest.raises(UnprocessableEntity):
         vloc.set_initial_pose(session, lat=1.0, lon=2.0, x=3.0, y=4.0)
-    with pytest.raises(ValidationError):
+    with pytest.raises(UnprocessableEntity):
         vloc.set_initial_pose(session, lat=91.0, lon=0.0)
 
 
@@ -349,7 +369,7 @@ def test_stream_takes_frames_and_reports_refusals(vloc, session, shots):
         after = poses.receive()
     assert isinstance(first, Pose) and first.seq == 3
     assert first.captured_at == queries[0].captured_at
-    assert isinstance(refused, FrameRejected) and isinstance(refused.error, ValidationError)
+    assert isinstance(refused, FrameRejected) and isinstance(refused.error, UnprocessableEntity)
     assert isinstance(duplicate.error, Conflict) and duplicate.error.kind == "duplicate-seq"
     assert isinstance(after, Pose) and after.seq == 4
 
@@ -473,7 +493,7 @@ async def test_async_client_in_process(tmp_path, shots):
 
 @pytest.mark.parametrize(("status", "cls"), [
     (400, BadRequest), (401, Unauthorized), (403, Forbidden), (404, NotFound), (409, Conflict),
-    (413, PayloadTooLarge), (415, UnsupportedMediaType), (422, ValidationError),
+    (413, PayloadTooLarge), (415, UnsupportedMediaType), (422, UnprocessableEntity),
     (429, TooManyRequests), (500, ServerError), (502, ServerError), (503, ServerError),
     (504, ServerError), (418, APIError)])
 def test_status_to_class(status, cls):
@@ -619,3 +639,49 @@ def test_images_are_typed_by_their_bytes():
     assert image_content_type(b"????", "x.png") == "image/png"
     assert image_content_type(b"????", "x") == "application/octet-stream"
     assert np.isfinite(RetryPolicy().delay(10))
+
+
+def test_the_422_class_no_longer_shadows_pydantic():
+    import clients.sdk as sdk
+
+    assert not hasattr(sdk, "__all__") or "ValidationError" not in sdk.__all__
+    with pytest.warns(DeprecationWarning, match="UnprocessableEntity"):
+        old = sdk.ValidationError
+    assert old is UnprocessableEntity
+    assert error_class(410) is sdk.Gone and error_class(422) is UnprocessableEntity
+
+
+def test_listings_are_read_page_by_page(vloc, shots, monkeypatch):
+    from clients.sdk import _requests
+
+    m = vloc.create_map("paged")
+    vloc.upload_images(m.id, [s.jpeg for s in shots[0][:5]])
+    monkeypatch.setattr(_requests, "PAGE", 2)
+    pages = []
+    call = _requests.list_images
+    monkeypatch.setattr(_requests, "list_images",
+                        lambda *a, **k: pages.append(k) or call(*a, **k))
+    monkeypatch.setattr(_requests, "next_offset", lambda c, items, offset: items[-1].id
+                        if c is _requests.list_images else offset + len(items))
+    images = vloc.list_images(m.id)
+    assert len(images) == 5 and len({i.id for i in images}) == 5 and len(pages) == 3
+    assert m.id in {x.id for x in vloc.list_maps()}
+    vloc.delete_map(m.id)
+
+
+def test_localize_coverage_and_keep_alive(vloc, session, shots):
+    from clients.sdk import Localization
+
+    maps, queries = shots
+    where = vloc.localize(session.map_id, queries[3].jpeg, prior=(queries[3].lat,
+                                                                   queries[3].lon),
+                          prior_sigma_m=30, seed=1, captured_at="2013-06-04T13:45:09Z")
+    assert isinstance(where, Localization) and where.map_id == session.map_id
+    assert where.horizontal_accuracy_m > 0 and where.image_filename is not None
+    with pytest.raises(UnprocessableEntity):
+        vloc.localize(session.map_id, queries[3].jpeg, prior_sigma_m=5)
+    covered = vloc.coverage(maps[0].lat, maps[0].lon)
+    assert session.map_id in [c.map_id for c in covered]
+    assert vloc.coverage(maps[0].lat + 1.0, maps[0].lon) == []
+    alive = vloc.keep_alive(session)
+    assert alive.state == "active" and alive.expires_at > alive.last_active_at

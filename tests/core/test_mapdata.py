@@ -63,3 +63,23 @@ def test_map_without_geometry_loads_with_none(tmp_path):
     data.save(tmp_path / "again")
     assert MapData.load(tmp_path / "again").geometry is None
     assert not list((tmp_path / "again").glob("geometry*"))
+
+
+def test_orb_features_round_trip(tmp_path):
+    from workers.core.features.orb import OrbFeatures
+
+    rng = np.random.default_rng(3)
+    orb = [OrbFeatures(rng.uniform(0, 240, (k, 4)).astype(np.float32),
+                       rng.integers(0, 256, (k, 32), dtype=np.uint8)) for k in (4, 0, 6)]
+    base = _map(np.random.default_rng(0))
+    data = MapData.from_parts(origin=base.origin, names=base.names, positions=base.positions,
+                              altitudes=base.altitudes, global_features=base.global_features,
+                              sift=[base.sift(i) for i in range(3)], orb=orb)
+    assert data.has_orb and not base.has_orb
+    np.testing.assert_array_equal(data.orb_offsets, [0, 4, 4, 10])
+    back = MapData.load(data.save(tmp_path / "map"))
+    for i in range(3):
+        np.testing.assert_array_equal(back.orb(i).descriptors, orb[i].descriptors)
+        np.testing.assert_array_equal(back.orb(i).keypoints, orb[i].keypoints)
+    # a map packed without ORB loads without it
+    assert not MapData.load(base.save(tmp_path / "plain")).has_orb

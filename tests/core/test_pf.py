@@ -14,7 +14,7 @@ from workers.core.pf.config import (
     FilterConfig,
     config_from_params,
 )
-from workers.core.pf.filter import ParticleFilter, cloud_stats
+from workers.core.pf.filter import ParticleFilter, cloud_sample, cloud_stats
 from workers.core.pf.measurement import (
     ImageSimilarity,
     Likelihood,
@@ -127,6 +127,45 @@ def test_cloud_stats_against_eq2_by_hand():
     assert st.sigma_x == pytest.approx(sx)
     assert st.sigma_y == pytest.approx(sy)
     np.testing.assert_allclose(st.cov, np.cov(xy.T, aweights=w, ddof=0))
+
+
+def _cloud_sample_by_loop(xy, w, k):
+    """Walk the particles once, taking each target offset as its particle is passed."""
+    total, out, acc, i = float(np.sum(w)), [], 0.0, 0
+    for j in range(k):
+        target = (j + 0.5) / k * total
+        while acc + w[i] <= target and i < len(w) - 1:
+            acc += w[i]
+            i += 1
+        out.append(xy[i])
+    return np.array(out)
+
+
+def test_cloud_sample_by_hand():
+    xy = np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0], [3.0, 3.0]])
+    w = np.array([0.5, 0.0, 0.25, 0.25])
+    # offsets 1/6, 1/2, 5/6 of the cumulative weights 0.5, 0.5, 0.75, 1; a target on a
+    # boundary goes to the next particle of non-zero weight
+    np.testing.assert_array_equal(cloud_sample(xy, w, k=3), xy[[0, 2, 3]])
+    np.testing.assert_array_equal(cloud_sample(xy, w, k=3), _cloud_sample_by_loop(xy, w, 3))
+    # a cloud no larger than the sample comes back whole, zero weights included
+    np.testing.assert_array_equal(cloud_sample(xy, w, k=4), xy)
+
+
+def test_cloud_sample_matches_a_loop_and_follows_the_weights():
+    rng = np.random.default_rng(4)
+    xy = rng.normal(size=(500, 2))
+    w = rng.gamma(0.3, size=500)
+    w /= w.sum()
+    got = cloud_sample(xy, w, k=64)
+    np.testing.assert_array_equal(got, _cloud_sample_by_loop(xy, w, 64))
+    counts = np.array([np.sum(np.all(got == p, axis=1)) for p in xy])
+    # systematic selection: every particle is drawn floor or ceil of 64 w times, +-1
+    assert np.all(np.abs(counts - 64 * w) < 2)
+    assert counts.sum() == 64
+    state = rng.bit_generator.state
+    cloud_sample(xy, w)
+    assert rng.bit_generator.state == state
 
 
 # -- motion ------------------------------------------------------------------------------

@@ -10,8 +10,9 @@ import pytest
 from clients.world.writer import generate_world
 from tests.core.geometry.scene import HEIGHT, WIDTH, observe, survey, tilted_rotation
 from workers.core.experiment import load_experiment
+from workers.core.features.orb import OrbFeatures
 from workers.core.geo import GeoOrigin
-from workers.core.localisers.refine import MIN_MATCHES, interpolate, refine_sift
+from workers.core.localisers.refine import MIN_MATCHES, interpolate, refine_orb, refine_sift
 from workers.core.localisers.scoring import sift_similarity
 from workers.core.mapbuild import map_geometry
 from workers.core.mapdata import MapData
@@ -173,3 +174,34 @@ def test_uav_world_without_geometry_interpolates_between_map_images(uav_world):
     t = float(np.dot(r.xy - a, b - a) / np.dot(b - a, b - a))
     assert 0.0 <= t <= 0.5
     assert np.linalg.norm(r.xy - truth[k]) <= np.linalg.norm(b - truth[k])
+
+
+def test_uav_world_frames_register_with_orb(uav_world):
+    """The global step's registration: ORB against the map's ORB ground points."""
+    data = uav_world.map_data
+    assert data.has_orb and "orb" in data.geometry.ground
+    errors = []
+    for q, truth in zip(uav_world.queries, uav_world.truth, strict=True):
+        near = np.argsort(np.linalg.norm(np.asarray(data.positions) - truth, axis=1))[:2]
+        r = refine_orb(q.orb()[0], data, near, np.ones(2), frame_shape=q.frame.grey.shape)
+        if r is not None:
+            assert r.kind == "registered" and set(r.images) <= set(near.tolist())
+            errors.append(float(np.linalg.norm(r.xy - truth)))
+    assert len(errors) >= 0.75 * len(uav_world.queries)
+    assert np.median(errors) < 1.0
+
+
+def test_refine_orb_needs_geometry_and_matches(uav_world):
+    data = uav_world.map_data
+    q = uav_world.queries[3]
+    shape = q.frame.grey.shape
+    # no map image scored: nothing to register against
+    assert refine_orb(q.orb()[0], data, np.array([0, 1]), np.zeros(2), frame_shape=shape) is None
+    assert refine_orb(OrbFeatures.empty(), data, np.array([0, 1]), np.ones(2),
+                      frame_shape=shape) is None
+    flat = MapData.from_parts(origin=data.origin, names=list(data.names),
+                              positions=data.positions, altitudes=data.altitudes,
+                              global_features={}, sift=[data.sift(i) for i in range(len(data))],
+                              orb=[data.orb(i) for i in range(len(data))])
+    assert flat.has_orb and flat.geometry is None
+    assert refine_orb(q.orb()[0], flat, np.array([0, 1]), np.ones(2), frame_shape=shape) is None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -123,3 +125,28 @@ def test_gap_to_best_against_a_hand_computed_case():
     assert gap_to_best(positions, scores, 2, point) == 10.0  # ties: earlier position first
     assert gap_to_best(positions, scores, 3, point) == 5.0
     assert gap_to_best(positions, scores, 4, point) == 0.0
+
+
+def _registered_rule(misses):
+    return replace(CONFIGS["default"].switching, global_trust=0, global_misses=misses)
+
+
+def test_misses_of_the_global_registration_send_the_cloud_to_sift():
+    rule = _registered_rule(1)
+    s = SwitchState(GLOBAL)
+    s = decide(rule, s, StepEvidence(GLOBAL, 1.0, registered=False), thresholds=AT_4M,
+               agree_radius=10.0)
+    assert (s.next, s.misses) == (GLOBAL, 1)  # one miss is allowed
+    s = decide(rule, s, StepEvidence(GLOBAL, 1.0, registered=False), thresholds=AT_4M,
+               agree_radius=10.0)
+    assert (s.next, s.misses) == (SIFT, 2)
+    # a fix clears the count; so does a SIFT step
+    assert decide(rule, s, StepEvidence(GLOBAL, 1.0, registered=True), thresholds=AT_4M,
+                  agree_radius=10.0).misses == 0
+    assert decide(rule, s, StepEvidence(SIFT, 1.0), thresholds=AT_4M,
+                  agree_radius=10.0).misses == 0
+    # without the rule (the paper), misses are counted but decide nothing
+    off = _registered_rule(None)
+    s = SwitchState(GLOBAL, misses=5)
+    assert decide(off, s, StepEvidence(GLOBAL, 1.0, registered=False), thresholds=AT_4M,
+                  agree_radius=10.0).next == GLOBAL

@@ -43,7 +43,7 @@ def free_port() -> int:
 
 
 def start_server(data_dir: Path, *, workers: int = 2, env: dict | None = None,
-                 timeout: float = 120.0) -> Server:
+                 timeout: float = 120.0, args: tuple[str, ...] = ()) -> Server:
     port = free_port()
     stderr_path = data_dir.parent / f"server-{port}.log"
     environ = {**os.environ, "VLOC_DATA_DIR": str(data_dir), "VLOC_WORKERS": str(workers),
@@ -53,7 +53,7 @@ def start_server(data_dir: Path, *, workers: int = 2, env: dict | None = None,
     environ.update(env or {})
     process = subprocess.Popen(
         [sys.executable, "-m", "clients.cli", "serve", "--host", "127.0.0.1", "--port",
-         str(port)], cwd=REPO_ROOT, env=environ, stdout=subprocess.DEVNULL,
+         str(port), *args], cwd=REPO_ROOT, env=environ, stdout=subprocess.DEVNULL,
         stderr=stderr_path.open("wb"))
     server = Server(f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}", data_dir, process,
                     stderr_path)

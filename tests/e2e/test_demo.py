@@ -61,6 +61,7 @@ def test_demo_exits_0_and_prints_the_table(demo):
     assert float(rows["sift"][2]) == 100.0 and float(rows["global"][2]) == 0.0
     assert results["frames"] == FRAMES
     assert "hybrid vs sift-only" in proc.stdout and "server: stopped" in proc.stdout
+    assert re.search(r"^viewer: http://127\.0\.0\.1:\d+/ui/ ", proc.stdout, re.M), proc.stdout
 
 
 def test_hybrid_error_close_to_sift_with_fewer_sift_steps(demo):
@@ -107,6 +108,44 @@ def test_ctrl_c_stops_the_server(demo):
     assert proc.returncode == 130, rest
     assert "interrupted; the server was stopped" in rest
     assert not _alive(pid)
+
+
+def test_keep_leaves_the_server_up_for_the_viewer(tmp_path):
+    """``--keep``: after the replay the server stays up with the viewer at the printed
+    address and the demo's map in it, until Ctrl-C."""
+    import httpx
+
+    cmd = [sys.executable, "-m", "clients.cli", "demo", "--frames", "10", "--out",
+           str(tmp_path), "--quiet", "--keep"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, env=clean_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        seen = []
+        for line in proc.stdout:
+            seen.append(line)
+            if line.startswith("server: kept running"):
+                break
+        text = "".join(seen)
+        viewer = re.search(r"^viewer: (http://\S+/ui/) \(sign in with the admin key (\S+)\)",
+                           text, re.M)
+        pid = re.search(r"server: ready at \S+ \(pid (\d+)\)", text)
+        assert viewer and pid and "kept running" in text, text
+        page = httpx.get(viewer.group(1), timeout=10)
+        assert page.status_code == 200 and "vendor/leaflet/leaflet.js" in page.text
+        base = viewer.group(1).removesuffix("/ui/")
+        maps = httpx.get(f"{base}/v1/maps", timeout=10,
+                         headers={"Authorization": f"Bearer {viewer.group(2)}"}).json()
+        assert [(m["name"], m["status"]) for m in maps] == [("demo street", "ready")]
+        proc.send_signal(signal.SIGINT)
+        rest = proc.communicate(timeout=120)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, rest
+    assert "server: stopped" in rest
+    assert not _alive(int(pid.group(1)))
+    # kept: the server's data folder, with its database
+    assert list(tmp_path.glob("vloc-demo-*/vloc.sqlite3"))
 
 
 def _alive(pid: int) -> bool:

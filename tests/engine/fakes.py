@@ -43,7 +43,7 @@ class CountingLocaliser:
         self.offset = offset
         self.stats = {"steps": 0}
 
-    def step(self, frame, *, captured_at=None) -> Estimate:
+    def step(self, frame, *, captured_at=None, metadata=None) -> Estimate:
         if float(frame.grey.mean()) > 250:
             raise RuntimeError("frame too bright for the fake")
         self.count += 1
@@ -79,3 +79,33 @@ def make_recording(mode: str, map_data, params: dict, *, seed: int) -> CountingL
     loc.map_data = map_data
     loc.seed = seed
     return loc
+
+
+def make_map_probe(mode: str, map_data, params: dict, *, seed: int) -> CountingLocaliser:
+    """A counting localiser whose ``stats`` tell how its process holds the map's arrays."""
+    loc = CountingLocaliser()
+    positions = map_data.positions
+    base = positions
+    while getattr(base, "base", None) is not None:
+        base = base.base
+    loc.stats = {"pid": os.getpid(), "n_images": len(map_data),
+                 "writeable": bool(positions.flags.writeable),
+                 "owns_data": bool(positions.flags.owndata),
+                 "base": type(base).__module__ + "." + type(base).__name__}
+    return loc
+
+
+class GatedLocaliser(CountingLocaliser):
+    """Steps only while the file ``gate`` exists: lets a test hold a frame in its worker."""
+
+    def __init__(self, gate: str) -> None:
+        super().__init__()
+        self.gate = gate
+
+    def step(self, frame, *, captured_at=None, metadata=None) -> Estimate:
+        wait_for_file(self.gate, timeout=60.0)
+        return super().step(frame, captured_at=captured_at, metadata=metadata)
+
+
+def make_gated(mode: str, map_data, params: dict, *, seed: int) -> GatedLocaliser:
+    return GatedLocaliser(params["gate"])

@@ -10,7 +10,16 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.engine import Checkpoint, FrameDone, FrameFailed, LocalEngine, SessionSpec, WorkerDied
+from tests.engine import fakes
+from workers.engine import (
+    Checkpoint,
+    Engine,
+    FrameDone,
+    FrameFailed,
+    LocalEngine,
+    SessionSpec,
+    WorkerDied,
+)
 
 FACTORY = "tests.engine.fakes:make_counting"
 TIMEOUT = 60
@@ -48,6 +57,12 @@ def test_call_runs_in_a_worker_process_and_returns_its_value(engine):
     assert engine.call("tests.engine.fakes:square", 7).result(TIMEOUT) == 49
     pid = engine.call("tests.engine.fakes:pid").result(TIMEOUT)
     assert pid in engine.worker_pids() and pid != os.getpid()
+
+
+def test_a_function_passed_by_reference_runs_in_a_worker(engine):
+    assert isinstance(engine, Engine) and not engine.shared
+    assert engine.call(fakes.square, 8).result(TIMEOUT) == 64
+    assert engine.call(fakes.pid).result(TIMEOUT) in engine.worker_pids()
 
 
 def test_call_error_comes_back_as_the_builtin_type(engine):

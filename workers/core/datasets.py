@@ -24,6 +24,7 @@ import numpy as np
 from workers.core.exif import GpsError, read_gps
 from workers.core.geo import GeoOrigin, check_lat_lon
 from workers.core.image import WORK_SIZE, Frame, ImageError, load_frame
+from workers.core.metadata import METADATA_FIELDS, FrameMetadata
 
 IMAGE_SUFFIXES: tuple[str, ...] = (".jpg", ".jpeg", ".png")
 CSV_NAMES: tuple[str, ...] = ("ground_truth.csv", "positions.csv")
@@ -35,6 +36,8 @@ _COLUMNS = {
     "alt": ("alt_m", "alt", "altitude"),
     "captured_at": ("captured_at",),
     "pass": ("pass",),
+    # optional device metadata per frame (workers.core.metadata.FrameMetadata)
+    **{name: (name,) for name in METADATA_FIELDS},
 }
 
 
@@ -63,6 +66,9 @@ class DatasetImage:
         ``"exif"`` when the position comes from EXIF GPS, ``"csv"`` when from the CSV.
     truth_lat, truth_lon, truth_alt : float or None
         The CSV's position for this image (ground truth for evaluation), None without one.
+    metadata : FrameMetadata or None
+        What the device reported with the frame, from the CSV's metadata columns
+        (``heading_deg``, ``gps_lat``, ``gps_accuracy_m`` ...), None without any.
     """
 
     name: str
@@ -76,6 +82,7 @@ class DatasetImage:
     truth_lat: float | None = None
     truth_lon: float | None = None
     truth_alt: float | None = None
+    metadata: FrameMetadata | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -352,6 +359,12 @@ def _parse_row(row: dict[str, str]) -> dict:
         out["captured_at"] = datetime.fromisoformat(row["captured_at"])
     if row.get("pass"):
         out["pass"] = int(row["pass"])
+    cells = {name: row[name] for name in METADATA_FIELDS if row.get(name)}
+    if cells:
+        try:
+            out["metadata"] = FrameMetadata(**{k: float(v) for k, v in cells.items()})
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"bad metadata: {exc}") from None
     return out
 
 
@@ -379,7 +392,7 @@ def _position(path: Path, row: dict[str, str] | None, csv_name: str) -> DatasetI
         name=path.name, path=path, lat=lat, lon=lon, alt=alt,
         captured_at=captured or given.get("captured_at"), pass_=given.get("pass"),
         source=source, truth_lat=given.get("lat"), truth_lon=given.get("lon"),
-        truth_alt=given.get("alt"))
+        truth_alt=given.get("alt"), metadata=given.get("metadata"))
 
 
 def _instant(when: datetime) -> datetime:

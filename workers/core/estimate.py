@@ -46,6 +46,13 @@ class Estimate:
     heading_deg, heading_sigma_deg : float or None
         Compass bearing (degrees clockwise from north) of the top edge of the frame and its
         standard deviation, where camera geometry gave one this step; None otherwise.
+    metadata_used : str
+        Which kinds of the frame's metadata (:data:`workers.core.metadata.METADATA_KINDS`)
+        the step used, joined by ``"+"``; empty when none.
+    gps_gate : str
+        ``""`` when the frame carried no GPS fix, ``"used"`` when the fix was fused,
+        ``"rejected"`` when it was ignored for disagreeing with the visual estimate (a
+        jumping or spoofed fix).
     """
 
     x: float
@@ -64,9 +71,13 @@ class Estimate:
     measurement: str = ""
     heading_deg: float | None = None
     heading_sigma_deg: float | None = None
+    metadata_used: str = ""
+    gps_gate: str = ""
+    cloud: tuple[tuple[float, float], ...] = ()
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["status"] = str(self.status)
         d["cov"] = list(self.cov)
+        d["cloud"] = [list(p) for p in self.cloud]
         return d

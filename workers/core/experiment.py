@@ -16,6 +16,7 @@ from .datasets import Dataset, DatasetImage, load_dataset, load_frames, split
 from .image import prepare
 from .mapbuild import assemble_map, extract_image_features, typical_focal_px
 from .mapdata import MapData
+from .metadata import FrameMetadata
 from .query import QueryFrame
 
 
@@ -68,3 +69,65 @@ def load_experiment(folder: str | Path, *, rule: str = "pass", map_pass: int | N
                for i, (f, im) in enumerate(zip(frames, query_images, strict=True))]
     return Experiment(ds, map_images, query_images, map_data, queries,
                       truth_positions(query_images, map_data), photometric)
+
+
+def frame_metadata(exp: Experiment, kinds: tuple[str, ...], *, gps_accuracy: float | None = None,
+                   heading_sigma: float = 5.0, seed: int = 0) -> list[FrameMetadata | None]:
+    """Per query frame, the device metadata of the named kinds, for ``--use-metadata``.
+
+    Each kind comes from the data set's CSV columns where it has them. Where it has not
+    (seneca-uav records only the GPS it is evaluated against), it is simulated from the
+    truth, seeded:
+
+    - ``gps``: a fix of horizontal accuracy ``gps_accuracy`` (metres, one standard deviation
+      per axis): the true position plus Gaussian noise of that size. Needs ``gps_accuracy``.
+    - ``heading``: a compass of ``heading_sigma`` degrees: the camera heading that SIFT
+      registration against the map's geometry gives where that solve lies within 10 m of
+      the true position (the only heading truth a nadir data set has), plus noise; frames
+      without such a solve carry no heading.
+    - ``velocity``: the true track's velocity between neighbouring frames (with times)
+      plus noise of 10 % of the speed.
+    - ``altitude``: the image's own altitude tag.
+    """
+    from .localisers.refine import refine_sift
+    from .metadata import METADATA_KINDS
+
+    unknown = set(kinds) - set(METADATA_KINDS)
+    if unknown:
+        raise ValueError(f"unknown metadata kinds {sorted(unknown)}; valid: "
+                         f"{', '.join(METADATA_KINDS)}")
+    rng = np.random.default_rng(seed)
+    md = exp.map_data
+    truth = exp.truth
+    times = np.array([np.nan if q.captured_at is None else q.captured_at for q in exp.queries])
+    out: list[FrameMetadata | None] = []
+    for i, (img, q) in enumerate(zip(exp.query_images, exp.queries, strict=True)):
+        given = img.metadata.only(kinds) if img.metadata is not None else FrameMetadata()
+        fields = given.to_dict()
+        if "gps" in kinds and not given.has_gps:
+            if gps_accuracy is None:
+                raise ValueError("the data set has no GPS columns: give a GPS accuracy to "
+                                 "simulate a fix from the truth")
+            xy = truth[i] + rng.normal(0.0, gps_accuracy, size=2)
+            lat, lon = md.origin.to_wgs84(xy[0], xy[1])
+            fields.update(gps_lat=float(lat), gps_lon=float(lon), gps_accuracy_m=gps_accuracy)
+        if "heading" in kinds and not given.has_heading and md.geometry is not None:
+            near = np.argsort(np.linalg.norm(np.asarray(md.positions) - truth[i], axis=1))[:3]
+            fix = refine_sift(q.sift()[0], md, near, np.ones(len(near)),
+                              frame_shape=q.frame.grey.shape)
+            if (fix is not None and fix.heading_deg is not None
+                    and np.linalg.norm(fix.xy - truth[i]) <= 10.0):
+                fields.update(heading_deg=float((fix.heading_deg + rng.normal(0.0, heading_sigma))
+                                                % 360.0),
+                              heading_accuracy_deg=heading_sigma)
+        if "velocity" in kinds and not given.has_velocity and len(truth) > 1:
+            a, b = max(i - 1, 0), min(i + 1, len(truth) - 1)
+            dt = times[b] - times[a]
+            if np.isfinite(dt) and dt > 0:
+                v = (truth[b] - truth[a]) / dt
+                v = v + rng.normal(0.0, 0.1 * float(np.hypot(*v)) + 1e-3, size=2)
+                fields.update(velocity_east=float(v[0]), velocity_north=float(v[1]))
+        if "altitude" in kinds and given.altitude_m is None and img.alt is not None:
+            fields.update(altitude_m=float(np.clip(img.alt, -500.0, 10_000.0)))
+        out.append(FrameMetadata(**fields) if fields else None)
+    return out

@@ -105,15 +105,25 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
     image = cv2.imdecode(buf, flag)
     if image is None:
         raise ImageError("corrupt or truncated image")
-    if _looks_truncated(data):
+    if looks_truncated(data):
         raise ImageError("truncated image")
     return image
 
 
-def _looks_truncated(data: bytes) -> bool:
+def image_kind(data: bytes) -> str | None:
+    """``"jpeg"`` or ``"png"`` from the magic bytes, else None."""
+    if data[:3] == b"\xff\xd8\xff":
+        return "jpeg"
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        return "png"
+    return None
+
+
+def looks_truncated(data: bytes) -> bool:
     """JPEG streams must end with the EOI marker; PNG streams with the IEND chunk.
 
-    OpenCV silently fills a truncated JPEG with grey, so the check is explicit.
+    OpenCV silently fills a truncated JPEG with grey, so the check is explicit. The API
+    applies the same check to uploads before storing them (:mod:`app.imagecheck`).
     """
     tail = data.rstrip(b"\x00")[-12:]
     if data[:2] == b"\xff\xd8":

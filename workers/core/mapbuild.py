@@ -116,17 +116,20 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         times = np.array([np.nan if t is None else t for t in captured_at], np.float64)
     trained = train_descriptors(features, descriptors, seed=seed)
     glob.update({name: matrix for name, (_, matrix) in trained.items()})
+    have_orb = all(f.orb is not None for f in features)
     data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
                               global_features=glob, sift=sift, map_id=map_id,
                               revision=revision, captured_at=times, sift_keep=keep,
-                              vocabularies={n: v for n, (v, _) in trained.items()})
+                              vocabularies={n: v for n, (v, _) in trained.items()},
+                              orb=[f.orb for f in features] if have_orb else None)
     if geometry:
         data.geometry = map_geometry(data, focal_px=focal_px, seed=seed)
     return data
 
 
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0):
-    """The map's camera geometry with every stored SIFT keypoint on the ground, or None."""
+    """The map's camera geometry with every stored SIFT (and ORB) keypoint on the ground,
+    or None."""
     width, height = WORK_SIZE
     f = focal_px if focal_px else focal_from_fov(DEFAULT_HFOV_DEG, width)
     n = len(data)
@@ -136,6 +139,8 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0)
                          Intrinsics.centred(f, width, height), rng=np.random.default_rng(seed))
     if geo is not None:
         geo.add_ground("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets))
+        if data.has_orb:
+            geo.add_ground("orb", np.asarray(data.orb_keypoints), np.asarray(data.orb_offsets))
     return geo
 
 

@@ -17,6 +17,9 @@ sift_descriptors : (K, 128) uint8
 sift_keep : (K,) bool
     Keypoints kept by the neighbour reduction (Weiss III); all keypoints are stored so a
     localiser can choose to match against the full or the reduced set.
+orb_offsets, orb_keypoints, orb_descriptors : (N + 1,) int64, (L, 4) float32, (L, 32) uint8
+    The map images' ORB features, laid out as the SIFT ones; the cheap local features that
+    register frames on global steps. None for maps packed before they were stored.
 vocabularies[name] : Vocabulary
     The vocabulary of each place descriptor in ``global_features`` (trained on this map's
     own local features at build), saved as ``vocab_{name}_centroids.npy``,
@@ -41,6 +44,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .features.orb import OrbFeatures
 from .features.vocabulary import Vocabulary
 from .geo import GeoOrigin
 from .geometry import MapGeometry
@@ -63,6 +67,9 @@ class MapData:
     sift_keep: np.ndarray | None = None
     geometry: MapGeometry | None = None
     vocabularies: dict[str, Vocabulary] = field(default_factory=dict)
+    orb_offsets: np.ndarray | None = None
+    orb_keypoints: np.ndarray | None = None
+    orb_descriptors: np.ndarray | None = None
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
     _spacing: float | None = field(default=None, repr=False, compare=False)
     _reduced: tuple | None = field(default=None, repr=False, compare=False)
@@ -83,6 +90,8 @@ class MapData:
             self.sift_keep = np.ones(len(self.sift_descriptors), dtype=bool)
         if self.sift_keep.shape != (len(self.sift_descriptors),):
             raise ValueError("sift_keep must have one entry per keypoint")
+        if self.orb_offsets is not None and self.orb_offsets.shape != (n + 1,):
+            raise ValueError("orb_offsets must have one more entry than there are images")
         if self.captured_at is None:
             self.captured_at = np.full(n, np.nan)
         self.captured_at = np.asarray(self.captured_at, np.float64)
@@ -114,6 +123,15 @@ class MapData:
             offsets, kps, desc = self.sift_offsets, self.sift_keypoints, self.sift_descriptors
         a, b = int(offsets[i]), int(offsets[i + 1])
         return SiftFeatures(kps[a:b], desc[a:b])
+
+    @property
+    def has_orb(self) -> bool:
+        return self.orb_offsets is not None
+
+    def orb(self, i: int) -> OrbFeatures:
+        """ORB features of map image ``i`` (the map must have them: :attr:`has_orb`)."""
+        a, b = int(self.orb_offsets[i]), int(self.orb_offsets[i + 1])
+        return OrbFeatures(self.orb_keypoints[a:b], self.orb_descriptors[a:b])
 
     def _reduced_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self._reduced is None:
@@ -171,13 +189,10 @@ class MapData:
                    global_features: dict[str, np.ndarray], sift: list[SiftFeatures],
                    map_id: str = "", revision: int = 0,
                    captured_at=None, sift_keep: list[np.ndarray] | None = None,
-                   vocabularies: dict[str, Vocabulary] | None = None) -> MapData:
-        counts = np.array([len(s) for s in sift], dtype=np.int64)
-        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        kps = (np.concatenate([s.keypoints for s in sift]) if sift
-               else np.zeros((0, 4), np.float32))
-        desc = (np.concatenate([s.descriptors for s in sift]) if sift
-                else np.zeros((0, 128), np.uint8))
+                   vocabularies: dict[str, Vocabulary] | None = None,
+                   orb: list[OrbFeatures] | None = None) -> MapData:
+        offsets, kps, desc = _concatenate(sift, 128)
+        orb_parts = (None, None, None) if orb is None else _concatenate(orb, 32)
         return cls(origin=origin, names=tuple(names),
                    positions=np.asarray(positions, np.float64).reshape(-1, 2),
                    altitudes=np.asarray(altitudes, np.float64),
@@ -189,7 +204,8 @@ class MapData:
                    else np.asarray(captured_at, np.float64),
                    sift_keep=None if sift_keep is None or not sift
                    else np.concatenate(sift_keep).astype(bool),
-                   vocabularies=dict(vocabularies or {}))
+                   vocabularies=dict(vocabularies or {}), orb_offsets=orb_parts[0],
+                   orb_keypoints=orb_parts[1], orb_descriptors=orb_parts[2])
 
     # -- persistence as a folder of .npy files (memory-mappable) ---------------------------
 
@@ -205,6 +221,10 @@ class MapData:
         np.save(tmp / "sift_descriptors.npy", self.sift_descriptors)
         np.save(tmp / "captured_at.npy", self.captured_at)
         np.save(tmp / "sift_keep.npy", self.sift_keep)
+        if self.has_orb:
+            np.save(tmp / "orb_offsets.npy", self.orb_offsets)
+            np.save(tmp / "orb_keypoints.npy", self.orb_keypoints)
+            np.save(tmp / "orb_descriptors.npy", self.orb_descriptors)
         for name, mat in self.global_features.items():
             np.save(tmp / f"global_{name}.npy", mat)
         for name, vocab in self.vocabularies.items():
@@ -214,7 +234,7 @@ class MapData:
                 np.save(tmp / f"vocab_{name}_projection.npy", vocab.projection)
         meta = {"origin": [self.origin.lat, self.origin.lon, self.origin.alt],
                 "names": list(self.names), "features": sorted(self.global_features),
-                "map_id": self.map_id, "revision": self.revision,
+                "map_id": self.map_id, "revision": self.revision, "orb": self.has_orb,
                 "vocabularies": {name: {"branching": v.branching, "depth": v.depth,
                                         "binary": v.binary,
                                         "projected": v.projection is not None}
@@ -233,6 +253,7 @@ class MapData:
         folder = Path(folder)
         meta = json.loads((folder / "meta.json").read_text())
         mode = "r" if mmap else None
+        orb = bool(meta.get("orb", False))
 
         def ld(name: str) -> np.ndarray:
             return np.load(folder / name, mmap_mode=mode)
@@ -250,4 +271,18 @@ class MapData:
                    sift_descriptors=ld("sift_descriptors.npy"), map_id=meta["map_id"],
                    revision=int(meta["revision"]), captured_at=ld("captured_at.npy"),
                    sift_keep=ld("sift_keep.npy"), vocabularies=vocabularies,
-                   geometry=MapGeometry.load(folder, mmap=mmap))
+                   geometry=MapGeometry.load(folder, mmap=mmap),
+                   orb_offsets=ld("orb_offsets.npy") if orb else None,
+                   orb_keypoints=ld("orb_keypoints.npy") if orb else None,
+                   orb_descriptors=ld("orb_descriptors.npy") if orb else None)
+
+
+def _concatenate(parts, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-image local features as (offsets, keypoints, descriptors) arrays."""
+    counts = np.array([len(p) for p in parts], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    kps = (np.concatenate([p.keypoints for p in parts]) if parts
+           else np.zeros((0, 4), np.float32))
+    desc = (np.concatenate([p.descriptors for p in parts]) if parts
+            else np.zeros((0, width), np.uint8))
+    return offsets, kps.astype(np.float32), desc.astype(np.uint8)

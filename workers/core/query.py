@@ -21,6 +21,7 @@ from .features.descriptors import describe, local_vectors
 from .features.orb import OrbFeatures, extract_orb
 from .features.vocabulary import Vocabulary
 from .image import Frame
+from .metadata import FrameMetadata
 from .sift import SiftFeatures, extract_sift, reduce_with_previous
 
 
@@ -34,12 +35,16 @@ class QueryFrame:
         Capture time, seconds since the epoch.
     key : hashable or None
         Identity of the frame for caches shared across runs (e.g. its index in a sequence).
+    metadata : FrameMetadata or None
+        What the device's other sensors reported with the frame.
     """
 
-    def __init__(self, frame: Frame, captured_at: float | None = None, key=None) -> None:
+    def __init__(self, frame: Frame, captured_at: float | None = None, key=None,
+                 metadata: FrameMetadata | None = None) -> None:
         self.frame = frame
         self.captured_at = captured_at
         self.key = key
+        self.metadata = metadata
         self._global: dict[str, np.ndarray] = {}
         self._global_ms: dict[str, float] = {}
         self._sift: SiftFeatures | None = None

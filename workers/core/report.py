@@ -24,6 +24,39 @@ def results_dict(results: dict[str, dict[str, ModeSummary]]) -> dict:
     return {"modes": first["modes"], "configs": configs}
 
 
+def tracks_dict(map_xy: np.ndarray, results: dict[str, dict[str, ModeSummary]]) -> dict:
+    """The first run of every (config, mode) as JSON-ready lists, for the web viewer.
+
+    Parameters
+    ----------
+    map_xy : (M, 2) float ndarray
+        Map image positions, east/north metres in the map's frame.
+    results : {config: {mode: ModeSummary}}
+
+    Returns
+    -------
+    dict
+        ``{"map_xy": [[x, y], ...], "tracks": [{"config", "mode", "start", "frames",
+        "truth", "estimate", "error_m", "feature", "status"}, ...]}``; positions and errors
+        in metres, rounded to centimetres.
+    """
+    def xy(a: np.ndarray) -> list[list[float]]:
+        return np.round(np.asarray(a, dtype=np.float64).reshape(-1, 2), 2).tolist()
+
+    tracks = []
+    for config, modes in results.items():
+        for mode, summary in modes.items():
+            if not summary.runs:
+                continue
+            run = summary.runs[0]
+            tracks.append({"config": config, "mode": mode, "start": int(run.start),
+                           "frames": [int(f) for f in run.frames], "truth": xy(run.truth),
+                           "estimate": xy(run.estimate),
+                           "error_m": np.round(run.errors, 2).tolist(),
+                           "feature": list(run.feature), "status": [str(s) for s in run.status]})
+    return {"map_xy": xy(map_xy), "tracks": tracks}
+
+
 def _fmt(v: float, nd: int = 1) -> str:
     return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{nd}f}"
 

@@ -6,6 +6,7 @@ worker's own result pipe. Frames are identified by (session id, seq) end to end.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 DEFAULT_FACTORY = "workers.core.localisers:make_localiser"
@@ -58,6 +59,7 @@ class FrameTask:
     data: bytes
     captured_at: float | None = None
     checkpoint: bool = True
+    metadata: dict | None = None  # FrameMetadata.to_dict()
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,10 +74,11 @@ class ControlTask:
 
 @dataclass(frozen=True, slots=True)
 class CallTask:
-    """Run ``fn`` (``"module:function"``) with the arguments; build jobs use this."""
+    """Run ``fn`` (a module-level function, pickled by reference, or ``"module:function"``)
+    with the arguments; build jobs use this."""
 
     call_id: int
-    fn: str
+    fn: Callable | str
     args: tuple = ()
     kwargs: dict = field(default_factory=dict)
 

@@ -89,6 +89,7 @@ class LocalEngine:
             start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         if start_method == "fork":
             raise ValueError("the fork start method is unsafe with threads; use forkserver")
+        self.shared = False
         self.n_workers = n_workers
         self.on_outcome = on_outcome
         self.checkpoint_every = checkpoint_every
@@ -188,10 +189,12 @@ class LocalEngine:
 
     # -- sessions ---------------------------------------------------------------------------
 
-    def open_session(self, spec: SessionSpec, *, state: bytes | None = None) -> Future:
+    def open_session(self, spec: SessionSpec, *, state: bytes | None = None,
+                     last_seq: int | None = None) -> Future:
         """Pin a session to the least busy worker and create its localiser there.
 
-        ``state`` restores a checkpoint. The future resolves once the localiser exists, or
+        ``state`` restores a checkpoint. ``last_seq`` is for shared engines: the API process
+        numbers the frames of a local engine's sessions itself. The future resolves once the localiser exists, or
         fails with the worker's error (the session is then not open).
         """
         fut: Future = Future()
@@ -221,8 +224,11 @@ class LocalEngine:
             return self._pinned[session_id]
 
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
-                     captured_at: float | None = None) -> None:
+                     captured_at: float | None = None, metadata: dict | None = None) -> None:
         """Queue a frame; its outcome comes back through ``on_outcome``.
+
+        ``metadata`` is :meth:`workers.core.metadata.FrameMetadata.to_dict` of the frame's
+        sensor reports, already validated.
 
         Raises KeyError when the session is not open, ``EngineClosed`` when stopped.
         """
@@ -232,7 +238,8 @@ class LocalEngine:
             n = self._counts[session_id] = self._counts[session_id] + 1
             slot.frames[(session_id, seq)] = None
             slot.tasks.put(FrameTask(session_id, seq, data, captured_at,
-                                     checkpoint=n % self.checkpoint_every == 0))
+                                     checkpoint=n % self.checkpoint_every == 0,
+                                     metadata=metadata))
 
     def pending_frames(self, session_id: str) -> int:
         with self._lock:
@@ -265,8 +272,9 @@ class LocalEngine:
 
     # -- calls ------------------------------------------------------------------------------
 
-    def call(self, fn: str, *args, **kwargs) -> Future:
-        """Run ``fn`` (``"module:function"``) on the least busy worker."""
+    def call(self, fn: Callable | str, *args, **kwargs) -> Future:
+        """Run ``fn`` (a module-level function, or ``"module:function"``) on the least busy
+        worker."""
         fut: Future = Future()
         with self._lock:
             self._check_running()

@@ -9,6 +9,7 @@ through the page cache.
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import signal
 import threading
@@ -45,6 +46,10 @@ def resolve(ref: str) -> Callable:
     return getattr(importlib.import_module(module), attr)
 
 
+def _function(fn: Callable | str) -> Callable:
+    return fn if callable(fn) else resolve(fn)
+
+
 class WorkerState:
     """The sessions and maps one worker holds; :meth:`handle` runs one task."""
 
@@ -62,7 +67,7 @@ class WorkerState:
             return self._guarded(task.call_id, task.session_id, self._control, task)
         if isinstance(task, CallTask):
             return self._guarded(task.call_id, None,
-                                 lambda t: (resolve(t.fn)(*t.args, **t.kwargs), None), task)
+                                 lambda t: (_function(t.fn)(*t.args, **t.kwargs), None), task)
         if isinstance(task, CloseSession):
             self._close(task.session_id)
             return None
@@ -76,6 +81,7 @@ class WorkerState:
             return FrameFailed(task.session_id, task.seq, "not_open",
                                "the session is not open on its worker")
         from workers.core.image import ImageError, load_frame
+        from workers.core.metadata import FrameMetadata
 
         localiser = held[1]
         t0 = time.perf_counter()
@@ -85,7 +91,8 @@ class WorkerState:
             return FrameFailed(task.session_id, task.seq, "bad_image", str(exc))
         decode_ms = (time.perf_counter() - t0) * 1e3
         try:
-            estimate = localiser.step(frame, captured_at=task.captured_at)
+            estimate = localiser.step(frame, captured_at=task.captured_at,
+                                      metadata=FrameMetadata.from_dict(task.metadata))
             state = localiser.get_state() if task.checkpoint else None
         except Exception as exc:  # noqa: BLE001 - reported on the stream, the worker lives on
             return FrameFailed(task.session_id, task.seq, "error",
@@ -112,7 +119,13 @@ class WorkerState:
             localiser.reset()
         elif task.op == "set_initial_pose":
             x, y = self._local_xy(spec, task.kwargs)
-            localiser.set_initial_pose(x, y, float(task.kwargs.get("sigma", 5.0)))
+            heading = {k: float(task.kwargs[k]) for k in ("heading_deg", "heading_sigma_deg")
+                       if task.kwargs.get(k) is not None}
+            if heading and "heading_deg" not in inspect.signature(
+                    localiser.set_initial_pose).parameters:
+                raise ValueError(f"the {spec.mode} localiser keeps no heading between frames; "
+                                 "send the heading with each frame (heading_deg) instead")
+            localiser.set_initial_pose(x, y, float(task.kwargs.get("sigma", 5.0)), **heading)
         elif task.op == "stats":
             return dict(getattr(localiser, "stats", {})), None
         else:

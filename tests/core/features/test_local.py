@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.core.features.orb import MAX_KEYPOINTS, extract_orb, unpack_bits
+from workers.core.features.orb import MAX_KEYPOINTS, extract_orb, hamming_ratio_matches, unpack_bits
 from workers.core.features.rootsift import rootsift
 
 
@@ -97,3 +97,35 @@ def test_rootsift_equals_a_loop_and_hellinger():
     assert ((r[0] - r[1]) ** 2).sum() == pytest.approx(hellinger_sq, rel=1e-5)
     with pytest.raises(ValueError, match="128"):
         rootsift(np.zeros((2, 64)))
+
+
+def _hamming_ratio_loop(a: np.ndarray, b: np.ndarray, ratio: float) -> list[tuple[int, int]]:
+    """The slow obvious reference: every distance by counting differing bits."""
+    out = []
+    for i, da in enumerate(a):
+        d = [sum(bin(int(x) ^ int(y)).count("1") for x, y in zip(da, db, strict=True))
+             for db in b]
+        order = sorted(range(len(b)), key=lambda j: (d[j], j))
+        if d[order[0]] < ratio * d[order[1]]:
+            out.append((i, order[0]))
+    return out
+
+
+def test_hamming_ratio_matches_equal_a_loop():
+    rng = np.random.default_rng(5)
+    b = rng.integers(0, 256, (60, 32), dtype=np.uint8)
+    # half the queries are noisy copies of rows of b, half unrelated
+    a = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    a[:20] = b[:20] ^ (rng.random((20, 32)) < 0.02).astype(np.uint8)
+    got = hamming_ratio_matches(a, b, ratio=0.8)
+    want = _hamming_ratio_loop(a, b, 0.8)
+    # a tie for nearest is resolved by either side alike only when the distances differ
+    assert sorted(map(tuple, got.tolist())) == sorted(want)
+    assert {(i, i) for i in range(20)} <= set(map(tuple, got.tolist()))
+    assert got.shape[1] == 2 and got.dtype == np.int64
+
+
+def test_hamming_ratio_matches_need_two_candidates():
+    a = np.zeros((3, 32), np.uint8)
+    assert hamming_ratio_matches(a, a[:1]).shape == (0, 2)
+    assert hamming_ratio_matches(a[:0], a).shape == (0, 2)

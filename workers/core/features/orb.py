@@ -97,3 +97,32 @@ def unpack_bits(descriptors: np.ndarray) -> np.ndarray:
     bits : (K, 8 B) float32 ndarray of 0.0 and 1.0
     """
     return np.unpackbits(np.asarray(descriptors, dtype=np.uint8), axis=1).astype(np.float32)
+
+
+_HAMMING = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+
+def hamming_ratio_matches(a: np.ndarray, b: np.ndarray, *, ratio: float = 0.8) -> np.ndarray:
+    """Ratio-test matches from binary descriptors ``a`` into ``b`` by Hamming distance.
+
+    A match is kept when the nearest descriptor of ``b`` is closer than ``ratio`` times the
+    second nearest (Lowe's test); a tie for nearest fails it. OpenCV's brute-force matcher
+    finds the two nearest.
+
+    Parameters
+    ----------
+    a : (Ka, B) uint8 ndarray
+    b : (Kb, B) uint8 ndarray
+    ratio : float
+
+    Returns
+    -------
+    matches : (M, 2) int64 ndarray
+        Rows of (index into a, index into b), in the order of ``a``.
+    """
+    if len(a) == 0 or len(b) < 2:
+        return np.zeros((0, 2), np.int64)
+    pairs = _HAMMING.knnMatch(np.ascontiguousarray(a, np.uint8),
+                              np.ascontiguousarray(b, np.uint8), k=2)
+    out = [(m.queryIdx, m.trainIdx) for m, n in pairs if m.distance < ratio * n.distance]
+    return np.array(out, np.int64).reshape(-1, 2)

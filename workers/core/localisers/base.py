@@ -13,6 +13,7 @@ import numpy as np
 from ..estimate import Estimate, Status
 from ..image import Frame
 from ..mapdata import MapData
+from ..metadata import FrameMetadata
 from ..query import QueryFrame
 
 SPREAD_CANDIDATES = 5
@@ -48,12 +49,15 @@ def candidate_spread(map_xy: np.ndarray, idx: np.ndarray, score: np.ndarray) -> 
     return (d * w[:, None]).T @ d
 
 
-def as_query(frame: Frame | QueryFrame, captured_at: float | None) -> QueryFrame:
+def as_query(frame: Frame | QueryFrame, captured_at: float | None,
+             metadata: FrameMetadata | None = None) -> QueryFrame:
     if isinstance(frame, QueryFrame):
         if captured_at is not None:
             frame.captured_at = captured_at
+        if metadata is not None:
+            frame.metadata = metadata
         return frame
-    return QueryFrame(frame, captured_at)
+    return QueryFrame(frame, captured_at, metadata=metadata)
 
 
 def pack_state(arrays: dict[str, np.ndarray], meta: dict) -> bytes:
@@ -91,9 +95,11 @@ class Localiser(ABC):
         self.rng = np.random.default_rng(self.seed)
         self.stats = {"steps": 0, "sift_steps": 0, "global_steps": 0}
 
-    def step(self, frame: Frame | QueryFrame, *, captured_at: float | None = None) -> Estimate:
-        """Localise one frame (``captured_at`` in seconds since the epoch, if known)."""
-        query = as_query(frame, captured_at)
+    def step(self, frame: Frame | QueryFrame, *, captured_at: float | None = None,
+             metadata: FrameMetadata | None = None) -> Estimate:
+        """Localise one frame (``captured_at`` in seconds since the epoch, if known; the
+        device's other sensors in ``metadata``, each used where the localiser can)."""
+        query = as_query(frame, captured_at, metadata)
         t0 = time.perf_counter()
         est = self._step(query, t0)
         self.stats["steps"] += 1

@@ -16,17 +16,19 @@ import numpy as np
 from ..estimate import Estimate, Status
 from ..features import DESCRIPTORS
 from ..mapdata import MapData
+from ..metadata import FrameMetadata
 from ..pf import switching
 from ..pf.config import config_from_params
-from ..pf.filter import ParticleFilter, StepResult
+from ..pf.filter import ParticleFilter, StepResult, cloud_sample, cloud_stats
 from ..pf.measurement import ImageSimilarity, Likelihood, Position
 from ..pf.motion import MotionModel
 from ..pf.switching import GLOBAL, SIFT, StepEvidence, SwitchState
 from ..query import QueryFrame
 from ..sift import SiftFeatures
 from .base import Localiser
-from .refine import Refinement, refine_sift
+from .refine import Refinement, refine_orb, refine_sift
 from .scoring import check_map_features, global_similarity, sift_similarity
+from .sensors import Sensors, heading_agrees, read_sensors
 
 MIN_REDUCED_KEYPOINTS = 20
 """Below this many keypoints surviving the match with the previous frame, the frame is kept
@@ -68,6 +70,13 @@ class FilterLocaliser(Localiser):
         self.pf = ParticleFilter(np.asarray(map_data.positions), map_data.tree, cfg,
                                  self.motion, scale, self.rng)
         self.pinned = PINNED.get(mode)
+        # Where global steps register against the map's geometry, their fixes judge them
+        # frame by frame and the running trust in the global features is not needed.
+        self.registers_globally = (cfg.refine.enabled and cfg.refine.on_global
+                                   and map_data.has_orb and map_data.geometry is not None
+                                   and "orb" in map_data.geometry.ground)
+        if self.registers_globally:
+            self.config = cfg = replace(cfg, switching=replace(cfg.switching, global_trust=0))
         self.switch = SwitchState(switching.start(self.pinned))
         self.thresholds = switching.thresholds(cfg.switching, self.motion.sigma(None))
         # Agreement within one map spacing (or d_global, if larger): the scaled thresholds
@@ -76,27 +85,37 @@ class FilterLocaliser(Localiser):
         self.prev_sift: SiftFeatures | None = None
         self.prev_key = None
         self.last_time: float | None = None
+        # the tracked velocity (drift) and the last step with a metric fix: (time, x, y)
+        self.drift: np.ndarray | None = None
+        self.anchor: tuple[float, float, float] | None = None
+        self.clock = 0.0
 
     def _step(self, query: QueryFrame, t0: float) -> Estimate:
         dt = None
         if query.captured_at is not None and self.last_time is not None:
             dt = query.captured_at - self.last_time
         used = self.switch.next
-        measurement, feat_ms = self._measurement(query, used)
-        fixes: list[Refinement] = []
-        refine = self._refiner(query, fixes) if used == SIFT else None
-        t_filter = time.perf_counter()
-        result = self.pf.step([measurement], dt, refine=refine)
-        evidence = StepEvidence(used, result.stats.spread, self._global_gap(used, result))
-        filter_ms = (time.perf_counter() - t_filter) * 1e3
+        sensors = self._sensors(query.metadata, dt)
+        allowed = self.config.switching.global_misses or 0
+        escalate = (used == GLOBAL and self.pinned is None and self.config.switching.escalate)
+        before = self.pf.snapshot() if escalate else None
+        result, fixes, tried, ms = self._filter_step(query, used, dt, sensors)
+        if escalate and tried and not fixes and self.switch.misses + 1 > allowed:
+            # the cheap step found no fix that agrees with the cloud: this frame gets SIFT
+            self.pf.restore(before)
+            used = SIFT
+            result, fixes, tried, more_ms = self._filter_step(query, used, dt, sensors)
+            ms += more_ms
+        self._track(dt, result.stats.mean, anchored=bool(fixes))
+        evidence = StepEvidence(used, result.stats.spread, self._global_gap(used, result),
+                                registered=bool(fixes) if tried else None)
         if switching.judges_trust(self.config.switching, used, self.pinned):
             t_judge = time.perf_counter()
             trust_gap, extract_ms = self._trust_gap(query, result.stats.mean)
             evidence = replace(evidence, trust_gap=trust_gap)
             # the check's own time, plus extraction done earlier and cached on the frame
             judge_ms = (time.perf_counter() - t_judge) * 1e3
-            filter_ms += judge_ms
-            feat_ms += max(extract_ms - judge_ms, 0.0)
+            ms += judge_ms + max(extract_ms - judge_ms, 0.0)
         self.switch = switching.decide(self.config.switching, self.switch, evidence,
                                        thresholds=self.thresholds,
                                        agree_radius=self._agree_radius, pinned=self.pinned)
@@ -109,26 +128,100 @@ class FilterLocaliser(Localiser):
         fix = fixes[0] if fixes else None
         heading = None if fix is None or fix.heading_deg is None \
             else (fix.heading_deg, fix.heading_sigma_deg)
-        return self._result(result, used, feat_ms + filter_ms, heading)
+        return replace(self._result(result, used, ms, heading),
+                       metadata_used="+".join(sensors.used), gps_gate=sensors.gps_gate)
 
-    def _refiner(self, query: QueryFrame, fixes: list[Refinement]):
+    def _filter_step(self, query: QueryFrame, used: str, dt: float | None,
+                     sensors: Sensors) -> tuple[StepResult, list[Refinement], bool, float]:
+        """One filter step with ``used``'s measurement: the result, the metric fixes it
+        found, whether it tried to refine, and its milliseconds (extraction included)."""
+        measurement, feat_ms = self._measurement(query, used)
+        fixes: list[Refinement] = []
+        refine = self._refiner(query, used, fixes, sensors.heading)
+        t_filter = time.perf_counter()
+        drift = sensors.velocity if sensors.velocity is not None \
+            else (self.drift if self.config.motion.drift else None)
+        result = self.pf.step([measurement, *sensors.positions], dt, refine=refine,
+                              drift=drift)
+        return result, fixes, refine is not None, feat_ms + (time.perf_counter() - t_filter) * 1e3
+
+    def _sensors(self, metadata: FrameMetadata | None, dt: float | None) -> Sensors:
+        """What the frame's metadata adds to the step (:func:`.sensors.read_sensors`),
+        judged against the cloud as the last step left it."""
+        if metadata is None:
+            return Sensors()
+        return read_sensors(metadata, self.map.origin, cloud_stats(self.pf.xy, self.pf.w),
+                            self.motion.sigma(dt))
+
+    def _refiner(self, query: QueryFrame, used: str, fixes: list[Refinement],
+                 compass: tuple[float, float] | None = None):
         """The step's metric refinement (None when off): it solves the frame's pose against
-        the map images the SIFT measurement scored best and records what it found."""
+        the map images the step's measurement ranks best and records what it found.
+
+        SIFT steps register with SIFT against the best SIFT-scored images (or interpolate
+        between them on maps without geometry). Global steps, under ``refine_global`` on a
+        map with ORB ground points, register with ORB against the particles' images the
+        global features rank best; such a fix is used only where it lies within the gate
+        of the predicted cloud and has enough inliers, and the switching rule hears of it.
+        """
         cfg = self.config.refine
         if not cfg.enabled:
             return None
+        if used == SIFT:
+            def refine(likelihoods: tuple[Likelihood, ...]) -> Position | None:
+                images = likelihoods[0]
+                order = np.argsort(-images.similarities, kind="stable")
+                fix = refine_sift(query.sift()[0], self.map, images.scored[order],
+                                  images.similarities[order], frame_shape=query.frame.grey.shape)
+                if fix is None or not heading_agrees(fix, compass):
+                    return None
+                fixes.append(fix)
+                return Position(fix.kind, fix.xy, fix.sigma, cfg.outlier)
 
-        def refine(likelihoods: tuple[Likelihood, ...]) -> Position | None:
+            return refine
+        if not self.registers_globally:
+            return None
+
+        def refine_global(likelihoods: tuple[Likelihood, ...]) -> Position | None:
             images = likelihoods[0]
-            order = np.argsort(-images.similarities, kind="stable")
-            fix = refine_sift(query.sift()[0], self.map, images.scored[order],
-                              images.similarities[order], frame_shape=query.frame.grey.shape)
-            if fix is None:
+            # the predicted cloud's own images, best first under the global features
+            near = np.unique(self.pf.tree.query(self.pf.xy)[1])
+            sims = np.zeros(len(self.map))
+            sims[images.scored] = images.similarities
+            order = near[np.argsort(-sims[near], kind="stable")]
+            fix = refine_orb(query.orb()[0], self.map, order, sims[order] + 1e-12,
+                             frame_shape=query.frame.grey.shape)
+            if fix is None or fix.inliers < cfg.global_inliers \
+                    or not heading_agrees(fix, compass):
+                return None
+            mean = self.pf.xy.mean(axis=0)
+            if np.linalg.norm(fix.xy - mean) > self._gate_radius():
                 return None
             fixes.append(fix)
             return Position(fix.kind, fix.xy, fix.sigma, cfg.outlier)
 
-        return refine
+        return refine_global
+
+    def _track(self, dt: float | None, mean: np.ndarray, *, anchored: bool) -> None:
+        """Update the tracked velocity from consecutive steps with metric fixes."""
+        nominal = self.motion.nominal_dt
+        self.clock += dt if dt is not None and np.isfinite(dt) and dt > 0 else nominal
+        if not anchored:
+            if self.anchor is not None and self.clock - self.anchor[0] > 3.0 * nominal:
+                self.drift, self.anchor = None, None  # too long without a fix to trust it
+            return
+        if self.anchor is not None:
+            gap = self.clock - self.anchor[0]
+            v = (np.asarray(mean, np.float64) - np.array(self.anchor[1:])) / gap
+            limit = 3.0 * (self.motion.speed or self.motion.sigma_floor / nominal)
+            if float(np.hypot(*v)) <= limit:
+                self.drift = v if self.drift is None else 0.5 * (self.drift + v)
+        self.anchor = (self.clock, float(mean[0]), float(mean[1]))
+
+    def _gate_radius(self) -> float:
+        """How far from the predicted cloud's mean a global step's fix may lie (m)."""
+        spread = float(np.sqrt(np.trace(np.cov(self.pf.xy.T))))
+        return max(self._agree_radius, self.config.refine.gate * spread)
 
     def _result(self, result: StepResult, used: str, processing_ms: float,
                 heading: tuple[float, float] | None = None) -> Estimate:
@@ -141,10 +234,13 @@ class FilterLocaliser(Localiser):
             self.stats["ever_tracked"] = 1
         images = result.likelihoods[0]
         best = int(images.scored[np.argmax(images.similarities)]) if len(images.scored) else -1
-        return self._estimate(stats.mean, stats.cov, feature=used, next_feature=self.switch.next,
-                              measurement="+".join(result.kinds), n_particles=len(self.pf.w),
-                              status=status, processing_ms=processing_ms, best_image=best,
-                              heading=heading)
+        est = self._estimate(stats.mean, stats.cov, feature=used, next_feature=self.switch.next,
+                             measurement="+".join(result.kinds), n_particles=len(self.pf.w),
+                             status=status, processing_ms=processing_ms, best_image=best,
+                             heading=heading)
+        # centimetres are plenty for a display and keep the streamed message small
+        sample = np.round(cloud_sample(self.pf.xy, self.pf.w), 2)
+        return replace(est, cloud=tuple((float(x), float(y)) for x, y in sample))
 
     # -- measurements ----------------------------------------------------------------------
 
@@ -228,12 +324,19 @@ class FilterLocaliser(Localiser):
             arrays["prev_desc"] = self.prev_sift.descriptors
         # the next feature type sits beside the particles, where checkpoints have kept it
         meta["mode"] = self.switch.next
-        return arrays, {"pf": meta, "last_time": self.last_time, "trust": self.switch.trust}
+        return arrays, {"pf": meta, "last_time": self.last_time, "trust": self.switch.trust,
+                        "misses": self.switch.misses, "clock": self.clock,
+                        "anchor": None if self.anchor is None else list(self.anchor),
+                        "drift": None if self.drift is None else self.drift.tolist()}
 
     def _load(self, arrays: dict[str, np.ndarray], meta: dict) -> None:
         self.pf.load({k[3:]: v for k, v in arrays.items() if k.startswith("pf_")}, meta["pf"])
-        self.switch = SwitchState(meta["pf"]["mode"], float(meta["trust"]))
+        self.switch = SwitchState(meta["pf"]["mode"], float(meta["trust"]),
+                                  int(meta.get("misses", 0)))
         self.last_time = meta["last_time"]
+        self.clock = float(meta.get("clock", 0.0))
+        self.anchor = None if meta.get("anchor") is None else tuple(meta["anchor"])
+        self.drift = None if meta.get("drift") is None else np.asarray(meta["drift"], float)
         if "prev_desc" in arrays:
             self.prev_sift = SiftFeatures(arrays["prev_kp"], arrays["prev_desc"])
         else:
@@ -244,9 +347,12 @@ class FilterLocaliser(Localiser):
         self.pf.initialise()
         self.switch = SwitchState(switching.start(self.pinned))
         self.prev_sift, self.prev_key, self.last_time = None, None, None
+        self.drift, self.anchor = None, None
         self.stats.pop("ever_tracked", None)
 
     def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:
         self.pf.set_pose(x, y, sigma)
+        self.drift, self.anchor = None, None
         self.switch = replace(self.switch, next=switching.start(self.pinned))
         self.prev_sift, self.prev_key = None, None
+

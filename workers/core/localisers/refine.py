@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..features.orb import OrbFeatures, hamming_ratio_matches
 from ..geometry import Registration, register_against
 from ..mapdata import MapData
 from ..sift import SiftFeatures, ratio_matches
@@ -81,28 +82,73 @@ def refine_sift(query: SiftFeatures, map_data: MapData, ranked: np.ndarray,
     frame_shape : (height, width)
     max_images : int
         Map images to match against.
+
+    Returns
+    -------
+    Refinement or None
+        Registered where the map has camera geometry, else interpolated between the
+        images; None when too few matches.
     """
-    positive = np.asarray(scores) > 0
-    ranked = np.asarray(ranked)[positive][:max_images]
-    scores = np.asarray(scores, np.float64)[positive][:max_images]
+    ranked, scores = _best(ranked, scores, max_images)
     if len(query) == 0 or len(ranked) == 0:
         return None
-    geometry = map_data.geometry
     q_desc = np.asarray(query.descriptors, dtype=np.float32)
-    offsets = np.asarray(map_data.sift_offsets)
-    matches = []
-    for i in ranked:
-        ref = map_data.sift(int(i))
-        m = ratio_matches(q_desc, ref.descriptors, ratio=REFINE_RATIO)
-        if len(m) >= MIN_MATCHES:
-            matches.append((int(i), m[:, 0], m[:, 1] + int(offsets[int(i)])))
+    matches = _matches(ranked, np.asarray(map_data.sift_offsets),
+                       lambda i: ratio_matches(q_desc, map_data.sift(i).descriptors,
+                                               ratio=REFINE_RATIO))
     if not matches:
         return None
-    if geometry is not None:
-        reg = register_against(geometry, "sift", np.asarray(query.keypoints), matches,
-                               frame_shape=frame_shape)
+    if map_data.geometry is not None:
+        reg = register_against(map_data.geometry, "sift", np.asarray(query.keypoints),
+                               matches, frame_shape=frame_shape)
         return None if reg is None else Refinement.from_registration(reg)
     return interpolate(map_data, ranked, scores)
+
+
+def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
+               scores: np.ndarray, *, frame_shape: tuple[int, int],
+               max_images: int = 2) -> Refinement | None:
+    """Refine with ORB: register against the best-ranked map images' ground points.
+
+    The cheap counterpart of :func:`refine_sift` for global steps: binary descriptors
+    matched by Hamming distance, the same pose solver. Only a registration counts: without
+    camera geometry the global similarities already say which images are near.
+
+    Parameters are those of :func:`refine_sift`, with the frame's ORB features.
+    """
+    geometry = map_data.geometry
+    if geometry is None or "orb" not in geometry.ground or not map_data.has_orb:
+        return None
+    ranked, _ = _best(ranked, scores, max_images)
+    if len(query) == 0 or len(ranked) == 0:
+        return None
+    matches = _matches(ranked, np.asarray(map_data.orb_offsets),
+                       lambda i: hamming_ratio_matches(query.descriptors,
+                                                       map_data.orb(i).descriptors,
+                                                       ratio=REFINE_RATIO))
+    if not matches:
+        return None
+    reg = register_against(geometry, "orb", np.asarray(query.keypoints), matches,
+                           frame_shape=frame_shape)
+    return None if reg is None else Refinement.from_registration(reg)
+
+
+def _best(ranked: np.ndarray, scores: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``k`` ranked images that scored above zero, with their scores."""
+    positive = np.asarray(scores) > 0
+    return (np.asarray(ranked)[positive][:k],
+            np.asarray(scores, np.float64)[positive][:k])
+
+
+def _matches(images: np.ndarray, offsets: np.ndarray,
+             match) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """``(image, frame rows, global map rows)`` for each image with enough matches."""
+    out = []
+    for i in images.tolist():
+        m = match(int(i))
+        if len(m) >= MIN_MATCHES:
+            out.append((int(i), m[:, 0], m[:, 1] + int(offsets[int(i)])))
+    return out
 
 
 def interpolate(map_data: MapData, images: np.ndarray, scores: np.ndarray) -> Refinement | None:

@@ -58,6 +58,38 @@ def cloud_stats(xy: np.ndarray, w: np.ndarray) -> CloudStats:
                       float(np.sqrt(max(cov[1, 1], 0.0))))
 
 
+CLOUD_SAMPLE = 64
+"""Particles an estimate carries for display: enough to show the cloud's shape, small enough
+to stream ten times a second."""
+
+
+def cloud_sample(xy: np.ndarray, w: np.ndarray, k: int = CLOUD_SAMPLE) -> np.ndarray:
+    """``k`` particles drawn in proportion to their weights, without randomness.
+
+    Systematic selection at the fixed offsets ``(i + 0.5) / k`` of the cumulative weights: a
+    particle of weight ``w`` is chosen about ``k * w`` times, and the same cloud always gives
+    the same sample, so drawing it leaves the filter's random stream untouched.
+
+    Parameters
+    ----------
+    xy : (m, 2) float ndarray
+    w : (m,) float ndarray, non-negative, not all zero
+    k : int
+        Sample size; a cloud of at most ``k`` particles is returned whole.
+
+    Returns
+    -------
+    (min(k, m), 2) float ndarray
+    """
+    if len(xy) <= k:
+        return np.asarray(xy, dtype=float).copy()
+    cum = np.cumsum(w, dtype=float)
+    targets = (np.arange(k) + 0.5) / k * cum[-1]
+    # clip: rounding can leave the last target a hair above the final cumulative weight
+    idx = np.minimum(np.searchsorted(cum, targets, side="right"), len(xy) - 1)
+    return np.asarray(xy, dtype=float)[idx]
+
+
 @dataclass(frozen=True)
 class StepResult:
     """What one filter step produced.
@@ -126,6 +158,14 @@ class ParticleFilter:
         self.v = self._random_velocity(m)
         self.w = np.full(m, 1.0 / m)
 
+    def snapshot(self) -> tuple:
+        """The cloud as it is, for :meth:`restore` (a step taken and then taken back)."""
+        return (self.xy.copy(), self.w.copy(), None if self.v is None else self.v.copy(),
+                self.steps)
+
+    def restore(self, snapshot: tuple) -> None:
+        self.xy, self.w, self.v, self.steps = snapshot
+
     def _uniform(self, k: int) -> np.ndarray:
         lo, hi = self.bounds
         return lo + self.rng.random((k, 2)) * (hi - lo)
@@ -139,7 +179,7 @@ class ParticleFilter:
     # -- one step ------------------------------------------------------------------------
 
     def step(self, measurements: Sequence[Measurement], dt: float | None, *,
-             refine: RefineFn | None = None) -> StepResult:
+             refine: RefineFn | None = None, drift: np.ndarray | None = None) -> StepResult:
         """Run one filter step.
 
         Parameters
@@ -154,6 +194,9 @@ class ParticleFilter:
             (``config.refine.inject``) is first drawn around it: sensor resetting
             (Lenser and Veloso 2000), so the posterior has particles where the position
             says the platform is even when the motion spread the cloud thin.
+        drift : (2,) float ndarray or None
+            The platform's tracked velocity (m/s) for the motion step
+            (:meth:`MotionModel.move`).
 
         Returns
         -------
@@ -167,7 +210,7 @@ class ParticleFilter:
             self.v = self.v[idx]
         # 2. move
         self.xy, self.v = self.motion.move(self.xy, self.v, dt, self.tree, self.map_xy,
-                                           self.rng)
+                                           self.rng, drift=drift)
         # 3. weight
         likelihoods = tuple(m.likelihood(self.xy, self.tree) for m in measurements)
         position = refine(likelihoods) if refine is not None else None

@@ -51,8 +51,8 @@ class MotionModel:
         return float(np.hypot(self.sigma_floor, self.speed * dt))
 
     def move(self, xy: np.ndarray, v: np.ndarray | None, dt: float | None,
-             tree: cKDTree, map_xy: np.ndarray, rng: np.random.Generator
-             ) -> tuple[np.ndarray, np.ndarray | None]:
+             tree: cKDTree, map_xy: np.ndarray, rng: np.random.Generator, *,
+             drift: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Move particles by one step.
 
         Parameters
@@ -62,6 +62,9 @@ class MotionModel:
         dt : float or None
         tree, map_xy : nearest-neighbour structure and (N, 2) positions of the map images
         rng : numpy.random.Generator
+        drift : (2,) float ndarray or None
+            The platform's velocity (m/s) as the filter tracks it: every particle moves by
+            ``drift * dt`` and the position noise halves, since the drift carries the motion.
 
         Returns
         -------
@@ -75,6 +78,10 @@ class MotionModel:
             # of the speed (turns), the position noise the rest.
             v = v + rng.normal(0.0, 0.35 * self.speed, size=(m, 2))
             xy = xy + v * step_dt + rng.normal(0.0, 0.5 * sigma, size=(m, 2))
+        elif drift is not None:
+            step_dt = self.nominal_dt if dt is None or not np.isfinite(dt) or dt <= 0 else dt
+            xy = xy + np.asarray(drift, np.float64) * step_dt \
+                + rng.normal(0.0, 0.5 * sigma, size=(m, 2))
         else:
             xy = xy + rng.normal(0.0, sigma, size=(m, 2))
         if self.pull > 0 and len(map_xy):

@@ -23,6 +23,15 @@ Two checks beyond the paper, off in ``weiss2008``:
   running share (:data:`TRUST_RATE`); while that share is below ``global_trust_level`` the
   rule vetoes global steps.
 
+One check for maps with camera geometry, off in ``weiss2008``:
+
+- ``global_misses``: global steps register the frame with cheap local features
+  (``StepEvidence.registered``); after more than ``global_misses`` global steps in a row
+  without a fix that agrees with the cloud, the next step is SIFT. The fix, not the cloud's
+  spread, shows that the cheap step still knows where it is: on real images the motion
+  between frames can be large enough that the spread alone would allow long runs of
+  unanchored global steps.
+
 The ``global`` and ``sift`` localisers pin the feature type (``pinned``): the rule then
 always answers the pinned type and leaves the trust alone.
 """
@@ -55,10 +64,13 @@ class SwitchState:
         Feature type of the next step.
     trust : float
         Running share of SIFT steps on which the global features agreed, in [0, 1].
+    misses : int
+        Global steps in a row whose registration gave no usable fix.
     """
 
     next: str = SIFT
     trust: float = 0.0
+    misses: int = 0
 
 
 @dataclass(frozen=True)
@@ -78,12 +90,16 @@ class StepEvidence:
         SIFT steps under ``global_trust``: distance (m) from the estimate to the nearest of
         the ``global_trust`` best map images under the global features; None where not
         judged.
+    registered : bool or None
+        Global steps that tried to register the frame: whether a fix was found and agreed
+        with the cloud; None where no registration was tried.
     """
 
     used: str
     spread: float
     global_gap: float | None = None
     trust_gap: float | None = None
+    registered: bool | None = None
 
 
 def start(pinned: str | None = None) -> str:
@@ -155,6 +171,13 @@ def decide(rule: SwitchingConfig, state: SwitchState, evidence: StepEvidence, *,
             # the global features disagree with the cloud: a sign of trouble that the
             # cloud's own spread cannot show
             nxt = SIFT
+    misses = state.misses
+    if evidence.used == GLOBAL and evidence.registered is not None:
+        misses = 0 if evidence.registered else misses + 1
+        if rule.global_misses is not None and misses > rule.global_misses:
+            nxt = SIFT
+    elif evidence.used == SIFT:
+        misses = 0
     trust = state.trust
     if rule.global_trust:
         if evidence.trust_gap is not None:
@@ -162,4 +185,4 @@ def decide(rule: SwitchingConfig, state: SwitchState, evidence: StepEvidence, *,
             trust = (1.0 - TRUST_RATE) * trust + TRUST_RATE * agree
         if trust < rule.global_trust_level:
             nxt = SIFT
-    return SwitchState(nxt, trust)
+    return SwitchState(nxt, trust, misses)

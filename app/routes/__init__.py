@@ -1,0 +1,1 @@
+"""Route maps: a taught image sequence with odometry, partitioned and relaxed."""

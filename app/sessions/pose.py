@@ -1,0 +1,255 @@
+"""The pose record, mapped once.
+
+:class:`~app.sessions.schemas.PoseEstimate` declares a pose's fields. Everything else is
+derived from it here:
+
+- the columns of ``pose_estimates`` (:func:`pose_columns`), from each field's type;
+- a stream message from a worker's estimate (:func:`from_estimate`): fields of the core's
+  :class:`~workers.core.estimate.Estimate` are copied by name;
+- a row's values from a message (:func:`to_row`) and a message from a row
+  (:func:`from_row`).
+
+So a field is added to the schema (and to the migration that adds its column), and nowhere
+else. An object or list field (other than ``cov``) is stream-only: it has no column, and
+must have a default so that a stored pose reads back without it. ``cov`` is stored as four columns; the session's map and revision are the session's,
+not stored per pose; ``geopose`` is computed from the other fields.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import types
+import typing
+import uuid
+from dataclasses import dataclass
+from datetime import datetime
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic.fields import FieldInfo
+from sqlalchemy import JSON, BigInteger, Boolean, Column, Float, Integer, String, Text
+from sqlalchemy.types import TypeEngine
+
+from app.db import UTCDateTime
+from app.sessions.schemas import PoseEstimate, PoseFields
+from workers.core.accuracy import horizontal_accuracy
+from workers.core.estimate import Status
+
+NOT_STORED = ("type", "session_id", "seq", "map_id", "map_revision")
+"""Fields that are no column of their own: the key, and the session's map."""
+COV_COLUMNS = ("cov_xx", "cov_xy", "cov_yx", "cov_yy")
+JSON_FIELDS = ("navigation",)
+"""Object fields that are stored whole, as one JSON column."""
+WIDE_INTS = ("image_id",)
+"""Integer fields that hold another table's 64-bit id."""
+IMAGE_IDS_FILE = "image_ids.json"
+"""Beside a packed map revision: the database id of each of its images, in map order."""
+
+
+def stored_fields() -> tuple[str, ...]:
+    """The fields with a column: every one but the key, the session's map and the
+    stream-only ones (objects and lists other than ``cov``, such as a sample of the
+    particle cloud: they go out on the stream and are not kept)."""
+    return tuple(n for n, info in PoseEstimate.model_fields.items()
+                 if n not in NOT_STORED
+                 and (n == "cov" or n in JSON_FIELDS or _scalar(info.annotation)))
+
+
+def _scalar(annotation) -> bool:
+    base, _ = _unwrap_any(annotation)
+    return base in (bool, int, float, str, datetime) or \
+        typing.get_origin(base) is typing.Literal or \
+        (isinstance(base, type) and issubclass(base, enum.Enum))
+
+
+def _unwrap_any(annotation) -> tuple[object, bool]:
+    """As :func:`_unwrap`, but a union of several types is returned whole."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return (args[0] if len(args) == 1 else annotation), True
+    return annotation, False
+
+
+# -- the table ---------------------------------------------------------------------------------
+
+def pose_columns() -> list[Column]:
+    """The columns of ``pose_estimates`` that hold a pose's fields."""
+    columns = []
+    for name in stored_fields():
+        info = PoseEstimate.model_fields[name]
+        if name == "cov":
+            columns += [Column(c, Float(), nullable=False) for c in COV_COLUMNS]
+            continue
+        if name in JSON_FIELDS:
+            columns.append(Column(name, JSON(), nullable=True))
+            continue
+        sql, nullable = _sql_type(name, info)
+        columns.append(Column(name, sql, nullable=nullable))
+    return columns
+
+
+def _sql_type(name: str, info: FieldInfo) -> tuple[TypeEngine, bool]:
+    base, nullable = _unwrap(info.annotation)
+    if base is bool:
+        return Boolean(), nullable
+    if base is int:
+        wide = BigInteger().with_variant(Integer(), "sqlite")
+        return (wide if name in WIDE_INTS else Integer()), nullable
+    if base is float:
+        return Float(), nullable
+    if base is datetime:
+        return UTCDateTime(), nullable
+    if typing.get_origin(base) is typing.Literal or (
+            isinstance(base, type) and issubclass(base, enum.Enum)):
+        return String(16), nullable
+    if base is str:
+        limit = next((m.max_length for m in info.metadata
+                      if getattr(m, "max_length", None) is not None), None)
+        return (String(limit) if limit else Text()), nullable
+    raise TypeError(f"PoseEstimate.{name}: no column type for {info.annotation!r}")
+
+
+def _unwrap(annotation) -> tuple[object, bool]:
+    """``X | None`` -> (X, True); ``X`` -> (X, False)."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(args) != 1:
+            raise TypeError(f"no column type for {annotation!r}")
+        return args[0], True
+    return annotation, False
+
+
+# -- rows --------------------------------------------------------------------------------------
+
+def to_row(msg: dict) -> dict:
+    """Column values of a pose message (:meth:`PoseEstimate.model_dump` in JSON mode)."""
+    row = {}
+    for name in stored_fields():
+        value = msg[name]
+        if name == "cov":
+            row.update(zip(COV_COLUMNS, value, strict=True))
+            continue
+        if isinstance(value, str) and _unwrap(
+                PoseEstimate.model_fields[name].annotation)[0] is datetime:
+            value = datetime.fromisoformat(value)
+        row[name] = value
+    return row
+
+
+def from_row(row, *, map_id: uuid.UUID, map_revision: int) -> PoseEstimate:
+    """A stored pose (a :class:`~app.sessions.models.Pose`) as its schema."""
+    values = {n: getattr(row, n) for n in stored_fields() if n != "cov"}
+    return PoseEstimate(session_id=row.session_id, seq=row.seq, map_id=map_id,
+                        map_revision=map_revision,
+                        cov=[getattr(row, c) for c in COV_COLUMNS], **values)
+
+
+# -- from a worker's estimate --------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class RevisionImages:
+    """The images of one packed map revision, in map order (an estimate's ``best_image``
+    indexes them)."""
+
+    ids: tuple[int, ...] | None
+    """None for a revision packed before the ids were written beside it."""
+    names: tuple[str, ...]
+
+    def lookup(self, index: int) -> tuple[int | None, str | None]:
+        if not 0 <= index < len(self.names):
+            return None, None
+        return (self.ids[index] if self.ids is not None else None), self.names[index]
+
+
+@lru_cache(maxsize=64)
+def revision_images(folder: str) -> RevisionImages:
+    """Read once per revision folder (a packed revision never changes)."""
+    path = Path(folder)
+    try:
+        names = tuple(json.loads((path / "meta.json").read_text())["names"])
+    except (OSError, ValueError, KeyError):
+        return RevisionImages(None, ())
+    try:
+        ids = tuple(int(i) for i in json.loads((path / IMAGE_IDS_FILE).read_text()))
+    except (OSError, ValueError):
+        ids = None
+    if ids is not None and len(ids) != len(names):
+        ids = None
+    return RevisionImages(ids, names)
+
+
+def write_image_ids(folder: str | Path, image_ids: list[int]) -> None:
+    """Record the database ids of a packed revision's images beside it."""
+    (Path(folder) / IMAGE_IDS_FILE).write_text(json.dumps([int(i) for i in image_ids]))
+
+
+def judge(core_status: str, accuracy_m: float, *, bound_m: float,
+          converged_before: bool) -> tuple[Status, bool]:
+    """The pose's status and ``converged`` flag.
+
+    Converged: the localiser tracks and the accuracy is within ``bound_m``. Until the first
+    converged estimate (of the session, or since a reset or an initial pose), a tracking
+    estimate is still ``initialising``; after it, one that is not converged is
+    ``tracking`` as the localiser says, or ``lost``.
+    """
+    status = Status(core_status)
+    converged = status is Status.TRACKING and accuracy_m <= bound_m
+    if status is Status.TRACKING and not converged and not converged_before:
+        status = Status.INITIALISING
+    return status, converged
+
+
+@dataclass(frozen=True, slots=True)
+class FrameContext:
+    """What the service knows of a frame beside the worker's estimate."""
+
+    session_id: str
+    seq: int
+    map_id: str
+    map_revision: int
+    map_folder: str
+    captured_at: datetime | None
+    received_at: datetime
+    metadata: dict | None
+    decode_ms: float
+    latency_ms: float
+
+
+def from_estimate(estimate: dict, ctx: FrameContext, *, bound_m: float,
+                  converged_before: bool) -> PoseEstimate:
+    """The pose message of an estimate (:meth:`workers.core.estimate.Estimate.to_dict`)."""
+    return PoseEstimate(**pose_fields(
+        estimate, map_id=ctx.map_id, map_revision=ctx.map_revision,
+        map_folder=ctx.map_folder, metadata=ctx.metadata, decode_ms=ctx.decode_ms,
+        bound_m=bound_m, converged_before=converged_before) | {
+        "session_id": ctx.session_id, "seq": ctx.seq, "captured_at": ctx.captured_at,
+        "received_at": ctx.received_at, "latency_ms": ctx.latency_ms,
+        "navigation": estimate.get("navigation")})
+
+
+def pose_fields(estimate: dict, *, map_id: str, map_revision: int, map_folder: str,
+                metadata: dict | None, decode_ms: float, bound_m: float,
+                converged_before: bool) -> dict:
+    """The :class:`~app.sessions.schemas.PoseFields` of an estimate: the core's fields by
+    name, and what the service derives (status, accuracy, heading, matched image)."""
+    shared = {k: estimate[k] for k in PoseFields.model_fields if k in estimate}
+    accuracy = horizontal_accuracy(estimate["cov"])
+    status, converged = judge(estimate["status"], accuracy, bound_m=bound_m,
+                              converged_before=converged_before)
+    meta = metadata or {}
+    heading = (estimate.get("heading_deg"), estimate.get("heading_sigma_deg"), "geometry")
+    if heading[0] is None:
+        heading = (meta.get("heading_deg"), meta.get("heading_accuracy_deg"), "device") \
+            if meta.get("heading_deg") is not None else (None, None, None)
+    if heading[0] is not None and heading[1] is None:
+        from workers.core.metadata import DEFAULT_HEADING_ACCURACY_DEG
+        heading = (heading[0], DEFAULT_HEADING_ACCURACY_DEG, heading[2])
+    image_id, filename = revision_images(map_folder).lookup(
+        int(estimate.get("best_image", -1)))
+    return shared | {
+        "map_id": map_id, "map_revision": map_revision, "status": status,
+        "converged": converged, "horizontal_accuracy_m": accuracy,
+        "altitude_m": meta.get("altitude_m"), "heading_deg": heading[0],
+        "heading_sigma_deg": heading[1], "heading_source": heading[2], "image_id": image_id,
+        "image_filename": filename, "decode_ms": decode_ms}

@@ -1,0 +1,156 @@
+// Maps: the list, a map's images on the plan with thumbnails, upload and build (admin).
+
+import { $, api, at, escapeHtml, imageLayer, listAll, plan, say, state } from "./common.js";
+import { setOrigin } from "./tiles.js";
+
+const JOB_POLL_MS = 500;
+
+export async function refreshMaps() {
+  state.maps = await listAll("/v1/maps");
+  const body = $("#maps-table tbody");
+  body.replaceChildren(...state.maps.map((m) => {
+    const tr = document.createElement("tr");
+    tr.dataset.mapId = m.id;
+    tr.classList.toggle("selected", m.id === state.mapId);
+    for (const v of [m.name, m.status, m.revision, m.image_count, m.pending_images]) {
+      const td = document.createElement("td");
+      td.textContent = String(v);
+      tr.append(td);
+    }
+    tr.children[1].className = `status-${m.status}`;
+    tr.addEventListener("click", () => selectMap(m.id));
+    return tr;
+  }));
+}
+
+$("#create-map").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  try {
+    const m = await api("/v1/maps", { method: "POST", json: { name: $("#new-map-name").value } });
+    $("#new-map-name").value = "";
+    await refreshMaps();
+    await selectMap(m.id);
+  } catch (err) { say(`could not create the map: ${err.message}`); }
+});
+
+export async function selectMap(mapId, { fit = true } = {}) {
+  const m = state.maps.find((x) => x.id === mapId) || await api(`/v1/maps/${mapId}`);
+  state.mapId = mapId;
+  document.querySelectorAll("#maps-table tbody tr").forEach((tr) =>
+    tr.classList.toggle("selected", tr.dataset.mapId === mapId));
+  $("#map-detail").hidden = false;
+  $("#map-title").textContent = m.name;
+  $("#map-summary").textContent = `${m.status}, revision ${m.revision}, ` +
+    `${m.image_count} images (${m.pending_images} not built yet)`;
+  state.mapImages = await listAll(`/v1/maps/${mapId}/images`, { by: "after_id", limit: 10000 });
+  state.origin = m.origin;
+  setOrigin(m.origin);
+  drawImages(m, fit);
+}
+
+// Built images have east/north in the revision's frame; images waiting for a build are
+// placed from their GPS around the map's origin (or their own mean before any build).
+function planPositions(m, images) {
+  const R = 6378137.0;
+  const origin = m.origin || (images.length ? {
+    lat: images.reduce((s, i) => s + i.lat, 0) / images.length,
+    lon: images.reduce((s, i) => s + i.lon, 0) / images.length } : null);
+  return images.map((img) => {
+    if (img.east !== null && img.north !== null) return { img, east: img.east, north: img.north, built: true };
+    const rad = Math.PI / 180;
+    return { img, built: false,
+             east: (img.lon - origin.lon) * rad * R * Math.cos(origin.lat * rad),
+             north: (img.lat - origin.lat) * rad * R };
+  });
+}
+
+function drawImages(m, fit) {
+  imageLayer.clearLayers();
+  const placed = planPositions(m, state.mapImages);
+  for (const p of placed) {
+    const marker = L.circleMarker(at(p.east, p.north), {
+      radius: 4, weight: 1, color: "#37474f", fillColor: p.built ? "#90a4ae" : "#fff",
+      fillOpacity: 0.9, dashArray: p.built ? null : "2 2", className: "vloc-map-image" });
+    const tip = document.createElement("div");
+    tip.className = "thumb-tip";
+    tip.innerHTML = `<b>${escapeHtml(p.img.filename)}</b><br>` +
+      `${p.east.toFixed(1)} E, ${p.north.toFixed(1)} N m${p.built ? "" : " (not built)"}` +
+      `<div class="thumb"></div>`;
+    marker.bindTooltip(tip, { direction: "top", offset: [0, -4] });
+    marker.on("tooltipopen", (ev) => showThumb(ev.tooltip, tip, m.id, p.img.id));
+    marker.addTo(imageLayer);
+  }
+  if (fit && placed.length) {
+    const bounds = L.latLngBounds(placed.map((p) => at(p.east, p.north)));
+    plan.fitBounds(bounds.pad(0.15), { maxZoom: 3, animate: false });
+  }
+}
+
+const thumbUrls = new Map(); // "map/image" -> object URL
+export async function imageUrl(mapId, imageId) {
+  const key = `${mapId}/${imageId}`;
+  if (!thumbUrls.has(key)) {
+    const r = await api(`/v1/maps/${mapId}/images/${imageId}/file`, { blob: true });
+    thumbUrls.set(key, URL.createObjectURL(await r.blob()));
+  }
+  return thumbUrls.get(key);
+}
+
+async function showThumb(tooltip, tip, mapId, imageId) {
+  const holder = tip.querySelector(".thumb");
+  if (holder.firstChild) return;
+  try {
+    const url = await imageUrl(mapId, imageId);
+    if (holder.firstChild) return;
+    const img = new Image();
+    img.alt = "map image";
+    img.addEventListener("load", () => tooltip.update());  // re-place it at its new size
+    img.src = url;
+    holder.append(img);
+  } catch (err) { say(`thumbnail: ${err.message}`); }
+}
+
+$("#upload").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const files = $("#upload-files").files;
+  if (!state.mapId || !files.length) return;
+  const form = new FormData();
+  for (const f of files) form.append("files", f, f.name);
+  $("#upload-result").textContent = `uploading ${files.length} file(s)...`;
+  try {
+    const res = await api(`/v1/maps/${state.mapId}/images`, { method: "POST", body: form });
+    const rejected = res.rejected.map((r) => `${r.filename}: ${r.reason}`).join("; ");
+    $("#upload-result").textContent = `${res.accepted.length} accepted` +
+      (rejected ? `, refused: ${rejected}` : "");
+  } catch (err) {
+    $("#upload-result").textContent = `refused: ${err.message}`;
+  }
+  $("#upload-files").value = "";
+  await refreshMaps();
+  await selectMap(state.mapId);
+});
+
+$("#build").addEventListener("click", async () => {
+  if (!state.mapId) return;
+  const mapId = state.mapId;
+  const bar = $("#build-progress");
+  try {
+    const job = await api(`/v1/maps/${mapId}/build`, { method: "POST" });
+    bar.hidden = false;
+    bar.value = 0;
+    for (;;) {
+      const j = await api(`/v1/jobs/${job.job_id}`);
+      bar.value = j.progress;
+      $("#build-status").textContent = `${j.status} ${Math.round(100 * j.progress)} %`;
+      if (j.status === "done" || j.status === "failed") {
+        if (j.error) $("#build-status").textContent += `: ${j.error}`;
+        break;
+      }
+      await new Promise((ok) => setTimeout(ok, JOB_POLL_MS));
+    }
+  } catch (err) {
+    $("#build-status").textContent = `refused: ${err.message}`;
+  }
+  await refreshMaps();
+  if (state.mapId === mapId) await selectMap(mapId);
+});

@@ -1,0 +1,257 @@
+"""A localiser that also follows a route: each estimate carries the path following.
+
+The service opens a session that follows a route with
+:func:`make_navigating_localiser` instead of :func:`~workers.core.localisers.make_localiser`;
+the localiser's estimate is the fix the :class:`~.follower.PathFollower` fuses, and the
+estimate's dictionary gains a ``navigation`` entry (:meth:`.NavigationStep.to_dict`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from ..estimate import Estimate, Status
+from ..image import WORK_SIZE
+from ..localisers import make_localiser, pack_state, unpack_state
+from ..localisers.base import as_query
+from ..mapdata import MapData
+from .follower import FollowerConfig, PathFollower
+from .path import Path
+from .visual import camera_matrix, relative_view
+
+WINDOW_BEHIND_M, WINDOW_AHEAD_M = 3.0, 6.0
+"""Once the robot's place on the route is known, the frame is matched against the taught
+images from this far behind it to this far ahead (Li et al.: the coarse stage finds the
+node, then SIFT against that part of the map localises accurately)."""
+
+FACTORY = "workers.core.navigation.session:make_navigating_localiser"
+MIN_POSITION_SIGMA = 0.2
+"""Metres: a localiser's stated spread is floored here before the EKF trusts it (a single
+best map image says "here" with no spread at all)."""
+ALONG_SIGMA = 1.0
+LATERAL_SIGMA = 2.0
+"""Metres: a taught image that looks like the frame places the robot about where it was
+taken along the path, and hardly at all beside it (a forward view changes little with a
+sidestep of a metre); the bearings from the taught images behind it do that."""
+BEARING_SIGMA = math.radians(6.0)
+HEADING_SIGMA = math.radians(2.0)
+YAW_AGREEMENT = math.radians(10.0)
+VISUAL_DEFAULTS = {"visual": True, "hfov_deg": 60.0, "views": 4}
+"""``visual``: measure bearings and heading against the taught images behind the best one;
+``hfov_deg``: the robot camera's horizontal field of view; ``views``: how many taught
+images behind the best one are looked at."""
+
+
+def make_navigating_localiser(mode: str, map_data: MapData, params: dict | None = None, *,
+                              seed: int = 0) -> NavigatingLocaliser:
+    """Like :func:`~workers.core.localisers.make_localiser`, with ``params["navigation"]``:
+    ``points`` ((N, 2) taught path, map frame), ``nodes`` (the route node of each point)
+    and ``params`` (:class:`~.follower.FollowerConfig` fields)."""
+    params = dict(params or {})
+    nav = params.pop("navigation")
+    return NavigatingLocaliser(make_localiser(mode, map_data, params, seed=seed), nav)
+
+
+def navigation_params(given: dict) -> dict:
+    """Complete navigation parameters: :data:`VISUAL_DEFAULTS` and the follower's.
+
+    Raises
+    ------
+    ValueError
+        An unknown parameter or a value out of range.
+    """
+    params = {**VISUAL_DEFAULTS, **given}
+    visual = {k: params.pop(k) for k in VISUAL_DEFAULTS}
+    if not isinstance(visual["visual"], bool):
+        raise ValueError("visual must be true or false")
+    if not isinstance(visual["hfov_deg"], int | float) or not 1 <= visual["hfov_deg"] <= 179:
+        raise ValueError("hfov_deg must be between 1 and 179 degrees")
+    if not isinstance(visual["views"], int) or isinstance(visual["views"], bool) \
+            or not 0 <= visual["views"] <= 20:
+        raise ValueError("views must be an integer from 0 to 20")
+    return {**visual, **FollowerConfig.from_params(params).to_params()}
+
+
+def node_starts(path: Path, points: np.ndarray, nodes: list[int]) -> tuple[np.ndarray, list[int]]:
+    """Arc length along ``path`` at which each route node begins, and the node numbers."""
+    s, hint = [], None
+    for p in points:
+        hint = path.project(p, s_hint=hint).s
+        s.append(hint)
+    starts, ids = [], []
+    for k, node in enumerate(nodes):
+        if not ids or node != ids[-1]:
+            ids.append(int(node))
+            starts.append(0.0 if not starts else s[k])
+    return np.array(starts), ids
+
+
+class NavigatedEstimate:
+    """An estimate with the path following after it."""
+
+    __slots__ = ("estimate", "navigation")
+
+    def __init__(self, estimate: Estimate, navigation: dict | None) -> None:
+        self.estimate = estimate
+        self.navigation = navigation
+
+    def __getattr__(self, name):
+        return getattr(self.estimate, name)
+
+    def to_dict(self) -> dict:
+        return {**self.estimate.to_dict(), "navigation": self.navigation}
+
+
+class NavigatingLocaliser:
+    """A localiser and a path follower driven by its estimates.
+
+    When the localiser's best map image is one of the route's taught images, the fix is
+    that image's pose on the taught path (so that fixes and path share the route's frame),
+    uncertain along the path by :data:`ALONG_SIGMA` and beside it by
+    :data:`LATERAL_SIGMA`; with ``visual``, the relative pose of the frame to the taught
+    images just behind adds the robot's heading and the bearings at which those images see
+    it (:mod:`.visual`), which place it beside the path.
+    """
+
+    def __init__(self, inner, navigation: dict) -> None:
+        params = {**VISUAL_DEFAULTS, **navigation.get("params", {})}
+        self.visual = bool(params.pop("visual"))
+        hfov, self.views = float(params.pop("hfov_deg")), int(params.pop("views"))
+        points = np.asarray(navigation["points"], np.float64)
+        self.inner = inner
+        self.config = FollowerConfig.from_params(params)
+        self.points = points
+        self.thetas = np.asarray(navigation.get("thetas") or _headings(points), np.float64)
+        self.path = Path(points)
+        self.node_s, self.node_ids = node_starts(self.path, points, list(navigation["nodes"]))
+        self.follower = PathFollower(self.path, self.node_s, self.config)
+        names = navigation.get("names") or []
+        index = {n: i for i, n in enumerate(getattr(inner.map, "names", ()))}
+        self.map_index = [index.get(n, -1) for n in names]
+        self.route_index = {m: k for k, m in enumerate(self.map_index) if m >= 0}
+        self.K = camera_matrix(WORK_SIZE[0], WORK_SIZE[1], hfov)
+        self.point_s = np.array(_arc_lengths(self.path, points))
+
+    @property
+    def mode(self) -> str:
+        return self.inner.mode
+
+    @property
+    def stats(self) -> dict:
+        return self.inner.stats
+
+    def step(self, frame, *, captured_at: float | None = None, metadata=None) -> NavigatedEstimate:
+        query = as_query(frame, captured_at, metadata)
+        est = self.inner.step(query)
+        fix: dict = {}
+        if est.status == Status.TRACKING:
+            k = self._nearby_best(query)
+            if k is None:
+                k = self.route_index.get(est.best_image)
+            fix = self._route_fix(k, query) if k is not None else self._estimate_fix(est)
+        nav = self.follower.step(fix.get("xy"), fix.get("cov"), heading=fix.get("heading"),
+                                 heading_sigma=fix.get("heading_sigma"),
+                                 bearings=fix.get("bearings", ()), captured_at=captured_at)
+        if nav is None:
+            return NavigatedEstimate(est, None)
+        out = nav.to_dict()
+        out["node"] = self.node_ids[nav.node]
+        out["views"] = len(fix.get("bearings", ()))
+        return NavigatedEstimate(est, out)
+
+    def _nearby_best(self, query) -> int | None:
+        """The taught image near the robot's place on the route that the frame matches
+        best (any taught image before the place is known); None when nothing matches."""
+        from ..localisers.scoring import sift_similarity
+
+        if not self.route_index:
+            return None
+        if self.follower.ekf is None:
+            # not yet placed: every taught image, matches verified by a fundamental matrix
+            near, verify = np.arange(len(self.point_s)), "fundamental"
+        else:
+            s = self.follower.s
+            # as far ahead again as the robot can go in two frames
+            ahead = WINDOW_AHEAD_M + 2.0 * self.config.control.v_max * self.config.dt
+            near = np.flatnonzero((self.point_s >= s - WINDOW_BEHIND_M)
+                                  & (self.point_s <= s + ahead))
+            verify = "none"
+        near = near[np.asarray(self.map_index)[near] >= 0]
+        if not len(near):
+            return None
+        feats, _ = query.sift()
+        score = sift_similarity(feats, self.inner.map, np.asarray(self.map_index)[near],
+                                ratio=0.8, verify=verify)
+        best = int(np.argmax(score))
+        return int(near[best]) if score[best] > 0 else None
+
+    def _estimate_fix(self, est: Estimate) -> dict:
+        cov = np.array(est.cov, np.float64).reshape(2, 2) + np.eye(2) * MIN_POSITION_SIGMA ** 2
+        heading = None
+        if est.heading_deg is not None:
+            # a compass bearing (clockwise from north) to an angle from east
+            heading = math.radians(90.0 - est.heading_deg)
+        return {"xy": (est.x, est.y), "cov": cov, "heading": heading}
+
+    def _route_fix(self, k: int, query) -> dict:
+        th = self.thetas[k]
+        c, s = math.cos(th), math.sin(th)
+        rot = np.array([[c, -s], [s, c]])
+        cov = rot @ np.diag([ALONG_SIGMA ** 2, LATERAL_SIGMA ** 2]) @ rot.T
+        fix = {"xy": self.points[k], "cov": cov}
+        if not self.visual:
+            return fix
+        feats, _ = query.sift()
+        bearings, yaws = [], []
+        for j in range(k, max(k - self.views, 0) - 1, -1):
+            if self.map_index[j] < 0:
+                continue
+            view = relative_view(feats, self.inner.map.sift(self.map_index[j]), self.K)
+            if view is None:
+                continue
+            yaws.append(self.thetas[j] + view.yaw)
+            if j < k:          # the best image itself is too close for a bearing
+                x, y = self.points[j]
+                bearings.append((x, y, self.thetas[j] + view.bearing, BEARING_SIGMA))
+        if len(yaws) >= 2:
+            heading = math.atan2(sum(math.sin(a) for a in yaws), sum(math.cos(a) for a in yaws))
+            # two views that disagree on the heading mean one of them is a false match
+            if max(abs(math.remainder(a - heading, 2 * math.pi)) for a in yaws) < YAW_AGREEMENT:
+                fix["heading"], fix["heading_sigma"] = heading, HEADING_SIGMA
+        fix["bearings"] = bearings
+        return fix
+
+    def get_state(self) -> bytes:
+        inner = np.frombuffer(self.inner.get_state(), np.uint8)
+        return pack_state({"inner": inner},
+                          {"follower": json.loads(json.dumps(self.follower.get_state()))})
+
+    def set_state(self, data: bytes) -> None:
+        arrays, meta = unpack_state(data)
+        self.inner.set_state(arrays["inner"].tobytes())
+        self.follower.set_state(meta["follower"])
+
+    def reset(self) -> None:
+        """Global re-initialisation: the localiser forgets, and the follower starts again
+        from the next fix."""
+        self.inner.reset()
+        self.follower = PathFollower(self.path, self.node_s, self.config)
+
+    def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:
+        self.inner.set_initial_pose(x, y, sigma)
+
+
+def _arc_lengths(path: Path, points: np.ndarray) -> list[float]:
+    s, hint = [], None
+    for p in points:
+        hint = path.project(p, s_hint=hint).s
+        s.append(hint)
+    return s
+
+
+def _headings(points: np.ndarray) -> np.ndarray:
+    d = np.gradient(points, axis=0)
+    return np.arctan2(d[:, 1], d[:, 0])

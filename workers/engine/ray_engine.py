@@ -1,0 +1,554 @@
+"""The Ray engine: sessions in long-lived shard actors of a Ray cluster that every API
+process shares (``pip install 'vloc[ray]'``).
+
+Shape
+-----
+- ``n_shards`` named, detached shard actors (``vloc-shard-<i>`` in the ``vloc`` namespace),
+  each a process that holds many sessions. A session's shard is a hash of its id, so every
+  API process finds it by name with no table to share. One actor per session would cost a
+  process per session; a shard holds hundreds.
+- A shard is an async actor: its event loop orders the work, one thread of its own runs
+  it (decoding, the localiser's step), so frames of all its sessions take turns on one core
+  while cheap calls (numbering, pings) are answered between them.
+- A shared engine numbers each session's frames itself (:meth:`RayEngine.reserve_seq`):
+  whichever API process receives a frame asks the shard for its seq, and the shard steps
+  the session's frames in seq order, holding a frame until every seq reserved before it
+  has been stepped, given up (:meth:`release_seq`) or waited for ``hold_s``.
+- Map data goes into the object store once, through one ``vloc-maps`` actor that loads a
+  packed revision and ``ray.put``-s it; each shard reads it from its node's store, and
+  numpy arrays come back as zero-copy views of the store's shared memory.
+- ``max_task_retries=0``: a frame runs at most once. A shard that dies comes back empty
+  (``max_restarts=-1`` re-runs only the constructor); the frames it held are reported as
+  failed (``worker_died``) and its sessions are reopened by the service from their
+  checkpoints in the database, which is the only state that counts.
+- Build work (:meth:`RayEngine.call`) runs as Ray tasks, in parallel over the cluster.
+
+Nothing in this module imports the service: it works with the same messages as the local
+engine (:mod:`workers.engine.messages`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import logging
+import os
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import ray
+from ray.exceptions import GetTimeoutError, RayActorError, WorkerCrashedError
+
+from .messages import (
+    Checkpoint,
+    CloseSession,
+    ControlTask,
+    FrameDone,
+    FrameFailed,
+    FrameTask,
+    OpenSession,
+    Outcome,
+    SessionSpec,
+)
+from .pool import _settle
+from .protocol import SeqRefused
+from .slots import EngineClosed, WorkerDied, remote_error
+from .worker import THREAD_ENV, WorkerState, _function, _single_threaded
+
+log = logging.getLogger(__name__)
+
+NAMESPACE = "vloc"
+MAP_STORE = "vloc-maps"
+HOLD_S = 5.0
+"""How long a shard holds a session's frame for a seq reserved before it that has not come."""
+PING_TIMEOUT_S = 2.0
+MAPS_KEPT = 8
+"""Map revisions the map store keeps in the object store at once."""
+
+
+def shard_name(index: int) -> str:
+    return f"vloc-shard-{index}"
+
+
+def shard_of(session_id: str, n_shards: int) -> int:
+    """The shard that holds a session: the same in every process (not Python's ``hash``,
+    which is salted per process)."""
+    digest = hashlib.blake2b(session_id.encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "big") % n_shards
+
+
+# -- the map store (one actor per cluster) ----------------------------------------------------
+
+class MapStore:
+    """Packed map revisions in the object store, each put once."""
+
+    def __init__(self, kept: int = MAPS_KEPT) -> None:
+        self.kept = kept
+        self.refs: OrderedDict[tuple[str, int], ray.ObjectRef] = OrderedDict()
+        self.loads = 0
+
+    def get(self, folder: str, map_id: str, revision: int) -> list:
+        """``[ref]`` of the revision's :class:`~workers.core.mapdata.MapData` (in a list, so
+        that the caller receives the reference rather than the data)."""
+        key = (map_id, revision)
+        if key not in self.refs:
+            from workers.core.mapdata import MapData
+
+            # Read into memory, not memory-mapped: Ray serialises plain arrays out of band
+            # (one copy into the store, zero-copy views for its readers), memory maps not.
+            self.refs[key] = ray.put(MapData.load(folder, mmap=False))
+            self.loads += 1
+            while len(self.refs) > self.kept:
+                # Shards that already read an evicted revision keep their view of it.
+                self.refs.popitem(last=False)
+        self.refs.move_to_end(key)
+        return [self.refs[key]]
+
+    def stats(self) -> dict:
+        return {"loads": self.loads, "held": [list(k) for k in self.refs]}
+
+
+# -- a shard actor ------------------------------------------------------------------------------
+
+class _ShardState(WorkerState):
+    """The local worker's session handling, with maps read from the object store."""
+
+    def __init__(self, *, max_pixels: int, namespace: str) -> None:
+        super().__init__(max_pixels=max_pixels)
+        self.namespace = namespace
+
+    def _map(self, spec: SessionSpec):
+        key = (spec.map_id, spec.revision)
+        if key not in self.maps:
+            store = ray.get_actor(MAP_STORE, namespace=self.namespace)
+            (ref,) = ray.get(store.get.remote(spec.map_folder, spec.map_id, spec.revision))
+            self.maps[key] = ray.get(ref)
+        return self.maps[key]
+
+
+@dataclass(eq=False)
+class _Order:
+    """A session's numbering and turn-taking in its shard."""
+
+    last: int | None
+    """Highest seq reserved (or given at the open)."""
+    done: int | None = None
+    """Highest seq stepped."""
+    held: dict[int, float] = field(default_factory=dict)
+    """Reserved seqs not stepped yet -> when the shard stops waiting for them."""
+    count: int = 0
+    opened: asyncio.Future | None = None
+    turn: asyncio.Condition = field(default_factory=asyncio.Condition)
+
+
+class Shard:
+    """Sessions of one shard; run as an async Ray actor (see the module's doc)."""
+
+    def __init__(self, index: int, *, max_pixels: int, checkpoint_every: int,
+                 namespace: str = NAMESPACE, hold_s: float = HOLD_S) -> None:
+        for var in THREAD_ENV:
+            os.environ.setdefault(var, "1")
+        _single_threaded()
+        self.index = index
+        self.checkpoint_every = checkpoint_every
+        self.hold_s = hold_s
+        self.state = _ShardState(max_pixels=max_pixels, namespace=namespace)
+        self.orders: dict[str, _Order] = {}
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix=f"shard-{index}")
+        self.started = time.time()
+
+    async def ping(self) -> tuple[int, float]:
+        """(pid, start time): a new start time means the actor was restarted."""
+        return os.getpid(), self.started
+
+    async def held(self) -> list[str]:
+        return sorted(sid for sid, o in self.orders.items() if o.opened.done())
+
+    async def _run(self, task):
+        return await asyncio.get_running_loop().run_in_executor(self.pool, self.state.handle,
+                                                                 task)
+
+    async def open(self, spec: SessionSpec, state: bytes | None,
+                   last_seq: int | None) -> tuple:
+        """``("opened",)``, ``("kept",)`` when the session is already open here (another
+        API process opened it; its localiser is not touched), or ``("error", type, text)``."""
+        sid = spec.session_id
+        order = self.orders.get(sid)
+        if order is not None:
+            return await asyncio.shield(order.opened)
+        order = self.orders[sid] = _Order(last=last_seq)
+        order.opened = asyncio.get_running_loop().create_future()
+        done = await self._run(OpenSession(spec, state, call_id=0))
+        if done.ok:
+            order.opened.set_result(("kept",))
+            return ("opened",)
+        self.orders.pop(sid, None)
+        failed = ("error", done.error_type, done.error)
+        order.opened.set_result(failed)
+        return failed
+
+    def _ready(self, sid: str) -> _Order | None:
+        order = self.orders.get(sid)
+        if order is None or not order.opened.done() or order.opened.result()[0] == "error":
+            return None
+        return order
+
+    async def reserve(self, sid: str, seq: int | None) -> tuple:
+        """``("ok", seq)``, ``("refused", kind, last_seq)`` or ``("not_open",)``."""
+        order = self._ready(sid)
+        if order is None:
+            return ("not_open",)
+        if seq is None:
+            seq = 0 if order.last is None else order.last + 1
+        elif order.last is not None and seq <= order.last:
+            return ("refused", "duplicate-seq" if seq == order.last else "stale-seq",
+                    order.last)
+        order.last = seq
+        order.held[seq] = time.monotonic() + self.hold_s
+        return ("ok", seq)
+
+    async def release(self, sid: str, seq: int) -> None:
+        order = self.orders.get(sid)
+        if order is not None:
+            async with order.turn:
+                order.held.pop(seq, None)
+                order.turn.notify_all()
+
+    async def _wait_turn(self, order: _Order, before: int) -> None:
+        """Until no seq below ``before`` is held (or the ones held are given up)."""
+        async with order.turn:
+            while True:
+                now = time.monotonic()
+                for s in [s for s, t in order.held.items() if t <= now]:
+                    del order.held[s]
+                earlier = [t for s, t in order.held.items() if s < before]
+                if not earlier:
+                    return
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(order.turn.wait(), max(min(earlier) - now, 0.001))
+
+    async def frame(self, sid: str, seq: int, data: bytes, captured_at: float | None,
+                    metadata: dict | None) -> FrameDone | FrameFailed:
+        order = self._ready(sid)
+        if order is None:
+            return FrameFailed(sid, seq, "not_open", "the session is not open in its shard")
+        order.held.setdefault(seq, time.monotonic() + self.hold_s)
+        await self._wait_turn(order, seq)
+        if self.orders.get(sid) is not order:
+            return FrameFailed(sid, seq, "not_open", "the session was closed")
+        if order.done is not None and seq < order.done:
+            order.held.pop(seq, None)
+            return FrameFailed(sid, seq, "error", f"the frame came after frame {order.done} "
+                               "had been processed, too late to take its turn")
+        order.held[seq] = float("inf")  # stepping now: later frames wait for it
+        order.count += 1
+        try:
+            return await self._run(FrameTask(
+                sid, seq, data, captured_at, metadata=metadata,
+                checkpoint=order.count % self.checkpoint_every == 0))
+        finally:
+            async with order.turn:
+                order.held.pop(seq, None)
+                order.done = seq if order.done is None else max(order.done, seq)
+                order.turn.notify_all()
+
+    async def control(self, sid: str, op: str, kwargs: dict) -> tuple:
+        """After the frames reserved before it: ``("ok", value, state)``,
+        ``("error", type, text)`` or ``("not_open",)``."""
+        order = self._ready(sid)
+        if order is None:
+            return ("not_open",)
+        await self._wait_turn(order, (order.last if order.last is not None else -1) + 1)
+        done = await self._run(ControlTask(0, sid, op, dict(kwargs)))
+        if not done.ok:
+            return ("error", done.error_type, done.error)
+        return ("ok", done.value, done.state)
+
+    async def close(self, sid: str) -> None:
+        if self.orders.pop(sid, None) is not None:
+            await self._run(CloseSession(sid))
+
+
+# -- the engine as an API process sees it -----------------------------------------------------
+
+class RayEngine:
+    """Sessions in shard actors of a Ray cluster; see the module's doc.
+
+    Parameters
+    ----------
+    n_shards : int
+        Shard actors; every API process of the cluster must use the same number.
+    address : str or None
+        The cluster (``ray.init(address=...)``); None joins the cluster this process is
+        already connected to, or starts one inside it.
+    on_outcome, checkpoint_every, max_pixels
+        As for :class:`~workers.engine.pool.LocalEngine`; the shard counts the frames of a
+        session for its checkpoints, whichever process sent them.
+    shard_cpus : float
+        CPUs the scheduler reserves for each shard actor.
+    hold_s : float
+        How long a shard waits for a reserved seq's frame before stepping later ones.
+    """
+
+    shared = True
+
+    def __init__(self, n_shards: int, *, address: str | None = None,
+                 on_outcome: Callable[[Outcome], None] | None = None,
+                 checkpoint_every: int = 1, max_pixels: int = 50_000_000,
+                 shard_cpus: float = 1.0, namespace: str = NAMESPACE,
+                 hold_s: float = HOLD_S) -> None:
+        if n_shards < 1:
+            raise ValueError("n_shards must be at least 1")
+        self.n_workers = n_shards
+        self.address = address
+        self.on_outcome = on_outcome
+        self.checkpoint_every = checkpoint_every
+        self.max_pixels = max_pixels
+        self.shard_cpus = shard_cpus
+        self.namespace = namespace
+        self.hold_s = hold_s
+        self.restarts = 0
+        self._lock = threading.Lock()
+        self._running = False
+        self._initialised_here = False
+        self._shards: list = []
+        self._stamps: dict[int, float] = {}
+        self._open: set[str] = set()
+        self._states: dict[str, bytes] = {}
+        self._pending: dict[tuple[str, int], ray.ObjectRef] = {}
+        self._remote_fns: dict[Callable, object] = {}
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self, timeout: float = 120.0) -> None:
+        """Join the cluster, find or create the shards and the map store, wait for them."""
+        if not ray.is_initialized():
+            ray.init(address=self.address, namespace=self.namespace,
+                     include_dashboard=False, log_to_driver=False)
+            self._initialised_here = True
+        common = {"namespace": self.namespace, "lifetime": "detached",
+                  "get_if_exists": True, "max_restarts": -1, "max_task_retries": 0}
+        ray.remote(MapStore).options(name=MAP_STORE, num_cpus=0, **common).remote()
+        shard_cls = ray.remote(Shard)
+        self._shards = [
+            shard_cls.options(name=shard_name(i), num_cpus=self.shard_cpus,
+                              max_concurrency=1000, **common)
+            .remote(i, max_pixels=self.max_pixels, checkpoint_every=self.checkpoint_every,
+                    namespace=self.namespace, hold_s=self.hold_s)
+            for i in range(self.n_workers)]
+        try:
+            stamps = ray.get([s.ping.remote() for s in self._shards], timeout=timeout)
+        except GetTimeoutError:
+            raise RuntimeError(f"the Ray shards did not start in {timeout:g} s (are there "
+                               "CPUs free for them?)") from None
+        self._stamps = {i: started for i, (_, started) in enumerate(stamps)}
+        self._running = True
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop taking work, wait (up to ``timeout``) for the frames sent, report the rest
+        as failed. The shards stay: other API processes use them."""
+        with self._lock:
+            if not self._running:
+                return
+            self._running = False
+            refs = list(self._pending.values())
+        if refs:
+            ray.wait(refs, num_returns=len(refs), timeout=timeout)
+            time.sleep(0.05)  # let the done callbacks of the last ones run
+        with self._lock:
+            left, self._pending = list(self._pending), {}
+        for sid, seq in left:
+            self._emit(FrameFailed(sid, seq, "worker_died", "the engine stopped"))
+        if self._initialised_here:
+            ray.shutdown()
+            self._initialised_here = False
+
+    def remove_actors(self) -> None:
+        """Kill the shards and the map store of this namespace: every API process loses its
+        sessions (they reopen from their checkpoints). For tearing a deployment down."""
+        for name in [*(shard_name(i) for i in range(self.n_workers)), MAP_STORE]:
+            with contextlib.suppress(ValueError):  # not there
+                ray.kill(ray.get_actor(name, namespace=self.namespace), no_restart=True)
+
+    @property
+    def running(self) -> bool:
+        return self._running
+
+    def _pings(self) -> list[bool]:
+        refs = [s.ping.remote() for s in self._shards]
+        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=PING_TIMEOUT_S)
+        ok = []
+        for i, ref in enumerate(refs):
+            if ref not in ready:
+                ok.append(False)
+                continue
+            try:
+                _, started = ray.get(ref)
+            except RayActorError:
+                ok.append(False)
+                continue
+            self._saw_start(i, started)
+            ok.append(True)
+        return ok
+
+    def _saw_start(self, index: int, started: float) -> None:
+        with self._lock:
+            if self._stamps.get(index, started) != started:
+                self.restarts += 1
+                log.error("ray engine: shard %d was restarted; its sessions reopen from "
+                          "their checkpoints", index)
+            self._stamps[index] = started
+
+    def alive(self) -> bool:
+        return self._running and all(self._pings())
+
+    def alive_count(self) -> int:
+        return sum(self._pings()) if self._running else 0
+
+    def shard(self, session_id: str):
+        """The actor handle of the session's shard."""
+        return self._shards[shard_of(session_id, self.n_workers)]
+
+    # -- sessions ---------------------------------------------------------------------------
+
+    def open_session(self, spec: SessionSpec, *, state: bytes | None = None,
+                     last_seq: int | None = None) -> Future:
+        """Open the session in its shard (kept as it is when another process opened it)."""
+        self._check_running()
+        sid = spec.session_id
+
+        def opened(reply: tuple) -> str:
+            if reply[0] == "error":
+                raise remote_error(reply[1], reply[2])
+            with self._lock:
+                self._open.add(sid)
+            return reply[0]
+
+        return self._future(self.shard(sid).open.remote(spec, state, last_seq), opened)
+
+    def is_open(self, session_id: str) -> bool:
+        with self._lock:
+            return session_id in self._open
+
+    def reserve_seq(self, session_id: str, seq: int | None) -> Future:
+        self._check_running()
+
+        def reserved(reply: tuple) -> int:
+            if reply[0] == "not_open":
+                raise KeyError(session_id)
+            if reply[0] == "refused":
+                raise SeqRefused(reply[1], seq, reply[2])
+            return reply[1]
+
+        return self._future(self.shard(session_id).reserve.remote(session_id, seq), reserved)
+
+    def release_seq(self, session_id: str, seq: int) -> None:
+        if self._running:
+            self.shard(session_id).release.remote(session_id, seq)
+
+    def submit_frame(self, session_id: str, seq: int, data: bytes, *,
+                     captured_at: float | None = None, metadata: dict | None = None) -> None:
+        self._check_running()
+        ref = self.shard(session_id).frame.remote(session_id, seq, data, captured_at, metadata)
+        with self._lock:
+            self._pending[(session_id, seq)] = ref
+        ref.future().add_done_callback(lambda f: self._frame_done(session_id, seq, f))
+
+    def _frame_done(self, session_id: str, seq: int, fut: Future) -> None:
+        with self._lock:
+            if self._pending.pop((session_id, seq), None) is None:
+                return  # reported already, when the engine stopped
+        try:
+            outcome = fut.result()
+        except RayActorError as exc:
+            outcome = FrameFailed(session_id, seq, "worker_died",
+                                  f"the session's shard died before answering: "
+                                  f"{type(exc).__name__}")
+        except Exception as exc:  # noqa: BLE001 - reported as the frame's error
+            outcome = FrameFailed(session_id, seq, "error", f"{type(exc).__name__}: {exc}")
+        if isinstance(outcome, FrameDone) and outcome.state is not None:
+            with self._lock:
+                if session_id in self._open:
+                    self._states[session_id] = outcome.state
+        self._emit(outcome)
+
+    def pending_frames(self, session_id: str) -> int:
+        with self._lock:
+            return sum(1 for sid, _ in self._pending if sid == session_id)
+
+    def control(self, session_id: str, op: str, **kwargs) -> Future:
+        self._check_running()
+
+        def ran(reply: tuple):
+            if reply[0] == "not_open":
+                raise KeyError(session_id)
+            if reply[0] == "error":
+                raise remote_error(reply[1], reply[2])
+            _, value, state = reply
+            if state is not None:
+                with self._lock:
+                    self._states[session_id] = state
+                self._emit(Checkpoint(session_id, state))
+            return value
+
+        return self._future(self.shard(session_id).control.remote(session_id, op, kwargs), ran)
+
+    def close_session(self, session_id: str) -> None:
+        with self._lock:
+            self._open.discard(session_id)
+            self._states.pop(session_id, None)
+        if self._running:
+            self.shard(session_id).close.remote(session_id)
+
+    def last_state(self, session_id: str) -> bytes | None:
+        with self._lock:
+            return self._states.get(session_id)
+
+    # -- calls ------------------------------------------------------------------------------
+
+    def call(self, fn: Callable | str, *args, **kwargs) -> Future:
+        """Run ``fn`` as a Ray task (one CPU, never retried)."""
+        self._check_running()
+        fn = _function(fn)
+        with self._lock:
+            remote = self._remote_fns.get(fn)
+            if remote is None:
+                remote = self._remote_fns[fn] = ray.remote(fn).options(num_cpus=1,
+                                                                       max_retries=0)
+        return self._future(remote.remote(*args, **kwargs), lambda v: v)
+
+    # -- internals --------------------------------------------------------------------------
+
+    def _check_running(self) -> None:
+        if not self._running:
+            raise EngineClosed("the engine is not running")
+
+    def _future(self, ref, convert: Callable) -> Future:
+        """A future of ``convert(ray.get(ref))``; a dead actor or worker -> WorkerDied."""
+        out: Future = Future()
+
+        def done(f: Future) -> None:
+            try:
+                value = convert(f.result())
+            except (RayActorError, WorkerCrashedError) as exc:
+                _settle(out, error=WorkerDied(f"{type(exc).__name__}: {exc}"))
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                _settle(out, error=exc)
+            else:
+                _settle(out, value=value)
+
+        ref.future().add_done_callback(done)
+        return out
+
+    def _emit(self, outcome: Outcome) -> None:
+        if self.on_outcome is None:
+            return
+        try:
+            self.on_outcome(outcome)
+        except Exception:  # noqa: BLE001 - a broken consumer must not stop the engine
+            log.exception("ray engine: frame consumer failed")
