@@ -43,6 +43,10 @@ class Settings(BaseSettings):
     ray_namespace: str = Field(
         "vloc", min_length=1, max_length=64,
         description="Ray namespace of the shards: one per deployment sharing a cluster.")
+    ray_hold_s: float = Field(
+        30.0, gt=0, description="How long a shard keeps a session's later frames waiting for "
+                                "a frame whose number was taken and that has not arrived (its "
+                                "API process may have died).")
     ray_shard_cpus: float = Field(
         1.0, ge=0, description="CPUs the Ray scheduler reserves for each shard actor.")
     admin_key: str | None = Field(

@@ -508,11 +508,15 @@ sample is for watching, too bulky to keep for every frame."""
 
 
 def _streamed(outcome: Outcome, message: dict) -> dict:
-    """The stream's copy of a pose message: the stored message plus :data:`STREAM_ONLY`."""
-    if not isinstance(outcome, FrameDone):
-        return message
-    extra = {k: outcome.estimate[k] for k in STREAM_ONLY
-             if k in outcome.estimate and k not in message}
+    """The stream's copy of a frame's message: the stored message plus :data:`STREAM_ONLY`
+    and ``prev_seq`` (the frame answered before it, by which subscribers that hear
+    several replicas restore the order; see :class:`app.stream.hub.Subscription`)."""
+    extra = {}
+    if isinstance(outcome, FrameDone):
+        extra = {k: outcome.estimate[k] for k in STREAM_ONLY
+                 if k in outcome.estimate and k not in message}
+    if outcome.prev_seq is not None:
+        extra["prev_seq"] = outcome.prev_seq
     return message | extra if extra else message
 
 

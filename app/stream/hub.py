@@ -19,14 +19,72 @@ GOING_AWAY = {"type": "going_away"}
 """Not sent: tells a stream to close with 1001 after the messages before it."""
 
 
+REORDER_WAIT_S = 1.0
+"""How long a frame's message waits for the one its ``prev_seq`` names before it is passed
+on anyway (that one may never come: its replica died)."""
+
+
 class Subscription:
-    def __init__(self, session_id: str) -> None:
+    """One stream's queue of a session's messages.
+
+    A frame's message carries ``prev_seq``, the frame its worker answered just before it.
+    Messages published by different replicas can reach this one out of that order; one whose
+    predecessor has not been passed on waits for it (up to :data:`REORDER_WAIT_S`), so that a
+    stream sees the frames in the order they were stepped.
+    """
+
+    def __init__(self, session_id: str, *, reorder_wait_s: float = REORDER_WAIT_S) -> None:
         self.session_id = session_id
         self.queue: asyncio.Queue[dict] = asyncio.Queue(SUBSCRIBER_QUEUE)
         self.overflowed = False
         self.ending = False
+        self.reorder_wait_s = reorder_wait_s
+        self._last_seq: int | None = None
+        """The highest seq passed on."""
+        self._waiting: dict[int, dict] = {}
+        """Messages waiting, by the seq they come after."""
+        self._timer: asyncio.TimerHandle | None = None
 
     def put(self, message: dict) -> None:
+        if self.overflowed or self.ending:
+            return
+        seq = message.get("seq")
+        if seq is None:  # not a frame's message: what waits goes before it
+            self._flush()
+            self._enqueue(message)
+            return
+        prev = message.get("prev_seq")
+        if prev is not None and self._last_seq is not None and prev > self._last_seq:
+            self._waiting[prev] = message
+            if self._timer is None:
+                self._timer = asyncio.get_running_loop().call_later(
+                    self.reorder_wait_s, self._flush)
+            return
+        self._pass(message)
+
+    def _pass(self, message: dict) -> None:
+        self._enqueue(message)
+        self._last_seq = max(message["seq"], self._last_seq if self._last_seq is not None
+                             else message["seq"])
+        while (after := self._waiting.pop(self._last_seq, None)) is not None:
+            self._enqueue(after)
+            self._last_seq = max(self._last_seq, after["seq"])
+        if not self._waiting:
+            self._cancel_timer()
+
+    def _flush(self) -> None:
+        """Pass on every waiting message, in seq order."""
+        self._cancel_timer()
+        waiting, self._waiting = self._waiting, {}
+        for message in sorted(waiting.values(), key=lambda m: m["seq"]):
+            self._pass(message)
+
+    def _cancel_timer(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _enqueue(self, message: dict) -> None:
         if self.overflowed or self.ending:
             return
         if message is GOING_AWAY:

@@ -105,9 +105,11 @@ def test_poses_name_the_map_and_its_matched_image(service, shots):
         streamed = [ws.receive_json() for _ in range(4)]
     settled(c, sid, auth)  # the stream runs ahead of the database
     stored = c.get(f"/v1/sessions/{sid}/poses", headers=auth).json()
-    # the particle sample goes out on the stream only
+    # the particle sample and the order of answers go out on the stream only
     assert all(p["cloud"] for p in streamed)
-    assert stored == [p | {"cloud": []} for p in streamed]
+    assert [p.get("prev_seq") for p in streamed] == [None, 0, 1, 2]
+    assert stored == [{k: v for k, v in p.items() if k != "prev_seq"} | {"cloud": []}
+                      for p in streamed]
     for p in streamed:
         assert p["map_id"] == service.map_id and p["map_revision"] == revision
         assert p["image_id"] in images and images[p["image_id"]] == p["image_filename"]

@@ -38,14 +38,17 @@ class CountingLocaliser:
     Its whole state is the count, so a restored checkpoint shows in the next estimate.
     """
 
-    def __init__(self, offset: float = 0.0) -> None:
+    def __init__(self, offset: float = 0.0, step_s: float = 0.0) -> None:
         self.count = 0
         self.offset = offset
+        self.step_s = step_s
+        """Seconds each step takes (a slow localiser)."""
         self.stats = {"steps": 0}
 
     def step(self, frame, *, captured_at=None, metadata=None) -> Estimate:
         if float(frame.grey.mean()) > 250:
             raise RuntimeError("frame too bright for the fake")
+        time.sleep(self.step_s)
         self.count += 1
         self.stats["steps"] = self.count
         x = float(self.count) + self.offset
@@ -70,7 +73,8 @@ class CountingLocaliser:
 def make_counting(mode: str, map_data, params: dict, *, seed: int) -> CountingLocaliser:
     if mode != "count":
         raise ValueError(f"unknown mode {mode!r}")
-    return CountingLocaliser(offset=float(params.get("offset", 0.0)))
+    return CountingLocaliser(offset=float(params.get("offset", 0.0)),
+                             step_s=float(params.get("step_s", 0.0)))
 
 
 def make_recording(mode: str, map_data, params: dict, *, seed: int) -> CountingLocaliser:

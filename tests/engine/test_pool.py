@@ -101,6 +101,8 @@ def test_frames_of_a_session_come_back_in_order(engine, outcomes):
     assert [o.estimate["x"] for o in a] == [1.0, 2.0, 3.0, 4.0, 5.0]
     assert [o.estimate["y"] for o in a] == [0.0, 10.0, 20.0, 30.0, 40.0]
     assert [o.estimate["x"] for o in b] == [101.0, 102.0, 103.0, 104.0, 105.0]
+    # Each names the one answered before it, for viewers that hear them by several paths.
+    assert [o.prev_seq for o in a] == [None, 0, 1, 2, 3]
     assert engine.pending_frames("a") == 0
 
 
@@ -114,6 +116,7 @@ def test_bad_image_and_localiser_error_fail_one_frame_only(engine, outcomes):
     assert isinstance(error, FrameFailed) and error.kind == "error"
     assert "too bright" in error.reason
     assert isinstance(good, FrameDone) and good.seq == 3 and good.estimate["x"] == 1.0
+    assert [o.prev_seq for o in (bad, error, good)] == [None, 1, 2]
 
 
 def test_controls_run_in_order_with_frames_and_checkpoint(engine, outcomes):

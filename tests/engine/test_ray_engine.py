@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import queue
 import signal
+import time
 import uuid
 
 import cv2
@@ -114,6 +115,37 @@ def test_frames_sent_through_two_engines_are_numbered_and_stepped_in_order(clust
     assert [by_seq[k].estimate["x"] for k in range(6)] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
     assert [by_seq[k].estimate["y"] for k in range(6)] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
     assert a.pending_frames("order") == b.pending_frames("order") == 0
+
+
+def test_a_frame_waiting_its_turn_longer_than_hold_s_keeps_its_place(cluster):
+    # Each step takes longer than the engines' hold_s (1.5 s): frames 1 and 2 arrive while
+    # frame 0 is stepping, and wait past their reservation's hold. The one that has arrived
+    # is never given up: 2 still goes after 1.
+    (a, out_a), (b, out_b) = cluster
+    a.open_session(_spec("slow", step_s=1.0)).result(TIMEOUT)
+    seqs = [a.reserve_seq("slow", None).result(TIMEOUT) for _ in range(3)]
+    a.submit_frame("slow", seqs[0], _png(10))
+    b.submit_frame("slow", seqs[1], _png(11))
+    a.submit_frame("slow", seqs[2], _png(12))
+    got = _take(out_a, 2) + _take(out_b, 1)
+    assert all(isinstance(o, FrameDone) for o in got)
+    # x is the step count, y the frame's grey level: frame k was step k + 1.
+    assert sorted((o.estimate["x"], o.estimate["y"]) for o in got) == [
+        (1.0, 10.0), (2.0, 11.0), (3.0, 12.0)]
+
+
+def test_a_frame_arriving_while_a_later_one_steps_is_refused_not_stepped_out_of_order(
+        cluster):
+    (a, out), _ = cluster
+    a.open_session(_spec("late", step_s=3.0)).result(TIMEOUT)
+    s0, s1, s2 = (a.reserve_seq("late", None).result(TIMEOUT) for _ in range(3))
+    a.release_seq("late", s0)
+    a.submit_frame("late", s2, _png(2))  # given its turn once 1's hold (1.5 s) is over
+    time.sleep(2.5)  # 2 is stepping now (from 1.5 s to 4.5 s)
+    a.submit_frame("late", s1, _png(1))
+    first, second = _take(out, 2)
+    assert isinstance(first, FrameFailed) and first.seq == s1 and first.kind == "error"
+    assert isinstance(second, FrameDone) and second.seq == s2 and second.estimate["x"] == 1.0
 
 
 def test_a_seq_given_by_the_client_must_be_after_the_last_one(cluster):

@@ -119,6 +119,10 @@ class FrameDone:
     estimate: dict
     state: bytes | None
     decode_ms: float
+    prev_seq: int | None = None
+    """The seq of the outcome its worker reported for the session just before this one (None
+    for the first since the session opened there): outcomes that reach a viewer by different
+    paths can be put back in order with it."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,13 +130,15 @@ class FrameFailed:
     """A frame that gave no estimate.
 
     ``kind`` is ``bad_image`` (the bytes did not decode), ``error`` (the localiser raised),
-    ``not_open`` (the session is not open on the worker) or ``worker_died``.
+    ``not_open`` (the session is not open on the worker) or ``worker_died``. ``prev_seq`` is
+    as for :class:`FrameDone` where a worker reported it, else None.
     """
 
     session_id: str
     seq: int
     kind: str
     reason: str
+    prev_seq: int | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -64,8 +64,10 @@ log = logging.getLogger(__name__)
 
 NAMESPACE = "vloc"
 MAP_STORE = "vloc-maps"
-HOLD_S = 5.0
-"""How long a shard holds a session's frame for a seq reserved before it that has not come."""
+HOLD_S = 30.0
+"""How long a shard holds a session's frame for a seq reserved before it that has not come:
+long enough for a busy API process to store the frame's record and send it, short enough
+that a session whose API process died between the two does not stall for long."""
 PING_TIMEOUT_S = 2.0
 MAPS_KEPT = 8
 """Map revisions the map store keeps in the object store at once."""
@@ -137,8 +139,8 @@ class _Order:
 
     last: int | None
     """Highest seq reserved (or given at the open)."""
-    done: int | None = None
-    """Highest seq stepped."""
+    started: int | None = None
+    """Highest seq whose step has begun."""
     held: dict[int, float] = field(default_factory=dict)
     """Reserved seqs not stepped yet -> when the shard stops waiting for them."""
     count: int = 0
@@ -237,15 +239,19 @@ class Shard:
         order = self._ready(sid)
         if order is None:
             return FrameFailed(sid, seq, "not_open", "the session is not open in its shard")
-        order.held.setdefault(seq, time.monotonic() + self.hold_s)
+        # The frame is here: frames after it wait for it however long its turn takes; only a
+        # seq reserved and never sent is given up after hold_s.
+        order.held[seq] = float("inf")
         await self._wait_turn(order, seq)
         if self.orders.get(sid) is not order:
             return FrameFailed(sid, seq, "not_open", "the session was closed")
-        if order.done is not None and seq < order.done:
+        if order.started is not None and seq < order.started:
+            # Its seq was given up and a later frame went first: stepping it now would put
+            # the filter's steps out of order.
             order.held.pop(seq, None)
-            return FrameFailed(sid, seq, "error", f"the frame came after frame {order.done} "
+            return FrameFailed(sid, seq, "error", f"the frame came after frame {order.started} "
                                "had been processed, too late to take its turn")
-        order.held[seq] = float("inf")  # stepping now: later frames wait for it
+        order.started = seq
         order.count += 1
         try:
             return await self._run(FrameTask(
@@ -254,7 +260,6 @@ class Shard:
         finally:
             async with order.turn:
                 order.held.pop(seq, None)
-                order.done = seq if order.done is None else max(order.done, seq)
                 order.turn.notify_all()
 
     async def control(self, sid: str, op: str, kwargs: dict) -> tuple:

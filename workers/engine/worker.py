@@ -15,6 +15,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from multiprocessing.connection import Connection
 
 from .messages import (
@@ -57,6 +58,8 @@ class WorkerState:
         self.max_pixels = max_pixels
         self.sessions: dict[str, tuple[SessionSpec, object]] = {}
         self.maps: dict[tuple[str, int], object] = {}
+        self.reported: dict[str, int] = {}
+        """Each open session's last frame outcome (its seq), the next one's ``prev_seq``."""
 
     def handle(self, task) -> object | None:
         if isinstance(task, FrameTask):
@@ -80,10 +83,15 @@ class WorkerState:
         if held is None:
             return FrameFailed(task.session_id, task.seq, "not_open",
                                "the session is not open on its worker")
+        outcome = self._step(task, held[1])
+        prev = self.reported.get(task.session_id)
+        self.reported[task.session_id] = task.seq
+        return replace(outcome, prev_seq=prev)
+
+    def _step(self, task: FrameTask, localiser) -> FrameDone | FrameFailed:
         from workers.core.image import ImageError, load_frame
         from workers.core.metadata import FrameMetadata
 
-        localiser = held[1]
         t0 = time.perf_counter()
         try:
             frame = load_frame(task.data, max_pixels=self.max_pixels)
@@ -141,6 +149,7 @@ class WorkerState:
 
     def _close(self, session_id: str) -> None:
         held = self.sessions.pop(session_id, None)
+        self.reported.pop(session_id, None)
         if held is None:
             return
         key = (held[0].map_id, held[0].revision)
