@@ -1,20 +1,21 @@
 """Live sessions in the API process: frames in, outcomes stored, estimates published.
 
-Threads and the loop:
+The parts, and the threads and loop they run on:
 
-- the event loop accepts frames: it numbers each (no awaits between the sequence check and
-  the queueing, so two requests of one session cannot take the same number) and queues
-  its record for the writer, and publishes messages;
-- one writer thread (:mod:`app.sessions.writer`) stores, in batches and in order, the
-  records of accepted frames (:class:`~app.sessions.models.Frame`) and the outcomes
-  (poses, counters, checkpoints), then has the loop settle them. A frame goes to its worker only once its record is
-  stored, so that a frame accepted by a server that then dies is reported after the
-  restart and its ``seq`` never reused; a request is answered ``202`` only then too;
-- the engine's reader thread hands each outcome to :meth:`SessionRuntime.on_outcome`, which
-  turns it into its stream message, has the loop publish it at once and queues it for
-  storage: the stream never waits for the database. A ``?wait=true`` request is answered
-  only once its pose is stored, so what it returns can be read back; a pose the database
-  refuses is reported as a ``frame_error`` of kind ``not_stored``.
+- intake (this module, the event loop): sessions opened, reloaded and expired; frames
+  numbered (no awaits between the sequence check and the queueing, so two requests of one
+  session cannot take the same number, or by the shared engine across API processes) and
+  their records queued for the writer; controls run after the frames before them;
+- storage (:mod:`app.sessions.writer`, one thread, over :mod:`app.sessions.store`): the
+  records of accepted frames and the outcomes (poses, counters, checkpoints), stored in
+  batches and in order, then settled on the loop. A frame goes to its worker only once its
+  record is stored, so that a frame accepted by a server that then dies is reported after
+  the restart and its ``seq`` never reused; a request is answered ``202`` only then too;
+- outcomes (:mod:`app.sessions.outcomes`, from the engine's reader thread): each outcome
+  becomes its message, published at once (the stream never waits for the database) and
+  stored; a ``?wait=true`` request is answered only once its pose is stored, so what it
+  returns can be read back; a pose the database refuses is reported as a ``frame_error``
+  of kind ``not_stored``.
 """
 
 from __future__ import annotations
@@ -32,10 +33,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.config import Settings
 from app.db import utcnow
 from app.engine import (
-    Checkpoint,
     Engine,
     EngineClosed,
-    FrameDone,
     FrameFailed,
     Outcome,
     SeqRefused,
@@ -44,11 +43,12 @@ from app.engine import (
 )
 from app.metrics import Metrics
 from app.problems import Problem
-from app.sessions import pose, store
+from app.sessions import store
 from app.sessions.admission import check_revision, next_seq, spec_for
 from app.sessions.models import LocalisationSession
+from app.sessions.outcomes import Outcomes
 from app.sessions.schemas import MAX_SEQ, FrameError
-from app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
+from app.sessions.store import FrameRecord, FrameStore
 from app.sessions.writer import Accepted, Barrier, Writer
 from app.stream.hub import LocalHub
 
@@ -107,18 +107,19 @@ class SessionRuntime:
         self.loop: asyncio.AbstractEventLoop | None = None
         self._live: dict[str, LiveSession] = {}
         self._opening: dict[str, asyncio.Future] = {}
-        self._waiters: dict[tuple[str, int], asyncio.Future] = {}
         self._seq_floor: dict[str, int] = {}
         """Last seq of a live session dropped for a reload, until the reload reads it."""
         self._lock = threading.Lock()
         self._writer = Writer(self.store, metrics, self._settle)
+        self.outcomes = Outcomes(settings=settings, hub=hub, writer=self._writer,
+                                 live=self._live.get)
         self._idle = asyncio.Event()
         self._closing = False
 
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
-        self.loop = loop
+        self.loop = self.outcomes.loop = loop
         self._writer.start(loop)
 
     async def drain(self, timeout: float) -> None:
@@ -397,12 +398,10 @@ class SessionRuntime:
     def waiter(self, live: LiveSession, seq: int) -> asyncio.Future:
         """A future for the frame's message (pose or frame_error); take it right after
         :meth:`accept`, before any await."""
-        fut = self.loop.create_future()
-        self._waiters[(live.id, seq)] = fut
-        return fut
+        return self.outcomes.waiter(live.id, seq)
 
     def drop_waiter(self, live: LiveSession, seq: int) -> None:
-        self._waiters.pop((live.id, seq), None)
+        self.outcomes.drop_waiter(live.id, seq)
 
     def _to_engine(self, item: Accepted, error: Exception | None) -> None:
         """Event loop: the frame's record is stored (or refused); hand it to its worker."""
@@ -440,40 +439,8 @@ class SessionRuntime:
     # -- outcomes ---------------------------------------------------------------------------
 
     def on_outcome(self, outcome: Outcome) -> None:
-        """Engine reader thread: publish the message now, store it later."""
-        msg = self._message(outcome, time.perf_counter())
-        if msg is not None and self.loop is not None and not self.loop.is_closed():
-            self.loop.call_soon_threadsafe(self.hub.publish, msg[0], _streamed(outcome, msg[2]))
-        self._writer.put(OutcomeRecord(outcome, msg[2] if msg is not None else None))
-
-    def _message(self, outcome: Outcome, t_back: float) -> tuple[str, int, dict] | None:
-        if isinstance(outcome, Checkpoint):
-            return None
-        live = self._live.get(outcome.session_id)
-        arrival = live.arrivals.get(outcome.seq) if live is not None else None
-        latency_ms = (t_back - arrival.t0) * 1e3 if arrival is not None else 0.0
-        received = arrival.received_at if arrival is not None else utcnow()
-        captured = arrival.captured_at if arrival is not None else None
-        if isinstance(outcome, FrameDone):
-            if live is None:
-                return None  # the session was deleted meanwhile: nothing to tell or keep
-            spec = live.spec
-            ctx = pose.FrameContext(
-                session_id=outcome.session_id, seq=outcome.seq, map_id=spec.map_id,
-                map_revision=spec.revision, map_folder=spec.map_folder, captured_at=captured,
-                received_at=received,
-                metadata=arrival.metadata if arrival is not None else None,
-                decode_ms=outcome.decode_ms, latency_ms=latency_ms)
-            msg = pose.from_estimate(outcome.estimate, ctx,
-                                     bound_m=self.settings.converged_accuracy_m,
-                                     converged_before=live.converged)
-            if msg.converged:
-                live.converged = True
-        else:
-            msg = FrameError(session_id=outcome.session_id, seq=outcome.seq,
-                             captured_at=captured, kind=outcome.kind, reason=outcome.reason,
-                             latency_ms=latency_ms)
-        return outcome.session_id, outcome.seq, msg.model_dump(mode="json")
+        """Engine reader thread: see :meth:`Outcomes.on_outcome`."""
+        self.outcomes.on_outcome(outcome)
 
     def _settle(self, done: list[tuple[object, Exception | None]]) -> None:
         """Event loop: the items are stored (or refused). Frames go to the engine; answered
@@ -483,16 +450,8 @@ class SessionRuntime:
                 self._to_engine(item, error)
             elif isinstance(item, Barrier):
                 _resolve(item.done, None)
-            elif item.message is not None:
-                session_id, seq, msg = item.outcome.session_id, item.outcome.seq, item.message
-                if error is not None:
-                    self.hub.publish(session_id, msg)  # the not_stored report
-                live = self._live.get(session_id)
-                if live is not None:
-                    live.arrivals.pop(seq, None)
-                fut = self._waiters.pop((session_id, seq), None)
-                if fut is not None and not fut.done():
-                    fut.set_result(msg)
+            else:
+                self.outcomes.settle(item, error)
         if not self.pending_total():
             self._idle.set()
 
@@ -500,24 +459,6 @@ class SessionRuntime:
 def expired_problem(session_id) -> Problem:
     return Problem(410, f"session {session_id} expired after its time to live without a "
                    "frame or keep-alive; create a new session", kind="session-expired")
-
-
-STREAM_ONLY = ("cloud",)
-"""Estimate fields a pose message carries on the stream and nowhere else: the particle
-sample is for watching, too bulky to keep for every frame."""
-
-
-def _streamed(outcome: Outcome, message: dict) -> dict:
-    """The stream's copy of a frame's message: the stored message plus :data:`STREAM_ONLY`
-    and ``prev_seq`` (the frame answered before it, by which subscribers that hear
-    several replicas restore the order; see :class:`app.stream.hub.Subscription`)."""
-    extra = {}
-    if isinstance(outcome, FrameDone):
-        extra = {k: outcome.estimate[k] for k in STREAM_ONLY
-                 if k in outcome.estimate and k not in message}
-    if outcome.prev_seq is not None:
-        extra["prev_seq"] = outcome.prev_seq
-    return message | extra if extra else message
 
 
 def _resolve(fut: asyncio.Future, value=None, *, exception: BaseException | None = None) -> None:

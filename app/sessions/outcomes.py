@@ -1,0 +1,131 @@
+"""What becomes of a frame's outcome: its message, published at once, stored, then settled.
+
+The engine's reader thread hands each outcome to :meth:`Outcomes.on_outcome`, which turns it
+into its message (:mod:`app.sessions.pose` for an estimate, a ``frame_error`` otherwise), has
+the event loop publish the stream's copy at once and queues the message for the writer: the
+stream never waits for the database. Once the writer has stored it (or the database refused
+it: the stream then also hears a ``frame_error`` of kind ``not_stored``),
+:meth:`Outcomes.settle` wakes the ``?wait=true`` request waiting on it and the frame leaves
+its session's arrivals.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from app.config import Settings
+from app.db import utcnow
+from app.engine import Checkpoint, FrameDone, Outcome
+from app.sessions import pose
+from app.sessions.schemas import FrameError
+from app.sessions.store import OutcomeRecord
+from app.stream.hub import LocalHub
+
+if TYPE_CHECKING:
+    from app.sessions.runtime import LiveSession
+    from app.sessions.writer import Writer
+
+STREAM_ONLY = ("cloud",)
+"""Estimate fields a pose message carries on the stream and nowhere else: the particle
+sample is for watching, too bulky to keep for every frame."""
+
+
+class Outcomes:
+    """Publishing and settling the outcomes of one API process's frames.
+
+    Parameters
+    ----------
+    settings : Settings
+    hub : LocalHub
+        Where messages are published.
+    writer : Writer
+        Stores the messages, then calls back :meth:`settle` on the loop.
+    live : callable
+        The live session of an id, or None (deleted, or not held by this process).
+    """
+
+    def __init__(self, *, settings: Settings, hub: LocalHub, writer: Writer,
+                 live: Callable[[str], LiveSession | None]) -> None:
+        self.settings = settings
+        self.hub = hub
+        self.writer = writer
+        self.live = live
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._waiters: dict[tuple[str, int], asyncio.Future] = {}
+
+    def waiter(self, session_id: str, seq: int) -> asyncio.Future:
+        """A future for the frame's stored message (pose or frame_error)."""
+        fut = self.loop.create_future()
+        self._waiters[(session_id, seq)] = fut
+        return fut
+
+    def drop_waiter(self, session_id: str, seq: int) -> None:
+        self._waiters.pop((session_id, seq), None)
+
+    def on_outcome(self, outcome: Outcome) -> None:
+        """Engine reader thread: publish the message now, store it later."""
+        msg = self.message(outcome, time.perf_counter())
+        if msg is not None and self.loop is not None and not self.loop.is_closed():
+            self.loop.call_soon_threadsafe(self.hub.publish, outcome.session_id,
+                                           streamed(outcome, msg))
+        self.writer.put(OutcomeRecord(outcome, msg))
+
+    def message(self, outcome: Outcome, t_back: float) -> dict | None:
+        """The stored message of an outcome (None for a checkpoint, or an estimate of a
+        session deleted meanwhile: nothing to tell or keep)."""
+        if isinstance(outcome, Checkpoint):
+            return None
+        live = self.live(outcome.session_id)
+        arrival = live.arrivals.get(outcome.seq) if live is not None else None
+        latency_ms = (t_back - arrival.t0) * 1e3 if arrival is not None else 0.0
+        captured = arrival.captured_at if arrival is not None else None
+        if isinstance(outcome, FrameDone):
+            if live is None:
+                return None
+            spec = live.spec
+            ctx = pose.FrameContext(
+                session_id=outcome.session_id, seq=outcome.seq, map_id=spec.map_id,
+                map_revision=spec.revision, map_folder=spec.map_folder, captured_at=captured,
+                received_at=arrival.received_at if arrival is not None else utcnow(),
+                metadata=arrival.metadata if arrival is not None else None,
+                decode_ms=outcome.decode_ms, latency_ms=latency_ms)
+            msg = pose.from_estimate(outcome.estimate, ctx,
+                                     bound_m=self.settings.converged_accuracy_m,
+                                     converged_before=live.converged)
+            if msg.converged:
+                live.converged = True
+        else:
+            msg = FrameError(session_id=outcome.session_id, seq=outcome.seq,
+                             captured_at=captured, kind=outcome.kind, reason=outcome.reason,
+                             latency_ms=latency_ms)
+        return msg.model_dump(mode="json")
+
+    def settle(self, record: OutcomeRecord, error: Exception | None) -> None:
+        """Event loop: the writer stored the outcome (or the database refused it)."""
+        if record.message is None:
+            return
+        session_id, seq = record.outcome.session_id, record.outcome.seq
+        if error is not None:
+            self.hub.publish(session_id, record.message)  # the not_stored report
+        live = self.live(session_id)
+        if live is not None:
+            live.arrivals.pop(seq, None)
+        fut = self._waiters.pop((session_id, seq), None)
+        if fut is not None and not fut.done():
+            fut.set_result(record.message)
+
+
+def streamed(outcome: Outcome, message: dict) -> dict:
+    """The stream's copy of a frame's message: the stored message plus :data:`STREAM_ONLY`
+    and ``prev_seq`` (the frame answered before it, by which subscribers that hear
+    several replicas restore the order; see :class:`app.stream.hub.Subscription`)."""
+    extra = {}
+    if isinstance(outcome, FrameDone):
+        extra = {k: outcome.estimate[k] for k in STREAM_ONLY
+                 if k in outcome.estimate and k not in message}
+    if outcome.prev_seq is not None:
+        extra["prev_seq"] = outcome.prev_seq
+    return message | extra if extra else message
