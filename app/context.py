@@ -8,15 +8,15 @@ from typing import TYPE_CHECKING
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.config import Settings
-from app.metrics import Metrics
+from vloc.app.config import Settings
+from vloc.app.metrics import Metrics
 
 if TYPE_CHECKING:
-    from app.engine import Engine
-    from app.jobs.service import BuildRunner
-    from app.routes.service import RouteRunner
-    from app.sessions.runtime import SessionRuntime
-    from app.stream.hub import LocalHub
+    from vloc.app.engine import Engine
+    from vloc.app.jobs.service import BuildRunner
+    from vloc.app.routes.service import RouteRunner
+    from vloc.app.sessions.runtime import SessionRuntime
+    from vloc.app.stream.hub import LocalHub
 
 
 @dataclass(eq=False)

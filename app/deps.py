@@ -11,11 +11,11 @@ from fastapi.security import APIKeyHeader, HTTPBearer
 from sqlalchemy.orm import Session
 from starlette.requests import HTTPConnection
 
-from app.config import Settings
-from app.context import AppContext
-from app.db import session_scope
-from app.problems import Problem
-from app.security import matches, presented_secret
+from vloc.app.config import Settings
+from vloc.app.context import AppContext
+from vloc.app.db import session_scope
+from vloc.app.problems import Problem
+from vloc.app.security import matches, presented_secret
 
 BEARER = {"WWW-Authenticate": 'Bearer realm="vloc"'}
 

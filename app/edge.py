@@ -26,13 +26,13 @@ from enum import Enum
 from sqlalchemy import select
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.context import AppContext
-from app.deps import check_admin, check_metrics
-from app.limits import BodyKind, body_limit, too_large
-from app.problems import Problem, not_found, problem_response
-from app.security import presented_secret_from_headers
-from app.sessions.dependencies import authorise
-from app.sessions.models import LocalisationSession
+from vloc.app.context import AppContext
+from vloc.app.deps import check_admin, check_metrics
+from vloc.app.limits import BodyKind, body_limit, too_large
+from vloc.app.problems import Problem, not_found, problem_response
+from vloc.app.security import presented_secret_from_headers
+from vloc.app.sessions.dependencies import authorise
+from vloc.app.sessions.models import LocalisationSession
 
 
 class Access(Enum):

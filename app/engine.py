@@ -9,8 +9,8 @@ it reads back.
 
 from __future__ import annotations
 
-from app.config import Settings
-from workers.engine import (
+from vloc.app.config import Settings
+from vloc.workers.engine import (
     Checkpoint,
     Engine,
     EngineClosed,
@@ -23,7 +23,7 @@ from workers.engine import (
     SharedEngine,
     WorkerDied,
 )
-from workers.engine.build import (
+from vloc.workers.engine.build import (
     decode_orb,
     decode_sift,
     decode_vector,
@@ -33,7 +33,7 @@ from workers.engine.build import (
     encode_vocabulary,
     inspect_image,
 )
-from workers.engine.messages import DEFAULT_FACTORY
+from vloc.workers.engine.messages import DEFAULT_FACTORY
 
 __all__ = ["DEFAULT_FACTORY", "Checkpoint", "Engine", "EngineClosed", "FrameDone", "FrameFailed", "Outcome",
            "SeqRefused", "SessionSpec", "SharedEngine", "WorkerDied", "decode_orb",
@@ -45,7 +45,7 @@ def engine_for(settings: Settings) -> Engine:
     """The engine the settings ask for, not started yet."""
     if settings.engine == "ray":
         try:
-            from workers.engine.ray_engine import RayEngine
+            from vloc.workers.engine.ray_engine import RayEngine
         except ImportError as exc:
             raise RuntimeError("VLOC_ENGINE=ray needs Ray: pip install 'vloc[ray]'") from exc
         return RayEngine(settings.ray_shards or settings.worker_count,

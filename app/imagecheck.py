@@ -14,8 +14,8 @@ from io import BytesIO
 
 from PIL import Image, UnidentifiedImageError
 
-from app.problems import Problem
-from workers.core.image import image_kind, looks_truncated
+from vloc.app.problems import Problem
+from vloc.workers.core.image import image_kind, looks_truncated
 
 CONTENT_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 _KIND_OF_TYPE = {v: k for k, v in CONTENT_TYPES.items()} | {"image/jpg": "jpeg"}

@@ -11,8 +11,8 @@ from enum import Enum
 
 from starlette.requests import Request
 
-from app.config import Settings
-from app.problems import Problem
+from vloc.app.config import Settings
+from vloc.app.problems import Problem
 
 
 class BodyKind(Enum):

@@ -9,25 +9,25 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from app import logs, openapi, problems, ui
-from app.config import Settings, ensure_admin_key, private_dir
-from app.context import AppContext
-from app.db import make_engine, make_session_factory
-from app.edge import EdgeGate
-from app.engine import engine_for
-from app.health.router import router as health_router
-from app.jobs.router import router as jobs_router
-from app.jobs.service import BuildRunner, fail_interrupted
-from app.maps.router import router as maps_router
-from app.metrics import Metrics, MetricsMiddleware
-from app.routes.router import router as routes_router
-from app.routes.service import RouteRunner, fail_interrupted_routes
-from app.security import hash_secret
-from app.sessions.router import router as sessions_router
-from app.sessions.runtime import SessionRuntime
-from app.sessions.store import interrupt_left_queued
-from app.stream.hub import LocalHub
-from app.stream.router import router as stream_router
+from vloc.app import logs, openapi, problems, ui
+from vloc.app.config import Settings, ensure_admin_key, private_dir
+from vloc.app.context import AppContext
+from vloc.app.db import make_engine, make_session_factory
+from vloc.app.edge import EdgeGate
+from vloc.app.engine import engine_for
+from vloc.app.health.router import router as health_router
+from vloc.app.jobs.router import router as jobs_router
+from vloc.app.jobs.service import BuildRunner, fail_interrupted
+from vloc.app.maps.router import router as maps_router
+from vloc.app.metrics import Metrics, MetricsMiddleware
+from vloc.app.routes.router import router as routes_router
+from vloc.app.routes.service import RouteRunner, fail_interrupted_routes
+from vloc.app.security import hash_secret
+from vloc.app.sessions.router import router as sessions_router
+from vloc.app.sessions.runtime import SessionRuntime
+from vloc.app.sessions.store import interrupt_left_queued
+from vloc.app.stream.hub import LocalHub
+from vloc.app.stream.router import router as stream_router
 
 log = logging.getLogger("vloc.app")
 
@@ -77,7 +77,7 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
 
 def _make_hub(settings: Settings) -> LocalHub:
     if settings.redis_url:
-        from app.stream.redis_hub import RedisHub
+        from vloc.app.stream.redis_hub import RedisHub
 
         return RedisHub(settings.redis_url)
     return LocalHub()
@@ -133,7 +133,7 @@ async def _expire_sessions(ctx: AppContext) -> None:
 
 
 def _prepare_database(ctx: AppContext) -> None:
-    from app import migrate
+    from vloc.app import migrate
 
     if ctx.settings.auto_migrate:
         migrate.upgrade(ctx.db_engine)

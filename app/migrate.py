@@ -1,4 +1,8 @@
-"""Run the Alembic migrations programmatically (start-up, tests, ``alembic`` alike)."""
+"""Run the Alembic migrations programmatically (start-up, tests, ``alembic`` alike).
+
+``python -m vloc.app.migrate`` upgrades the database the ``VLOC_`` settings name to the
+latest revision: a deployment's one-off migration step, before its API replicas start.
+"""
 
 from __future__ import annotations
 
@@ -40,3 +44,19 @@ def current_revision(engine: Engine) -> str | None:
 
 def head_revision() -> str:
     return ScriptDirectory.from_config(alembic_config()).get_current_head()
+
+
+def main() -> None:
+    from vloc.app.config import Settings
+    from vloc.app.db import make_engine
+
+    engine = make_engine(Settings().resolved_database_url)
+    try:
+        upgrade(engine)
+        print(f"database at revision {current_revision(engine)}")
+    finally:
+        engine.dispose()
+
+
+if __name__ == "__main__":
+    main()

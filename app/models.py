@@ -1,8 +1,8 @@
 """Every table, imported in one place for Alembic and ``Base.metadata``."""
 
-from app.db import Base
-from app.jobs.models import BuildJob
-from app.maps.models import (
+from vloc.app.db import Base
+from vloc.app.jobs.models import BuildJob
+from vloc.app.maps.models import (
     ImageGlobalFeature,
     ImageOrb,
     ImageSift,
@@ -10,8 +10,8 @@ from app.maps.models import (
     MapImage,
     MapVocabulary,
 )
-from app.routes.models import Route, RouteArc, RouteImage, RouteNode
-from app.sessions.models import Frame, LocalisationSession, Pose
+from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode
+from vloc.app.sessions.models import Frame, LocalisationSession, Pose
 
 __all__ = ["Base", "BuildJob", "Frame", "ImageGlobalFeature", "ImageOrb", "ImageSift",
            "LocalisationSession", "Map", "MapImage", "MapVocabulary", "Pose", "Route", "RouteArc",

@@ -14,7 +14,7 @@ from http import HTTPStatus
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from app.problems import PROBLEM_JSON
+from vloc.app.problems import PROBLEM_JSON
 
 PROBLEM_SCHEMA = {
     "title": "Problem",

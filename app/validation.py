@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from datetime import UTC, datetime, timedelta
 
-from app.problems import Problem
+from vloc.app.problems import Problem
 
 MIN_ALT_M, MAX_ALT_M = -500.0, 10_000.0
 """Altitudes a camera on or above the ground can have (the Dead Sea shore to high flight)."""
@@ -18,7 +18,7 @@ FUTURE_SLACK = timedelta(days=1)
 
 def check_position(lat: float, lon: float, alt: float | None) -> None:
     """422 ``bad-position`` for NaN, infinite or out-of-range coordinates or altitude."""
-    from workers.core.geo import check_lat_lon
+    from vloc.workers.core.geo import check_lat_lon
 
     try:
         check_lat_lon(lat, lon)
@@ -55,7 +55,7 @@ def check_metadata(values: dict) -> dict | None:
     Raises Problem 422 ``bad-metadata`` naming the field (``field``) for a non-finite or
     out-of-range value or a half of a pair (``gps_lat`` without ``gps_lon``...).
     """
-    from workers.core.metadata import FrameMetadata
+    from vloc.workers.core.metadata import FrameMetadata
 
     given = {k: v for k, v in values.items() if v is not None}
     try:

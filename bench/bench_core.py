@@ -29,10 +29,10 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from workers.core.experiment import load_experiment  # noqa: E402
-from workers.core.localisers import make_localiser  # noqa: E402
-from workers.core.query import QueryFrame  # noqa: E402
-from workers.core.sift import extract_sift, ratio_matches  # noqa: E402
+from vloc.workers.core.experiment import load_experiment  # noqa: E402
+from vloc.workers.core.localisers import make_localiser  # noqa: E402
+from vloc.workers.core.query import QueryFrame  # noqa: E402
+from vloc.workers.core.sift import extract_sift, ratio_matches  # noqa: E402
 
 SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
 
@@ -49,7 +49,7 @@ def median_ms(fn, repeats: int) -> float:
 def dataset() -> tuple[Path, dict]:
     if (SENECA / "images").is_dir():
         return SENECA, {"map_pass": 1, "query_pass": 2}
-    from clients.world import generate_world
+    from vloc.clients.world import generate_world
 
     out = Path(tempfile.mkdtemp(prefix="vloc-bench-"))
     generate_world(out, kind="robot", seed=1, passes=["sunny", "cloudy"], frames=200)

@@ -30,9 +30,9 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from workers.core.features import FEATURE_NAMES, GLOBAL_FEATURES, extract_many  # noqa: E402
-from workers.core.image import decode_image, prepare  # noqa: E402
-from workers.core.measures import (  # noqa: E402
+from vloc.workers.core.features import FEATURE_NAMES, GLOBAL_FEATURES, extract_many  # noqa: E402
+from vloc.workers.core.image import decode_image, prepare  # noqa: E402
+from vloc.workers.core.measures import (  # noqa: E402
     MEASURES,
     normalise,
     similarities,

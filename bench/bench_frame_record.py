@@ -22,11 +22,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from app import migrate  # noqa: E402
-from app.db import make_engine, make_session_factory  # noqa: E402
-from app.maps.models import Map  # noqa: E402
-from app.sessions.models import LocalisationSession  # noqa: E402
-from app.sessions.store import FrameRecord, FrameStore  # noqa: E402
+from vloc.app import migrate  # noqa: E402
+from vloc.app.db import make_engine, make_session_factory  # noqa: E402
+from vloc.app.maps.models import Map  # noqa: E402
+from vloc.app.sessions.models import LocalisationSession  # noqa: E402
+from vloc.app.sessions.store import FrameRecord, FrameStore  # noqa: E402
 
 
 def time_records(url: str, n: int) -> np.ndarray:

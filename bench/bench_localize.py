@@ -43,7 +43,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from bench_service import ADMIN_KEY, build_map, start_server  # noqa: E402
 
-from workers.core.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
 
 
 async def over_http(base: str, map_id: str, frames: list[bytes], repeats: int) -> np.ndarray:
@@ -68,9 +68,9 @@ def in_process(folder: Path, frames: list[bytes], repeats: int) -> np.ndarray:
     """(step ms as reported, whole call ms: decode + new filter + step) per frame."""
     import cv2
 
-    from workers.core.image import load_frame
-    from workers.core.localisers import make_localiser, validate_params
-    from workers.core.mapdata import MapData
+    from vloc.workers.core.image import load_frame
+    from vloc.workers.core.localisers import make_localiser, validate_params
+    from vloc.workers.core.mapdata import MapData
 
     cv2.setNumThreads(1)
     data = MapData.load(folder, mmap=True)

@@ -45,18 +45,18 @@ cv2.setNumThreads(1)
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from workers.core.datasets import load_dataset, split  # noqa: E402
-from workers.core.features import DESCRIPTOR_NAMES, DESCRIPTORS, extract_many  # noqa: E402
-from workers.core.features.descriptors import (  # noqa: E402
+from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.features import DESCRIPTOR_NAMES, DESCRIPTORS, extract_many  # noqa: E402
+from vloc.workers.core.features.descriptors import (  # noqa: E402
     describe,
     local_vectors,
     train_descriptor_vocabulary,
 )
-from workers.core.features.orb import extract_orb  # noqa: E402
-from workers.core.image import decode_image, prepare  # noqa: E402
-from workers.core.measures import descriptor_similarities, weiss_similarity  # noqa: E402
-from workers.core.query import QueryFrame  # noqa: E402
-from workers.core.sift import extract_sift  # noqa: E402
+from vloc.workers.core.features.orb import extract_orb  # noqa: E402
+from vloc.workers.core.image import decode_image, prepare  # noqa: E402
+from vloc.workers.core.measures import descriptor_similarities, weiss_similarity  # noqa: E402
+from vloc.workers.core.query import QueryFrame  # noqa: E402
+from vloc.workers.core.sift import extract_sift  # noqa: E402
 
 SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
 

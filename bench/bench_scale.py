@@ -43,7 +43,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from bench_service import ADMIN_KEY, build_map, level  # noqa: E402
 
-from workers.core.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
 
 POSTGRES = os.environ.get("VLOC_TEST_POSTGRES_URL",
                           "postgresql+psycopg://postgres@127.0.0.1:5432/test")
@@ -85,7 +85,7 @@ def start_server(tmp: Path, env: dict, processes: int) -> tuple[subprocess.Popen
                "RAY_AUTH_MODE": "disabled", **env}
     log = tmp / f"server-{port}.log"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--processes",
+        [sys.executable, "-m", "vloc.clients.cli", "serve", "--port", str(port), "--processes",
          str(processes)], cwd=REPO, env=environ, stdout=subprocess.DEVNULL,
         stderr=log.open("wb"), start_new_session=True)
     base = f"http://127.0.0.1:{port}"

@@ -37,7 +37,7 @@ from websockets.asyncio.client import connect
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from workers.core.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
 
 ADMIN_KEY = "bench-admin-key-0123456789abcdef"
 
@@ -50,7 +50,7 @@ def start_server(data_dir: Path, workers: int) -> tuple[subprocess.Popen, str]:
            "VLOC_ADMIN_KEY": ADMIN_KEY, "VLOC_LOG_LEVEL": "WARNING",
            "VLOC_MAX_PENDING_FRAMES": "1000"}
     env.pop("VLOC_DATABASE_URL", None)
-    proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(port)],
+    proc = subprocess.Popen([sys.executable, "-m", "vloc.clients.cli", "serve", "--port", str(port)],
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                             stderr=(data_dir.parent / "server.log").open("wb"))
     base = f"http://127.0.0.1:{port}"

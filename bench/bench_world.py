@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from clients.world import generate_world  # noqa: E402
+from vloc.clients.world import generate_world  # noqa: E402
 
 PASSES = ["sunny", "cloudy", "dusk"]
 STAGES = ("scene", "shading", "rendering", "writing")

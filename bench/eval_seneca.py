@@ -22,11 +22,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from workers.core.evaluate import evaluate, retrieval_grid  # noqa: E402
-from workers.core.experiment import load_experiment  # noqa: E402
-from workers.core.features import FEATURE_NAMES  # noqa: E402
-from workers.core.measures import MEASURES  # noqa: E402
-from workers.core.report import grid_table, markdown_table, plot_tracks, results_dict  # noqa: E402
+from vloc.workers.core.evaluate import evaluate, retrieval_grid  # noqa: E402
+from vloc.workers.core.experiment import load_experiment  # noqa: E402
+from vloc.workers.core.features import FEATURE_NAMES  # noqa: E402
+from vloc.workers.core.measures import MEASURES  # noqa: E402
+from vloc.workers.core.report import grid_table, markdown_table, plot_tracks, results_dict  # noqa: E402
 
 SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
 MODES = ["hybrid", "global", "sift", "hierarchical", "retrieval"]

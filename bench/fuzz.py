@@ -51,7 +51,7 @@ def run_fuzz(max_examples: int, *, seed: int = 1, phases: str | None = None,
         env.pop("VLOC_DATABASE_URL", None)
         log = (Path(tmp) / "server.log").open("wb")
         server = subprocess.Popen(
-            [sys.executable, "-m", "clients.cli", "serve", "--host", "127.0.0.1",
+            [sys.executable, "-m", "vloc.clients.cli", "serve", "--host", "127.0.0.1",
              "--port", str(port)], cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=log)
         try:
             base = f"http://127.0.0.1:{port}"

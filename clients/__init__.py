@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from clients.sdk import *  # noqa: F403
+    from vloc.clients.sdk import *  # noqa: F403
 
 # The SDK's public names, re-exported here and imported on first use, so that the command
 # line and the world generator do not pay for httpx and pydantic when they do not need them.
@@ -27,7 +27,7 @@ __all__ = sorted(_SDK_NAMES)
 
 def __getattr__(name: str) -> Any:
     if name in _SDK_NAMES:
-        from clients import sdk
+        from vloc.clients import sdk
 
         return getattr(sdk, name)
     raise AttributeError(f"module 'clients' has no attribute {name!r}")

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
-from workers.core.datasets import Dataset, DatasetImage, load_dataset, split
+from vloc.workers.core.datasets import Dataset, DatasetImage, load_dataset, split
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,7 +79,7 @@ def load_replay_data(folder: str | Path, *, rule: str = "pass", map_pass: int | 
     ------
     DatasetError, FileNotFoundError, ValueError
     """
-    from workers.core.photometric import VARIANTS
+    from vloc.workers.core.photometric import VARIANTS
 
     if photometric not in VARIANTS:
         raise ValueError(f"unknown photometric variant {photometric!r}; "
@@ -103,8 +103,8 @@ def _with_metadata(frames: list[DeviceFrame], images: list[DatasetImage],
 
     import numpy as np
 
-    from workers.core.geo import GeoOrigin
-    from workers.core.metadata import METADATA_KINDS, FrameMetadata
+    from vloc.workers.core.geo import GeoOrigin
+    from vloc.workers.core.metadata import METADATA_KINDS, FrameMetadata
 
     unknown = set(kinds) - set(METADATA_KINDS)
     if unknown:
@@ -135,7 +135,7 @@ def _with_metadata(frames: list[DeviceFrame], images: list[DatasetImage],
 
 
 def _device_frame(index: int, img: DatasetImage, photometric: str, seed: int) -> DeviceFrame:
-    from clients.sdk._requests import image_content_type
+    from vloc.clients.sdk._requests import image_content_type
 
     data = img.path.read_bytes()
     if photometric != "none":
@@ -150,8 +150,8 @@ def _device_frame(index: int, img: DatasetImage, photometric: str, seed: int) ->
 def _relit_png(data: bytes, variant: str, seed: int, index: int) -> bytes:
     import cv2
 
-    from workers.core.image import load_frame
-    from workers.core.photometric import apply_variant, variant_rng
+    from vloc.workers.core.image import load_frame
+    from vloc.workers.core.photometric import apply_variant, variant_rng
 
     colour = apply_variant(load_frame(data).colour, variant, rng=variant_rng(seed, index))
     ok, buf = cv2.imencode(".png", colour)

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from clients.replay import DeviceRun, as_eval_run, truth_in_map_frame
+from vloc.clients.replay import DeviceRun, as_eval_run, truth_in_map_frame
 
 _NAN_FIGURES = ("mean_error_m", "std_error_m", "median_error_m", "within_25m",
                 "mean_error_after_convergence_m", "sift_step_share", "ms_per_frame",
@@ -21,7 +21,7 @@ _NAN_FIGURES = ("mean_error_m", "std_error_m", "median_error_m", "within_25m",
 
 
 def _figures(runs: list[DeviceRun], truth_xy: np.ndarray, skip: int) -> dict:
-    from workers.core.evaluate import ModeSummary
+    from vloc.workers.core.evaluate import ModeSummary
 
     eval_runs = [as_eval_run(r, truth_xy) for r in runs if r.poses]
     if not eval_runs or sum(max(len(r.frames) - skip, 0) for r in eval_runs) == 0:
@@ -111,8 +111,8 @@ def plot_replay(path, map_xy: np.ndarray, runs: list[DeviceRun], frames, origin,
     map_xy : (M, 2) float64 ndarray
         Map image positions, east/north metres in the map's frame.
     """
-    from workers.core.evaluate import ModeSummary
-    from workers.core.report import plot_tracks
+    from vloc.workers.core.evaluate import ModeSummary
+    from vloc.workers.core.report import plot_tracks
 
     truth = truth_in_map_frame(frames, origin)
     modes = {r.mode: ModeSummary(r.mode, "replay", [as_eval_run(r, truth)], 0)
@@ -126,8 +126,8 @@ def plot_replay(path, map_xy: np.ndarray, runs: list[DeviceRun], frames, origin,
 def replay_tracks(map_xy: np.ndarray, runs: list[DeviceRun], frames, origin) -> dict:
     """Device 0's track per mode against the truth, for the web viewer
     (:func:`workers.core.report.tracks_dict`; config ``"replay"``)."""
-    from workers.core.evaluate import ModeSummary
-    from workers.core.report import tracks_dict
+    from vloc.workers.core.evaluate import ModeSummary
+    from vloc.workers.core.report import tracks_dict
 
     truth = truth_in_map_frame(frames, origin)
     modes = {r.mode: ModeSummary(r.mode, "replay", [as_eval_run(r, truth)], 0)

@@ -12,19 +12,19 @@ import click
 
 # name -> (module, attribute, one-line help)
 COMMANDS: dict[str, tuple[str, str, str]] = {
-    "eval": ("clients.commands.eval", "eval_cmd",
+    "eval": ("vloc.clients.commands.eval", "eval_cmd",
              "Run the localisers over a dataset offline and print the error/speed table."),
-    "serve": ("clients.commands.serve", "serve_cmd", "Run the API server (uvicorn) with settings from the environment."),
-    "world": ("clients.commands.world", "world_cmd", "Generate a synthetic world: a route rendered under several illuminations, as a dataset folder."),
-    "map": ("clients.commands.map", "map_group",
+    "serve": ("vloc.clients.commands.serve", "serve_cmd", "Run the API server (uvicorn) with settings from the environment."),
+    "world": ("vloc.clients.commands.world", "world_cmd", "Generate a synthetic world: a route rendered under several illuminations, as a dataset folder."),
+    "map": ("vloc.clients.commands.map", "map_group",
             "Maps: create, list, show, delete, import a folder of images, build."),
-    "session": ("clients.commands.session", "session_group",
+    "session": ("vloc.clients.commands.session", "session_group",
                 "Sessions: create, show, delete, reset, initial pose, send frames, watch poses."),
-    "replay": ("clients.commands.replay", "replay_cmd",
+    "replay": ("vloc.clients.commands.replay", "replay_cmd",
                "Simulated devices: play a dataset into a running server, print the error table."),
-    "navigate": ("clients.commands.navigate", "navigate_cmd",
+    "navigate": ("vloc.clients.commands.navigate", "navigate_cmd",
                  "Teach a route in the robot world and repeat it through the service (Li et al.)."),
-    "demo": ("clients.commands.demo", "demo_cmd",
+    "demo": ("vloc.clients.commands.demo", "demo_cmd",
              "The whole product in one command: synthetic world, server, map, device replay, table."),
 }
 

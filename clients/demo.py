@@ -71,14 +71,14 @@ def server_process(data_dir: Path, *, log_path: Path, admin_key: str,
     DemoError
         The server exited or was not ready in time (the end of its log is in the message).
     """
-    from clients.sdk import Client, WaitTimeout
+    from vloc.clients.sdk import Client, WaitTimeout
 
     port = port or free_port()
     env = {k: v for k, v in os.environ.items()
            if not k.startswith("VLOC_") or k == "VLOC_SHARED_DIR"}
     env.update(VLOC_DATA_DIR=str(data_dir), VLOC_ADMIN_KEY=admin_key, VLOC_LOG_JSON="false",
                VLOC_LOG_LEVEL="WARNING")
-    cmd = [sys.executable, "-m", "clients.cli", "serve", "--host", "127.0.0.1",
+    cmd = [sys.executable, "-m", "vloc.clients.cli", "serve", "--host", "127.0.0.1",
            "--port", str(port)]
     if workers is not None:
         cmd += ["--workers", str(workers)]
@@ -146,7 +146,7 @@ def make_world(folder: Path, opts: DemoOptions, say: Callable[[str], None]) -> P
     """The synthetic world, reused when ``folder`` already holds one of the same recipe."""
     from tqdm import tqdm
 
-    from clients.world import generate_world
+    from vloc.clients.world import generate_world
 
     recipe = {"kind": "robot", "seed": opts.seed, "passes": ["sunny", opts.query_light],
               "frames": opts.frames, "route_length": route_length(opts.frames)}
@@ -222,13 +222,13 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
     import numpy as np
     from tqdm import tqdm
 
-    from clients._replay_data import load_replay_data
-    from clients._replay_report import mode_table, plot_replay, replay_tracks, summarise
-    from clients.commands._common import build_with_bar
-    from clients.mapping import import_images
-    from clients.replay import replay_async
-    from clients.sdk import AsyncClient, Client
-    from workers.core.geo import GeoOrigin
+    from vloc.clients._replay_data import load_replay_data
+    from vloc.clients._replay_report import mode_table, plot_replay, replay_tracks, summarise
+    from vloc.clients.commands._common import build_with_bar
+    from vloc.clients.mapping import import_images
+    from vloc.clients.replay import replay_async
+    from vloc.clients.sdk import AsyncClient, Client
+    from vloc.workers.core.geo import GeoOrigin
 
     data = load_replay_data(world, map_pass=1, query_pass=2)
     with Client(url, admin_key=admin_key) as vloc:

@@ -11,8 +11,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from clients.sdk import APIError, Client, ImageRejection, Job
-from workers.core.datasets import DatasetImage
+from vloc.clients.sdk import APIError, Client, ImageRejection, Job
+from vloc.workers.core.datasets import DatasetImage
 
 BATCH_FILES = 8
 BATCH_BYTES = 16 * 2**20

@@ -99,8 +99,8 @@ class Frames:
 
 def teach_over_http(client, drive, *, say: Callable[[str], None], quiet: bool = False):
     """Map and route from a taught drive: returns the map and the ready route."""
-    from clients.commands._common import build_with_bar
-    from clients.world.teach import odometry_csv
+    from vloc.clients.commands._common import build_with_bar
+    from vloc.clients.world.teach import odometry_csv
 
     m = client.create_map("teach and repeat")
     for k in range(0, len(drive.names), 50):
@@ -127,7 +127,7 @@ def repeat(client, map_id: str, route_id: str, camera, taught: np.ndarray, start
     """
     import cv2
 
-    from workers.core.navigation import ActuationNoise, Path, unicycle_step
+    from vloc.workers.core.navigation import ActuationNoise, Path, unicycle_step
 
     path = Path(taught[:, :2], smoothing=0.3)
     session = client.create_session(map_id, mode=opts.mode, params=opts.params,
@@ -221,7 +221,7 @@ def plot(path: Path, taught: np.ndarray, runs: list[Run], frames: Frames | None,
 @contextlib.contextmanager
 def service(opts: NavigateOptions, say: Callable[[str], None]) -> Iterator[tuple[str, str]]:
     """The server to talk to: ``opts.url``, or ``vloc serve`` started for the run."""
-    from clients.demo import server_process
+    from vloc.clients.demo import server_process
 
     if opts.url is not None:
         yield opts.url, opts.admin_key
@@ -240,9 +240,9 @@ def service(opts: NavigateOptions, say: Callable[[str], None]) -> Iterator[tuple
 def run_navigate(opts: NavigateOptions, say: Callable[[str], None] = print) -> dict:
     """Teach, repeat from the route's start (and from ``opts.starts`` random offset starts),
     measure and plot; returns the results."""
-    from clients.sdk import Client
-    from clients.world.teach import TeachWorld
-    from workers.core.geo import GeoOrigin
+    from vloc.clients.sdk import Client
+    from vloc.clients.world.teach import TeachWorld
+    from vloc.workers.core.geo import GeoOrigin
 
     opts.out.mkdir(parents=True, exist_ok=True)
     world = TeachWorld(opts.seed, opts.route_length)

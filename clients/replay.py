@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from clients._replay_data import DeviceFrame
-from clients.sdk import (
+from vloc.clients._replay_data import DeviceFrame
+from vloc.clients.sdk import (
     APIError,
     AsyncClient,
     FrameError,
@@ -216,7 +216,7 @@ def as_eval_run(run: DeviceRun, truth_xy: np.ndarray, *, config: str = "replay")
     truth_xy : (n_frames, 2) float64 ndarray
         True east/north of every frame in the map's local frame.
     """
-    from workers.core.evaluate import Run
+    from vloc.workers.core.evaluate import Run
 
     seqs = np.array(sorted(run.poses), dtype=np.int64)
     poses = [run.poses[s] for s in seqs]

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from alembic import context
 
-from app.config import Settings
-from app.db import make_engine
-from app.models import Base
+from vloc.app.config import Settings
+from vloc.app.db import make_engine
+from vloc.app.models import Base
 
 config = context.config
 target_metadata = Base.metadata

@@ -13,14 +13,15 @@ from tests.conftest import REPO_ROOT
 
 
 def _imports(path: Path) -> set[str]:
-    """Every module a file imports, at any depth (inside functions too)."""
+    """Every module a file imports, at any depth (inside functions too), named as in the
+    repository (without the installed distribution's ``vloc.`` prefix)."""
     found = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             found.add(node.module)
-    return found
+    return {name.removeprefix("vloc.") for name in found}
 
 
 def _offences(folder: str, forbidden: tuple[str, ...], *, allowed: tuple[str, ...] = ()):
@@ -47,6 +48,6 @@ def test_layers_import_only_what_is_below_them(folder, forbidden, allowed):
 def test_the_check_finds_an_offending_import(tmp_path, monkeypatch):
     bad = tmp_path / "pkg" / "mod.py"
     bad.parent.mkdir()
-    bad.write_text("def f():\n    from app.db import make_engine\n")
+    bad.write_text("def f():\n    from vloc.app.db import make_engine\n")
     monkeypatch.setattr("tests.test_layers.REPO_ROOT", tmp_path)
     assert _offences("pkg", ("app",)) == ["pkg/mod.py imports app.db"]

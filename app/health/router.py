@@ -7,8 +7,8 @@ from fastapi import APIRouter, Depends, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
-from app.deps import Ctx, require_metrics
-from app.problems import Problem
+from vloc.app.deps import Ctx, require_metrics
+from vloc.app.problems import Problem
 
 router = APIRouter(tags=["health"])
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from app.deps import DbSession, require_admin
-from app.jobs.models import BuildJob
-from app.jobs.schemas import JobRead
-from app.maps.dependencies import parse_id
-from app.problems import not_found
+from vloc.app.deps import DbSession, require_admin
+from vloc.app.jobs.models import BuildJob
+from vloc.app.jobs.schemas import JobRead
+from vloc.app.maps.dependencies import parse_id
+from vloc.app.problems import not_found
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(require_admin)])
 

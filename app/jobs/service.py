@@ -15,16 +15,16 @@ from dataclasses import dataclass
 from sqlalchemy import func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.background import BackgroundRunner
-from app.config import Settings
-from app.db import utcnow
-from app.engine import Engine
-from app.jobs import tasks
-from app.jobs.models import BuildJob, JobStatus
-from app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapStatus
-from app.maps.service import image_path
-from app.metrics import Metrics
-from app.problems import Problem
+from vloc.app.background import BackgroundRunner
+from vloc.app.config import Settings
+from vloc.app.db import utcnow
+from vloc.app.engine import Engine
+from vloc.app.jobs import tasks
+from vloc.app.jobs.models import BuildJob, JobStatus
+from vloc.app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapStatus
+from vloc.app.maps.service import image_path
+from vloc.app.metrics import Metrics
+from vloc.app.problems import Problem
 
 log = logging.getLogger(__name__)
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy import delete, select
 
-from app.db import make_engine, make_session_factory
-from app.engine import (
+from vloc.app.db import make_engine, make_session_factory
+from vloc.app.engine import (
     decode_orb,
     decode_sift,
     decode_vector,
@@ -27,8 +27,8 @@ from app.engine import (
     encode_vector,
     encode_vocabulary,
 )
-from app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
-from app.sessions.pose import write_image_ids
+from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
+from vloc.app.sessions.pose import write_image_ids
 
 
 @lru_cache(maxsize=8)
@@ -41,8 +41,8 @@ def extract_image(database_url: str, image_id: int, path: str, *, max_pixels: in
 
     Returns the number of SIFT keypoints. Raises ImageError for an undecodable file.
     """
-    from workers.core.image import load_frame
-    from workers.core.mapbuild import extract_image_features
+    from vloc.workers.core.image import load_frame
+    from vloc.workers.core.mapbuild import extract_image_features
 
     frame = load_frame(Path(path).read_bytes(), max_pixels=max_pixels)
     feats = extract_image_features(frame)
@@ -84,7 +84,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         ``origin`` (lat, lon, alt), ``image_ids`` (in map order) and their ``east`` and
         ``north`` in the new local frame.
     """
-    from workers.core.mapbuild import ImageFeatures, assemble_map, typical_focal_px
+    from vloc.workers.core.mapbuild import ImageFeatures, assemble_map, typical_focal_px
 
     with _sessions(database_url)() as db:
         rows = db.execute(

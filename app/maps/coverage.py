@@ -9,7 +9,7 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.maps.models import Map, MapImage
+from vloc.app.maps.models import Map, MapImage
 
 EARTH_RADIUS_M = 6_371_008.8
 """Mean radius (IUGG): distances over a map's extent are far below its error."""

@@ -8,11 +8,11 @@ from typing import Annotated
 
 from fastapi import Depends
 
-from app.deps import Ctx, DbSession
-from app.engine import EngineClosed, WorkerDied, inspect_image
-from app.maps.models import Map
-from app.maps.service import Verifier
-from app.problems import Problem, not_found
+from vloc.app.deps import Ctx, DbSession
+from vloc.app.engine import EngineClosed, WorkerDied, inspect_image
+from vloc.app.maps.models import Map
+from vloc.app.maps.service import Verifier
+from vloc.app.problems import Problem, not_found
 
 VERIFY_TIMEOUT_S = 120.0
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from functools import lru_cache
 
-from app.problems import Problem
+from vloc.app.problems import Problem
 
 MODES = ("sift", "global", "hybrid")
 """The localisers one image can use: the particle filter's, for one step."""
@@ -21,7 +21,7 @@ DEFAULT_PRIOR_SIGMA_M = 25.0
 @lru_cache(maxsize=4)
 def _map(folder: str):
     """Worker side: a packed revision, loaded (memory-mapped) once per worker process."""
-    from workers.core.mapdata import MapData
+    from vloc.workers.core.mapdata import MapData
 
     return MapData.load(folder, mmap=True)
 
@@ -35,9 +35,9 @@ def localize_in_worker(folder: str, data: bytes, *, mode: str, params: dict, see
     (:meth:`~workers.core.estimate.Estimate.to_dict`) and ``decode_ms``; a ValueError
     for an image that cannot be decoded or a prior outside the map's frame.
     """
-    from workers.core.image import ImageError, load_frame
-    from workers.core.localisers import make_localiser
-    from workers.core.metadata import FrameMetadata
+    from vloc.workers.core.image import ImageError, load_frame
+    from vloc.workers.core.localisers import make_localiser
+    from vloc.workers.core.metadata import FrameMetadata
 
     t0 = time.perf_counter()
     try:

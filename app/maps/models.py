@@ -22,7 +22,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
-from app.db import Base, UTCDateTime, new_id, utcnow
+from vloc.app.db import Base, UTCDateTime, new_id, utcnow
 
 
 class MapStatus:

@@ -12,25 +12,25 @@ from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, Up
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 
-from app.deps import Ctx, DbSession, SettingsDep, require_admin
-from app.engine import EngineClosed, WorkerDied
-from app.imagecheck import check_image, kind_of_content_type
-from app.jobs.service import start_build
-from app.limits import read_body
-from app.maps import service
-from app.maps.coverage import Coverage, covering_maps
-from app.maps.dependencies import ImageVerifier, MapDep, parse_id
-from app.maps.localize import DEFAULT_PRIOR_SIGMA_M, check_prior, localize_in_worker
-from app.maps.models import MapImage
-from app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
-from app.problems import Problem
-from app.sessions.admission import revision_missing
-from app.sessions.dependencies import FrameMetadataDep
-from app.sessions.pose import pose_fields
-from app.sessions.schemas import MAX_INITIAL_SIGMA_M, InitialPose, Localization
-from app.sessions.service import check_initial_pose, map_frame
-from app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_captured_at
-from workers.core.localisers import validate_params
+from vloc.app.deps import Ctx, DbSession, SettingsDep, require_admin
+from vloc.app.engine import EngineClosed, WorkerDied
+from vloc.app.imagecheck import check_image, kind_of_content_type
+from vloc.app.jobs.service import start_build
+from vloc.app.limits import read_body
+from vloc.app.maps import service
+from vloc.app.maps.coverage import Coverage, covering_maps
+from vloc.app.maps.dependencies import ImageVerifier, MapDep, parse_id
+from vloc.app.maps.localize import DEFAULT_PRIOR_SIGMA_M, check_prior, localize_in_worker
+from vloc.app.maps.models import MapImage
+from vloc.app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
+from vloc.app.problems import Problem
+from vloc.app.sessions.admission import revision_missing
+from vloc.app.sessions.dependencies import FrameMetadataDep
+from vloc.app.sessions.pose import pose_fields
+from vloc.app.sessions.schemas import MAX_INITIAL_SIGMA_M, InitialPose, Localization
+from vloc.app.sessions.service import check_initial_pose, map_frame
+from vloc.app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_captured_at
+from vloc.workers.core.localisers import validate_params
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(require_admin)])
 

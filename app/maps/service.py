@@ -15,11 +15,11 @@ from pathlib import Path
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.config import Settings
-from app.imagecheck import ImageHeader, check_image
-from app.jobs.models import BuildJob, JobStatus
-from app.maps.models import Map, MapImage, MapStatus
-from app.maps.schemas import (
+from vloc.app.config import Settings
+from vloc.app.imagecheck import ImageHeader, check_image
+from vloc.app.jobs.models import BuildJob, JobStatus
+from vloc.app.maps.models import Map, MapImage, MapStatus
+from vloc.app.maps.schemas import (
     GeoExtent,
     ImageRejection,
     ImageUploadResult,
@@ -28,9 +28,9 @@ from app.maps.schemas import (
     MapRead,
     Origin,
 )
-from app.problems import Problem, not_found
-from app.sessions.models import LocalisationSession
-from app.validation import (
+from vloc.app.problems import Problem, not_found
+from vloc.app.sessions.models import LocalisationSession
+from vloc.app.validation import (
     MAX_ALT_M,
     MIN_ALT_M,
     aware,
@@ -228,7 +228,7 @@ def _screen(db_sessions: sessionmaker[Session], map_id: uuid.UUID, uploads: Sequ
 
 def _check_one(up: Upload, position: GivenPosition | None,
                settings: Settings) -> tuple[ImageHeader, GivenPosition]:
-    from workers.core.exif import read_gps
+    from vloc.workers.core.exif import read_gps
 
     if len(up.data) > settings.max_upload_bytes:
         raise Problem(413, f"{len(up.data)} bytes exceed the limit of "

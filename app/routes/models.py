@@ -13,7 +13,7 @@ from datetime import datetime
 from sqlalchemy import JSON, BigInteger, Float, ForeignKey, Integer, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
-from app.db import Base, UTCDateTime, new_id, utcnow
+from vloc.app.db import Base, UTCDateTime, new_id, utcnow
 
 _IMAGE_ID = BigInteger().with_variant(Integer, "sqlite")
 

@@ -14,7 +14,7 @@ import io
 import math
 from dataclasses import dataclass
 
-from app.problems import Problem
+from vloc.app.problems import Problem
 
 REQUIRED = ("filename", "x", "y", "theta")
 OPTIONAL = ("lat", "lon")

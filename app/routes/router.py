@@ -6,12 +6,12 @@ import json
 
 from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
 
-from app.deps import Ctx, DbSession, SettingsDep, require_admin
-from app.maps.dependencies import MapDep
-from app.problems import Problem
-from app.routes import service
-from app.routes.odometry import parse_odometry
-from app.routes.schemas import RouteDetail, RouteRead
+from vloc.app.deps import Ctx, DbSession, SettingsDep, require_admin
+from vloc.app.maps.dependencies import MapDep
+from vloc.app.problems import Problem
+from vloc.app.routes import service
+from vloc.app.routes.odometry import parse_odometry
+from vloc.app.routes.schemas import RouteDetail, RouteRead
 
 router = APIRouter(prefix="/v1/maps/{map_id}/routes", tags=["routes"],
                    dependencies=[Depends(require_admin)])

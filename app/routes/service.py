@@ -10,16 +10,16 @@ from dataclasses import dataclass
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.background import BackgroundRunner
-from app.config import Settings
-from app.db import utcnow
-from app.engine import Engine
-from app.maps.models import ImageSift, Map, MapImage
-from app.problems import Problem, not_found
-from app.routes import tasks
-from app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
-from app.routes.odometry import OdometryRow
-from app.routes.schemas import RouteDetail
+from vloc.app.background import BackgroundRunner
+from vloc.app.config import Settings
+from vloc.app.db import utcnow
+from vloc.app.engine import Engine
+from vloc.app.maps.models import ImageSift, Map, MapImage
+from vloc.app.problems import Problem, not_found
+from vloc.app.routes import tasks
+from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
+from vloc.app.routes.odometry import OdometryRow
+from vloc.app.routes.schemas import RouteDetail
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +29,7 @@ MAX_LISTED = 10
 
 def route_params(params: dict | None) -> dict:
     """Complete :class:`~workers.core.navigation.RouteParams`, or a 422 naming the field."""
-    from workers.core.navigation import RouteParams
+    from vloc.workers.core.navigation import RouteParams
 
     params = dict(params or {})
     known = set(RouteParams.__dataclass_fields__)

@@ -13,21 +13,21 @@ import uuid
 import numpy as np
 from sqlalchemy import delete, select
 
-from app.db import utcnow
-from app.engine import decode_sift, decode_vector
-from app.jobs.tasks import _sessions
-from app.maps.models import ImageGlobalFeature, ImageSift, Map, MapImage
-from app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
+from vloc.app.db import utcnow
+from vloc.app.engine import decode_sift, decode_vector
+from vloc.app.jobs.tasks import _sessions
+from vloc.app.maps.models import ImageGlobalFeature, ImageSift, Map, MapImage
+from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
 
 
 def build_route(database_url: str, route_id: str) -> dict:
     """Build one stored route; returns its node and loop counts."""
-    from workers.core.geo import GeoOrigin
-    from workers.core.image import WORK_SIZE
-    from workers.core.navigation import RouteParams
-    from workers.core.navigation import build_route as build
-    from workers.core.navigation.routemap import sift_verifier, yaw_from_views
-    from workers.core.navigation.visual import camera_matrix
+    from vloc.workers.core.geo import GeoOrigin
+    from vloc.workers.core.image import WORK_SIZE
+    from vloc.workers.core.navigation import RouteParams
+    from vloc.workers.core.navigation import build_route as build
+    from vloc.workers.core.navigation.routemap import sift_verifier, yaw_from_views
+    from vloc.workers.core.navigation.visual import camera_matrix
 
     rid = uuid.UUID(route_id)
     with _sessions(database_url)() as db:

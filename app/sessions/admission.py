@@ -5,18 +5,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from app.config import Settings
-from app.engine import DEFAULT_FACTORY, SessionSpec
-from app.problems import Problem
-from app.sessions.models import LocalisationSession
-from app.sessions.schemas import MAX_SEQ
+from vloc.app.config import Settings
+from vloc.app.engine import DEFAULT_FACTORY, SessionSpec
+from vloc.app.problems import Problem
+from vloc.app.sessions.models import LocalisationSession
+from vloc.app.sessions.schemas import MAX_SEQ
 
 
 def spec_for(row: LocalisationSession, settings: Settings) -> SessionSpec:
     folder = settings.packed_map_dir(str(row.map_id), row.map_revision)
     params, factory = dict(row.params), DEFAULT_FACTORY
     if row.navigation is not None:
-        from workers.core.navigation.session import FACTORY
+        from vloc.workers.core.navigation.session import FACTORY
 
         # the worker builds a localiser that also follows the session's route
         params["navigation"], factory = row.navigation, FACTORY

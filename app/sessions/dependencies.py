@@ -8,14 +8,14 @@ from typing import Annotated
 from fastapi import Depends, Query, Security
 from starlette.requests import HTTPConnection
 
-from app.context import AppContext
-from app.deps import AdminSchemes, Ctx, DbSession, session_bearer, unauthenticated
-from app.maps.dependencies import parse_id
-from app.problems import Problem, not_found
-from app.security import matches, presented_secret
-from app.sessions.models import LocalisationSession
-from app.sessions.runtime import LiveSession, expired_problem
-from app.validation import check_metadata
+from vloc.app.context import AppContext
+from vloc.app.deps import AdminSchemes, Ctx, DbSession, session_bearer, unauthenticated
+from vloc.app.maps.dependencies import parse_id
+from vloc.app.problems import Problem, not_found
+from vloc.app.security import matches, presented_secret
+from vloc.app.sessions.models import LocalisationSession
+from vloc.app.sessions.runtime import LiveSession, expired_problem
+from vloc.app.validation import check_metadata
 
 
 def authorise(secret: str | None, token_hash: str, ctx: AppContext, session_id: object) -> None:

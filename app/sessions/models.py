@@ -21,8 +21,8 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import Mapped, mapped_column
 
-from app.db import Base, UTCDateTime, new_id, utcnow
-from app.sessions.pose import pose_columns
+from vloc.app.db import Base, UTCDateTime, new_id, utcnow
+from vloc.app.sessions.pose import pose_columns
 
 DEFAULT_TTL_S = 3600
 """A session's time to live when neither it nor the server's settings name one."""

@@ -16,17 +16,17 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from app.config import Settings
-from app.db import utcnow
-from app.engine import Checkpoint, FrameDone, Outcome
-from app.sessions import pose
-from app.sessions.schemas import FrameError
-from app.sessions.store import OutcomeRecord
-from app.stream.hub import LocalHub
+from vloc.app.config import Settings
+from vloc.app.db import utcnow
+from vloc.app.engine import Checkpoint, FrameDone, Outcome
+from vloc.app.sessions import pose
+from vloc.app.sessions.schemas import FrameError
+from vloc.app.sessions.store import OutcomeRecord
+from vloc.app.stream.hub import LocalHub
 
 if TYPE_CHECKING:
-    from app.sessions.runtime import LiveSession
-    from app.sessions.writer import Writer
+    from vloc.app.sessions.runtime import LiveSession
+    from vloc.app.sessions.writer import Writer
 
 STREAM_ONLY = ("cloud",)
 """Estimate fields a pose message carries on the stream and nowhere else: the particle

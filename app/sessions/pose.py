@@ -31,10 +31,10 @@ from pydantic.fields import FieldInfo
 from sqlalchemy import JSON, BigInteger, Boolean, Column, Float, Integer, String, Text
 from sqlalchemy.types import TypeEngine
 
-from app.db import UTCDateTime
-from app.sessions.schemas import PoseEstimate, PoseFields
-from workers.core.accuracy import horizontal_accuracy
-from workers.core.estimate import Status
+from vloc.app.db import UTCDateTime
+from vloc.app.sessions.schemas import PoseEstimate, PoseFields
+from vloc.workers.core.accuracy import horizontal_accuracy
+from vloc.workers.core.estimate import Status
 
 NOT_STORED = ("type", "session_id", "seq", "map_id", "map_revision")
 """Fields that are no column of their own: the key, and the session's map."""
@@ -243,7 +243,7 @@ def pose_fields(estimate: dict, *, map_id: str, map_revision: int, map_folder: s
         heading = (meta.get("heading_deg"), meta.get("heading_accuracy_deg"), "device") \
             if meta.get("heading_deg") is not None else (None, None, None)
     if heading[0] is not None and heading[1] is None:
-        from workers.core.metadata import DEFAULT_HEADING_ACCURACY_DEG
+        from vloc.workers.core.metadata import DEFAULT_HEADING_ACCURACY_DEG
         heading = (heading[0], DEFAULT_HEADING_ACCURACY_DEG, heading[2])
     image_id, filename = revision_images(map_folder).lookup(
         int(estimate.get("best_image", -1)))

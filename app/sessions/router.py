@@ -9,15 +9,15 @@ from datetime import datetime
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
-from app.deps import Ctx, DbSession, require_admin
-from app.imagecheck import check_image, kind_of_content_type
-from app.limits import read_body
-from app.problems import Problem
-from app.sessions import service
-from app.sessions.dependencies import FrameMetadataDep, LiveSessionDep, SessionDep
-from app.sessions.models import LocalisationSession
-from app.sessions.params import SessionCreate
-from app.sessions.schemas import (
+from vloc.app.deps import Ctx, DbSession, require_admin
+from vloc.app.imagecheck import check_image, kind_of_content_type
+from vloc.app.limits import read_body
+from vloc.app.problems import Problem
+from vloc.app.sessions import service
+from vloc.app.sessions.dependencies import FrameMetadataDep, LiveSessionDep, SessionDep
+from vloc.app.sessions.models import LocalisationSession
+from vloc.app.sessions.params import SessionCreate
+from vloc.app.sessions.schemas import (
     MAX_SEQ,
     FrameAccepted,
     FrameError,
@@ -26,7 +26,7 @@ from app.sessions.schemas import (
     SessionCreated,
     SessionRead,
 )
-from app.validation import check_captured_at, check_position
+from vloc.app.validation import check_captured_at, check_position
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 

@@ -30,9 +30,9 @@ from datetime import datetime, timedelta
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.config import Settings
-from app.db import utcnow
-from app.engine import (
+from vloc.app.config import Settings
+from vloc.app.db import utcnow
+from vloc.app.engine import (
     Engine,
     EngineClosed,
     FrameFailed,
@@ -41,16 +41,16 @@ from app.engine import (
     SessionSpec,
     WorkerDied,
 )
-from app.metrics import Metrics
-from app.problems import Problem
-from app.sessions import store
-from app.sessions.admission import check_revision, next_seq, spec_for
-from app.sessions.models import LocalisationSession
-from app.sessions.outcomes import Outcomes
-from app.sessions.schemas import MAX_SEQ, FrameError
-from app.sessions.store import FrameRecord, FrameStore
-from app.sessions.writer import Accepted, Barrier, Writer
-from app.stream.hub import LocalHub
+from vloc.app.metrics import Metrics
+from vloc.app.problems import Problem
+from vloc.app.sessions import store
+from vloc.app.sessions.admission import check_revision, next_seq, spec_for
+from vloc.app.sessions.models import LocalisationSession
+from vloc.app.sessions.outcomes import Outcomes
+from vloc.app.sessions.schemas import MAX_SEQ, FrameError
+from vloc.app.sessions.store import FrameRecord, FrameStore
+from vloc.app.sessions.writer import Accepted, Barrier, Writer
+from vloc.app.stream.hub import LocalHub
 
 log = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 
-from workers.core.estimate import Status
+from vloc.workers.core.estimate import Status
 
 MAX_SEQ = 2**63 - 1
 """The largest frame sequence number: the database stores it as a signed 64-bit integer."""

@@ -12,18 +12,18 @@ from functools import lru_cache
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.db import new_id, utcnow
-from app.engine import WorkerDied
-from app.maps.models import Map
-from app.problems import Problem, not_found
-from app.routes.service import navigation_path
-from app.security import hash_secret, new_token
-from app.sessions import pose, store
-from app.sessions.admission import revision_missing
-from app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
-from app.sessions.params import SessionCreate
-from app.sessions.runtime import SessionRuntime
-from app.sessions.schemas import (
+from vloc.app.db import new_id, utcnow
+from vloc.app.engine import WorkerDied
+from vloc.app.maps.models import Map
+from vloc.app.problems import Problem, not_found
+from vloc.app.routes.service import navigation_path
+from vloc.app.security import hash_secret, new_token
+from vloc.app.sessions import pose, store
+from vloc.app.sessions.admission import revision_missing
+from vloc.app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
+from vloc.app.sessions.params import SessionCreate
+from vloc.app.sessions.runtime import SessionRuntime
+from vloc.app.sessions.schemas import (
     FrameError,
     InitialPose,
     NavigationRead,
@@ -31,7 +31,7 @@ from app.sessions.schemas import (
     SessionRead,
     SessionStats,
 )
-from workers.core.geo import GeoOrigin
+from vloc.workers.core.geo import GeoOrigin
 
 LATENCY_WINDOW = 1000
 """Latency percentiles are over the session's most recent estimates."""
@@ -55,7 +55,7 @@ def map_frame(folder: str, map_id: str, revision: int) -> MapFrame:
     Raises Problem 503 ``map-revision-missing``, without the data directory's path, when
     the revision's files are gone.
     """
-    from workers.core.mapdata import MapData
+    from vloc.workers.core.mapdata import MapData
 
     try:
         data = MapData.load(folder)
@@ -113,7 +113,7 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
 
 def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
           settings) -> tuple[LocalisationSession, str]:
-    from workers.core.localisers import validate_params
+    from vloc.workers.core.localisers import validate_params
 
     with db_sessions() as db:
         existing = db.scalar(select(func.count(LocalisationSession.id)))
@@ -155,7 +155,7 @@ def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
 def _navigation(db: Session, body: SessionCreate, map_id) -> dict | None:
     """The route part a session follows, copied into the session (a later rebuild or
     deletion of the route leaves the session's path as it was), and its parameters."""
-    from workers.core.navigation.session import navigation_params
+    from vloc.workers.core.navigation.session import navigation_params
 
     nav = body.navigation
     if nav is None:

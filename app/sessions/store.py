@@ -23,10 +23,10 @@ from datetime import datetime
 from sqlalchemy import bindparam, func, insert, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.db import utcnow
-from app.engine import Checkpoint, FrameFailed, Outcome
-from app.sessions import pose
-from app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
+from vloc.app.db import utcnow
+from vloc.app.engine import Checkpoint, FrameFailed, Outcome
+from vloc.app.sessions import pose
+from vloc.app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
 
 log = logging.getLogger(__name__)
 

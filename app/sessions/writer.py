@@ -15,10 +15,10 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from app.engine import FrameDone, FrameFailed
-from app.metrics import Metrics
-from app.sessions.schemas import FrameError
-from app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
+from vloc.app.engine import FrameDone, FrameFailed
+from vloc.app.metrics import Metrics
+from vloc.app.sessions.schemas import FrameError
+from vloc.app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ import logging
 
 import redis.asyncio as aioredis
 
-from app.stream.hub import LocalHub
+from vloc.app.stream.hub import LocalHub
 
 log = logging.getLogger(__name__)
 

@@ -36,16 +36,16 @@ from datetime import datetime
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ValidationError
 
-from app.context import AppContext
-from app.imagecheck import check_image
-from app.limits import too_large
-from app.problems import Problem
-from app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
-from app.sessions.runtime import LiveSession
-from app.sessions.schemas import Seq
-from app.stream.geojson import GEOJSON_SUBPROTOCOL, as_feature
-from app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
-from app.validation import check_captured_at, check_metadata
+from vloc.app.context import AppContext
+from vloc.app.imagecheck import check_image
+from vloc.app.limits import too_large
+from vloc.app.problems import Problem
+from vloc.app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
+from vloc.app.sessions.runtime import LiveSession
+from vloc.app.sessions.schemas import Seq
+from vloc.app.stream.geojson import GEOJSON_SUBPROTOCOL, as_feature
+from vloc.app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
+from vloc.app.validation import check_captured_at, check_metadata
 
 router = APIRouter(tags=["stream"])
 

@@ -27,9 +27,9 @@ import numpy as np
 ROOT = FilePath(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from clients.world import robot  # noqa: E402
-from clients.world.routes import rounded_rectangle  # noqa: E402
-from workers.core.navigation import (  # noqa: E402
+from vloc.clients.world import robot  # noqa: E402
+from vloc.clients.world.routes import rounded_rectangle  # noqa: E402
+from vloc.workers.core.navigation import (  # noqa: E402
     ActuationNoise,
     FollowerConfig,
     Path,

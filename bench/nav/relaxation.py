@@ -24,13 +24,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from clients.world.teach import TeachWorld  # noqa: E402
-from workers.core.image import load_frame  # noqa: E402
-from workers.core.mapbuild import extract_image_features  # noqa: E402
-from workers.core.navigation import RouteParams, build_route  # noqa: E402
-from workers.core.navigation.relaxation import predict  # noqa: E402
-from workers.core.navigation.routemap import sift_verifier, yaw_from_views  # noqa: E402
-from workers.core.navigation.visual import camera_matrix  # noqa: E402
+from vloc.clients.world.teach import TeachWorld  # noqa: E402
+from vloc.workers.core.image import load_frame  # noqa: E402
+from vloc.workers.core.mapbuild import extract_image_features  # noqa: E402
+from vloc.workers.core.navigation import RouteParams, build_route  # noqa: E402
+from vloc.workers.core.navigation.relaxation import predict  # noqa: E402
+from vloc.workers.core.navigation.routemap import sift_verifier, yaw_from_views  # noqa: E402
+from vloc.workers.core.navigation.visual import camera_matrix  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 
@@ -85,7 +85,7 @@ def run(seed: int, length: float, drift: float, extra: float) -> dict:
 def _aligned_errors(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """Errors after the rigid motion that fits ``est`` to ``truth`` best (a route without
     GPS has no frame of its own beyond its first node)."""
-    from workers.core.navigation.routemap import _rigid_fit
+    from vloc.workers.core.navigation.routemap import _rigid_fit
 
     rot, shift = _rigid_fit(est, truth)
     return np.hypot(*((est @ rot.T + shift) - truth).T)

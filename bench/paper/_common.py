@@ -35,9 +35,9 @@ ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from clients.world import generate_world  # noqa: E402
-from workers.core.evaluate import Run  # noqa: E402
-from workers.core.experiment import Experiment, load_experiment  # noqa: E402
+from vloc.clients.world import generate_world  # noqa: E402
+from vloc.workers.core.evaluate import Run  # noqa: E402
+from vloc.workers.core.experiment import Experiment, load_experiment  # noqa: E402
 
 cv2.setNumThreads(1)
 

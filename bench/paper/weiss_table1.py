@@ -34,8 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np  # noqa: E402
 
 from bench.paper import _common as c  # noqa: E402
-from workers.core.evaluate import evaluate  # noqa: E402
-from workers.core.pf.config import CONFIGS  # noqa: E402
+from vloc.workers.core.evaluate import evaluate  # noqa: E402
+from vloc.workers.core.pf.config import CONFIGS  # noqa: E402
 
 NAME = "weiss_table1"
 MODES = ("global", "sift", "hybrid")

@@ -36,13 +36,13 @@ def server_options(fn: Callable) -> Callable:
 
 
 def make_client(server: str, admin_key: str | None, **kwargs):
-    from clients.sdk import Client
+    from vloc.clients.sdk import Client
 
     return Client(server, admin_key=admin_key or stored_admin_key() or "", **kwargs)
 
 
 def make_async_client(server: str, admin_key: str | None, **kwargs):
-    from clients.sdk import AsyncClient
+    from vloc.clients.sdk import AsyncClient
 
     return AsyncClient(server, admin_key=admin_key or stored_admin_key() or "", **kwargs)
 
@@ -53,7 +53,7 @@ def reports_errors(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from clients.sdk import APIError, TransportError, Unauthorized, VlocError
+        from vloc.clients.sdk import APIError, TransportError, Unauthorized, VlocError
 
         try:
             return fn(*args, **kwargs)
@@ -112,7 +112,7 @@ def no_bar(quiet: bool) -> bool:
 
 def build_with_bar(vloc, map_id: str, *, quiet: bool = False, timeout: float = 3600.0):
     """Build a map and wait for it behind a progress bar; returns the finished job."""
-    from clients.sdk import Conflict
+    from vloc.clients.sdk import Conflict
 
     try:
         return _build(vloc, map_id, quiet=quiet, timeout=timeout)
@@ -127,7 +127,7 @@ def build_with_bar(vloc, map_id: str, *, quiet: bool = False, timeout: float = 3
 def _build(vloc, map_id: str, *, quiet: bool, timeout: float):
     from tqdm import tqdm
 
-    from clients.mapping import build_and_wait
+    from vloc.clients.mapping import build_and_wait
 
     with tqdm(total=100, unit="%", desc="build", disable=no_bar(quiet),
               bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}") as bar:

@@ -40,8 +40,8 @@ def demo_cmd(out: Path, frames: int, seed: int, query_light: str, config: str, w
 
     Needs nothing but this package: no data, no database server, no network.
     """
-    from clients.demo import DemoError, DemoOptions, run_demo
-    from clients.sdk import VlocError
+    from vloc.clients.demo import DemoError, DemoOptions, run_demo
+    from vloc.clients.sdk import VlocError
 
     opts = DemoOptions(out=out, frames=frames, seed=seed, query_light=query_light,
                        config=config, workers=workers, port=port, keep=keep, quiet=quiet)

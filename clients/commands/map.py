@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from clients.commands._common import (
+from vloc.clients.commands._common import (
     CommandError,
     build_with_bar,
     make_client,
@@ -126,8 +126,8 @@ def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | 
     """
     from tqdm import tqdm
 
-    from clients.mapping import import_images
-    from workers.core.datasets import DatasetError, load_dataset
+    from vloc.clients.mapping import import_images
+    from vloc.workers.core.datasets import DatasetError, load_dataset
 
     try:
         ds = load_dataset(folder)

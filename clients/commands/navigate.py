@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from clients.commands._common import parse_params
+from vloc.clients.commands._common import parse_params
 
 
 @click.command("navigate")
@@ -50,8 +50,8 @@ def navigate_cmd(out: Path, route_length: float, seed: int, mode: str, params, n
     that comes back (Li et al.'s control law and EKF). Prints the cross-track error and
     writes OUT/navigate.png (taught vs repeated path) and OUT/results.json.
     """
-    from clients.navigate import NavigateError, NavigateOptions, run_navigate
-    from clients.sdk import VlocError
+    from vloc.clients.navigate import NavigateError, NavigateOptions, run_navigate
+    from vloc.clients.sdk import VlocError
 
     opts = NavigateOptions(out=out, route_length=route_length, seed=seed, mode=mode,
                            params=parse_params(params), navigation=parse_params(nav_params),

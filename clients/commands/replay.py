@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from clients.commands._common import (
+from vloc.clients.commands._common import (
     CommandError,
     build_with_bar,
     make_async_client,
@@ -87,8 +87,8 @@ def replay_cmd(dataset: Path, map_id, build_map: bool, map_pass, query_pass, rul
       vloc replay ../shared/datasets/seneca-uav --build-map --map-pass 1 --query-pass 2 \\
           --mode hybrid,global,sift --rate max
     """
-    from clients._replay_data import load_replay_data
-    from workers.core.datasets import DatasetError
+    from vloc.clients._replay_data import load_replay_data
+    from vloc.workers.core.datasets import DatasetError
 
     modes = _modes(modes_text)
     params = parse_params(param_items)
@@ -122,8 +122,8 @@ def _prepare_map(server, admin_key, map_id, data, *, quiet: bool):
     """The map to localise on (built here with --build-map), its origin and image positions."""
     import numpy as np
 
-    from clients.mapping import import_images
-    from workers.core.geo import GeoOrigin
+    from vloc.clients.mapping import import_images
+    from vloc.workers.core.geo import GeoOrigin
 
     with make_client(server, admin_key) as vloc:
         if map_id is None:
@@ -167,8 +167,8 @@ def _run(server, admin_key, map_id, frames, origin, *, modes, devices, quiet, **
 
     from tqdm import tqdm
 
-    from clients.replay import replay_async, truth_in_map_frame
-    from clients.sdk import Pose
+    from vloc.clients.replay import replay_async, truth_in_map_frame
+    from vloc.clients.sdk import Pose
 
     truth = truth_in_map_frame(frames, origin)
     total = len(frames) * devices * len(modes)
@@ -189,7 +189,7 @@ def _run(server, admin_key, map_id, frames, origin, *, modes, devices, quiet, **
 
 
 def _report(runs, data, origin, map_xy, *, skip, plot, as_json, extra) -> None:
-    from clients._replay_report import plot_replay, replay_table, replay_tracks, summarise
+    from vloc.clients._replay_report import plot_replay, replay_table, replay_tracks, summarise
 
     results = summarise(runs, data.frames, origin, skip=skip) | extra
     if plot is not None:

@@ -32,7 +32,7 @@ def serve_cmd(host: str, port: int, workers: int | None, processes: int,
     VLOC_RAY_ADDRESS, VLOC_MAX_*); see docs/api.md. Without VLOC_ADMIN_KEY an admin key is
     generated on the first start, stored in the data directory and printed once.
     """
-    from app.config import Settings
+    from vloc.app.config import Settings
 
     overrides = {}
     if workers is not None:
@@ -52,7 +52,7 @@ def serve_cmd(host: str, port: int, workers: int | None, processes: int,
     if problems:
         raise click.UsageError("--processes > 1 needs " + "; ".join(problems))
     # The admin key is made once, here, rather than raced for by the processes.
-    from app.config import ensure_admin_key, private_dir
+    from vloc.app.config import ensure_admin_key, private_dir
 
     private_dir(settings.data_dir)
     ensure_admin_key(settings)
@@ -64,9 +64,9 @@ def _serve(overrides: dict, host: str, port: int, sock: socket.socket | None,
     """One API process; on ``sock`` when given (a process of ``--processes``)."""
     import uvicorn
 
-    from app.config import Settings
-    from app.main import create_app, drain
-    from app.server import DrainingServer
+    from vloc.app.config import Settings
+    from vloc.app.main import create_app, drain
+    from vloc.app.server import DrainingServer
 
     if instance_name is not None:
         overrides = {**overrides, "instance_name": instance_name}

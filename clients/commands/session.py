@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from clients.commands._common import (
+from vloc.clients.commands._common import (
     CommandError,
     make_client,
     model_json,
@@ -179,7 +179,7 @@ def capture_times(images, given: tuple[str, ...], interval: float | None) -> lis
             raise click.UsageError("--interval needs a --captured-at for the first image")
         return [None] * len(images)
     if given == ("exif",):
-        from workers.core.exif import GpsError, read_gps
+        from vloc.workers.core.exif import GpsError, read_gps
 
         times = []
         for path in images:
@@ -225,7 +225,7 @@ def _parse_time(text: str) -> datetime:
 def watch_cmd(session_id: str, count, timeout, token, server: str, admin_key) -> None:
     """Print the session's pose stream, one JSON line per message, until it ends (or
     --count messages came, or none came for --timeout seconds)."""
-    from clients.sdk import FrameRejected, WaitTimeout
+    from vloc.clients.sdk import FrameRejected, WaitTimeout
 
     if timeout is None and count is not None:
         timeout = 60.0

@@ -8,7 +8,7 @@ import click
 
 
 def _passes(value: str) -> list[str]:
-    from clients.world import ILLUMINATIONS
+    from vloc.clients.world import ILLUMINATIONS
 
     items = [v.strip() for v in value.split(",") if v.strip()]
     bad = [v for v in items if v not in ILLUMINATIONS]
@@ -53,7 +53,7 @@ def world_cmd(out: Path, kind: str, seed: int, passes_text: str, frames, route_l
     OUT/poses.csv and OUT/world.json. Pass 1 is the map pass: its EXIF carries the true
     position plus the GPS noise; the other passes carry the true position.
     """
-    from clients.world import generate_world
+    from vloc.clients.world import generate_world
 
     passes = _passes(passes_text)
     if kind == "robot" and (altitude is not None or pitch is not None):

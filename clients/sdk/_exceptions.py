@@ -198,7 +198,7 @@ def __getattr__(name: str):
     if name == "ValidationError":
         import warnings
 
-        warnings.warn("clients.sdk.ValidationError is now UnprocessableEntity",
+        warnings.warn("vloc.clients.sdk.ValidationError is now UnprocessableEntity",
                       DeprecationWarning, stacklevel=2)
         return UnprocessableEntity
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

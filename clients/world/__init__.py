@@ -12,8 +12,8 @@ written as a data set folder of EXIF-geotagged JPEGs with a ground-truth CSV.
 See :mod:`clients.world.writer` for the folder layout and the GPS-noise convention.
 """
 
-from clients.world.lighting import ILLUMINATIONS, Illumination
-from clients.world.writer import DEFAULT_ORIGIN, KINDS, WorldInfo, generate_world
+from vloc.clients.world.lighting import ILLUMINATIONS, Illumination
+from vloc.clients.world.writer import DEFAULT_ORIGIN, KINDS, WorldInfo, generate_world
 
 __all__ = ["DEFAULT_ORIGIN", "ILLUMINATIONS", "KINDS", "Illumination", "WorldInfo",
            "generate_world"]

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from clients.world.textures import draw_text, fbm, jitter_colour, poster, tinted
+from vloc.clients.world.textures import draw_text, fbm, jitter_colour, poster, tinted
 
 WALLS = ((200, 215, 225), (170, 200, 225), (150, 180, 205), (215, 215, 210), (190, 200, 200),
          (120, 140, 170), (160, 170, 175), (110, 120, 150), (205, 225, 235), (140, 150, 160))

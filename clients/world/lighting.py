@@ -25,8 +25,8 @@ from dataclasses import asdict, dataclass, replace
 import cv2
 import numpy as np
 
-from clients.world.scene import Plane, Solid
-from clients.world.textures import value_noise
+from vloc.clients.world.scene import Plane, Solid
+from vloc.clients.world.textures import value_noise
 
 
 @dataclass(frozen=True, slots=True)

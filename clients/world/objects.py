@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 
-from clients.world.facades import facade, facade_style, roof
-from clients.world.scene import (
+from vloc.clients.world.facades import facade, facade_style, roof
+from vloc.clients.world.scene import (
     UP,
     Scene,
     Solid,
@@ -22,7 +22,7 @@ from clients.world.scene import (
     box_solid,
     plane_from_rect,
 )
-from clients.world.textures import (
+from vloc.clients.world.textures import (
     CAR_COLOURS,
     bark,
     car_body_side,

@@ -12,8 +12,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from clients.world.camera import Camera, Pose
-from clients.world.lighting import (
+from vloc.clients.world.camera import Camera, Pose
+from vloc.clients.world.lighting import (
     AutoExposure,
     Illumination,
     camera_response,
@@ -21,8 +21,8 @@ from clients.world.lighting import (
     shadow_mask,
     sky_panorama,
 )
-from clients.world.render import Renderer
-from clients.world.scene import Plane, Scene, Solid
+from vloc.clients.world.render import Renderer
+from vloc.clients.world.scene import Plane, Scene, Solid
 
 TRANSIENT_ABSENT = 0.35
 """Chance that a car that comes and goes is missing in a pass."""

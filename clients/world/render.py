@@ -21,9 +21,9 @@ import math
 import cv2
 import numpy as np
 
-from clients.world.camera import Camera, Pose
-from clients.world.lighting import SKY_BOTTOM_DEG
-from clients.world.scene import Plane
+from vloc.clients.world.camera import Camera, Pose
+from vloc.clients.world.lighting import SKY_BOTTOM_DEG
+from vloc.clients.world.scene import Plane
 
 NEAR = 0.05
 """Near clipping distance in metres."""

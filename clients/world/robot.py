@@ -15,11 +15,11 @@ import math
 
 import numpy as np
 
-from clients.world.camera import Pose
-from clients.world.objects import add_building, add_bush, add_car, add_lamp, add_tree
-from clients.world.routes import Route, follow, rounded_rectangle, smooth_noise
-from clients.world.scene import Scene, ground_plane
-from clients.world.street import CURB, ROAD, SIDEWALK, Block, street_ground
+from vloc.clients.world.camera import Pose
+from vloc.clients.world.objects import add_building, add_bush, add_car, add_lamp, add_tree
+from vloc.clients.world.routes import Route, follow, rounded_rectangle, smooth_noise
+from vloc.clients.world.scene import Scene, ground_plane
+from vloc.clients.world.street import CURB, ROAD, SIDEWALK, Block, street_ground
 
 SPACING = 0.6
 """Metres between frames: 0.6 m/s at one frame per second."""

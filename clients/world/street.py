@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from clients.world.textures import value_noise
+from vloc.clients.world.textures import value_noise
 
 CURB = 1.5          # route -> curb
 ROAD = 8.0          # road width

@@ -16,13 +16,13 @@ from datetime import datetime, timedelta
 
 import numpy as np
 
-from clients.world import robot
-from clients.world.camera import Camera, Pose
-from clients.world.lighting import AutoExposure, camera_response, illumination_for_pass
-from clients.world.passes import prepare_pass
-from clients.world.writer import DEFAULT_ORIGIN, FIRST_DAY
-from workers.core.exif import encode_jpeg_with_gps
-from workers.core.geo import GeoOrigin
+from vloc.clients.world import robot
+from vloc.clients.world.camera import Camera, Pose
+from vloc.clients.world.lighting import AutoExposure, camera_response, illumination_for_pass
+from vloc.clients.world.passes import prepare_pass
+from vloc.clients.world.writer import DEFAULT_ORIGIN, FIRST_DAY
+from vloc.workers.core.exif import encode_jpeg_with_gps
+from vloc.workers.core.geo import GeoOrigin
 
 
 @dataclass

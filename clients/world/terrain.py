@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from clients.world.textures import value_noise
+from vloc.clients.world.textures import value_noise
 
 USES = ("field", "field", "field", "meadow", "meadow", "yard", "orchard", "forest", "pond")
 CROPS = ((60, 140, 90), (70, 170, 200), (60, 110, 150), (50, 120, 70), (90, 180, 190),

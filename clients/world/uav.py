@@ -15,11 +15,11 @@ import math
 
 import numpy as np
 
-from clients.world.camera import Pose
-from clients.world.objects import add_building, add_car, add_tree
-from clients.world.routes import Route, follow, lawnmower, rounded_rectangle, smooth_noise
-from clients.world.scene import Scene, ground_plane
-from clients.world.terrain import parcels, terrain_ground
+from vloc.clients.world.camera import Pose
+from vloc.clients.world.objects import add_building, add_car, add_tree
+from vloc.clients.world.routes import Route, follow, lawnmower, rounded_rectangle, smooth_noise
+from vloc.clients.world.scene import Scene, ground_plane
+from vloc.clients.world.terrain import parcels, terrain_ground
 
 ALTITUDE = 25.0
 PITCH_DEG = -90.0

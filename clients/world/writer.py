@@ -30,12 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.world import robot, uav
-from clients.world.camera import Camera
-from clients.world.lighting import ILLUMINATIONS, illumination_for_pass
-from clients.world.passes import prepare_pass, render_frames
-from workers.core.exif import encode_jpeg_with_gps
-from workers.core.geo import GeoOrigin
+from vloc.clients.world import robot, uav
+from vloc.clients.world.camera import Camera
+from vloc.clients.world.lighting import ILLUMINATIONS, illumination_for_pass
+from vloc.clients.world.passes import prepare_pass, render_frames
+from vloc.workers.core.exif import encode_jpeg_with_gps
+from vloc.workers.core.geo import GeoOrigin
 
 KINDS: tuple[str, ...] = ("robot", "uav")
 DEFAULT_ORIGIN = GeoOrigin(48.5363, 9.0578, 340.0)

@@ -57,7 +57,7 @@ def upgrade() -> None:
 
 def _fill_accuracy() -> None:
     """The accuracy of the poses stored before, from their covariance."""
-    from workers.core.accuracy import horizontal_accuracy
+    from vloc.workers.core.accuracy import horizontal_accuracy
 
     conn = op.get_bind()
     poses = sa.table("pose_estimates", sa.column("id"), sa.column("cov_xx"),

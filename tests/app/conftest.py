@@ -12,13 +12,13 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from app.config import Settings
-from app.main import create_app
-from app.maps.models import Map
-from app.models import Base
-from app.sessions.models import LocalisationSession
 from tests.app.imagery import Shot, map_and_queries
 from tests.conftest import postgres_schema_url
+from vloc.app.config import Settings
+from vloc.app.main import create_app
+from vloc.app.maps.models import Map
+from vloc.app.models import Base
+from vloc.app.sessions.models import LocalisationSession
 
 ADMIN_KEY = "test-admin-key-0123456789abcdef"
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}

@@ -14,7 +14,7 @@ from datetime import UTC, datetime, timedelta
 import cv2
 import numpy as np
 
-from workers.core.exif import encode_jpeg_with_gps
+from vloc.workers.core.exif import encode_jpeg_with_gps
 
 LAT0, LON0, ALT0 = 41.0345, -83.3057, 280.0
 METRES_PER_PIXEL = 0.25

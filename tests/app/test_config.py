@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import stat
 
-from app.config import ADMIN_KEY_FILE, Settings, ensure_admin_key
+from vloc.app.config import ADMIN_KEY_FILE, Settings, ensure_admin_key
 
 
 def test_settings_read_the_environment(monkeypatch, tmp_path):
@@ -48,14 +48,14 @@ def test_the_engine_is_chosen_by_the_settings(monkeypatch, tmp_path):
     import pytest
     from pydantic import ValidationError
 
-    from app.engine import Engine, engine_for
-    from workers.engine import LocalEngine
+    from vloc.app.engine import Engine, engine_for
+    from vloc.workers.engine import LocalEngine
 
     local = engine_for(Settings(data_dir=tmp_path, workers=3))
     assert isinstance(local, LocalEngine) and isinstance(local, Engine)
     assert (local.n_workers, local.shared) == (3, False)
     pytest.importorskip("ray")
-    from workers.engine.ray_engine import RayEngine
+    from vloc.workers.engine.ray_engine import RayEngine
 
     monkeypatch.setenv("VLOC_ENGINE", "ray")
     monkeypatch.setenv("VLOC_RAY_ADDRESS", "head:6379")
@@ -74,7 +74,7 @@ def test_the_engine_is_chosen_by_the_settings(monkeypatch, tmp_path):
 def test_serve_processes_needs_a_shared_engine_database_and_redis(monkeypatch, tmp_path):
     from click.testing import CliRunner
 
-    from clients.commands.serve import serve_cmd
+    from vloc.clients.commands.serve import serve_cmd
 
     monkeypatch.setenv("VLOC_DATA_DIR", str(tmp_path))
     for var in ("VLOC_ENGINE", "VLOC_DATABASE_URL", "VLOC_REDIS_URL"):

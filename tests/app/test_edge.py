@@ -109,7 +109,7 @@ def test_an_unauthenticated_body_is_never_read(edge_client, path):
 
 
 def test_a_session_route_checks_the_token_before_the_body(edge_client):
-    from app.security import hash_secret
+    from vloc.app.security import hash_secret
 
     ctx = edge_client.app.state.ctx
     sid = _session_row(ctx, token_hash=hash_secret("the-right-session-token"))
@@ -132,8 +132,8 @@ def test_a_session_route_checks_the_token_before_the_body(edge_client):
 
 def _session_row(ctx, *, token_hash: str) -> str:
     """A session row of a map that was never built (enough for the gate)."""
-    from app.maps.models import Map
-    from app.sessions.models import LocalisationSession
+    from vloc.app.maps.models import Map
+    from vloc.app.sessions.models import LocalisationSession
 
     with ctx.db_sessions() as db:
         m = Map(name="gate", status="empty", revision=0)
@@ -220,8 +220,8 @@ def test_405_lists_every_allowed_method(edge_client, method, path, allow):
 def test_data_dir_and_sqlite_file_are_private(tmp_path):
     import stat
 
-    from app.main import create_app
     from tests.app.conftest import service_settings
+    from vloc.app.main import create_app
 
     data = tmp_path / "data"
     data.mkdir(mode=0o755)
@@ -242,7 +242,7 @@ def test_the_gate_policies_match_the_documented_security(edge_client):
     description states them) agree on every operation."""
     import re
 
-    from app.edge import Access, policy_for
+    from vloc.app.edge import Access, policy_for
 
     expected = {frozenset(): Access.PUBLIC,
                 frozenset({"adminKey", "adminApiKey"}): Access.ADMIN,

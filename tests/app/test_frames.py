@@ -10,14 +10,14 @@ from datetime import UTC, datetime
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from app.main import create_app
-from app.sessions.models import Frame, FrameStatus
-from app.sessions.pose import FrameContext, from_estimate
-from app.sessions.schemas import MAX_SEQ
-from app.sessions.store import FrameRecord, OutcomeRecord
 from tests.app.conftest import ADMIN, FAST, PROBLEM, build_map, service_settings, snapshot
 from tests.app.test_sessions import open_stream, post_frame
-from workers.engine import FrameDone
+from vloc.app.main import create_app
+from vloc.app.sessions.models import Frame, FrameStatus
+from vloc.app.sessions.pose import FrameContext, from_estimate
+from vloc.app.sessions.schemas import MAX_SEQ
+from vloc.app.sessions.store import FrameRecord, OutcomeRecord
+from vloc.workers.engine import FrameDone
 
 TIMEOUT = 60
 

@@ -15,8 +15,8 @@ def test_healthz_and_readyz(module_client):
 def test_readyz_fails_when_the_engine_is_down(tmp_path):
     from fastapi.testclient import TestClient
 
-    from app.main import create_app
     from tests.app.conftest import service_settings
+    from vloc.app.main import create_app
 
     app = create_app(service_settings(tmp_path / "d", f"sqlite:///{tmp_path}/x.db"))
     with TestClient(app) as c:
@@ -32,8 +32,8 @@ def test_readyz_fails_while_a_worker_is_stopped(tmp_path):
 
     from fastapi.testclient import TestClient
 
-    from app.main import create_app
     from tests.app.conftest import service_settings
+    from vloc.app.main import create_app
 
     app = create_app(service_settings(tmp_path / "d", f"sqlite:///{tmp_path}/x.db",
                                       worker_stall_s=1.0))

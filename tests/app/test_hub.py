@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 
-from app.stream.hub import CLOSED, LocalHub, Subscription
+from vloc.app.stream.hub import CLOSED, LocalHub, Subscription
 
 
 def _pose(seq: int, prev: int | None) -> dict:

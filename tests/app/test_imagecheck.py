@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from app.imagecheck import check_image, kind_of_content_type, sniff
-from app.problems import Problem
 from tests.app.imagery import plain_jpeg, png, png_bomb
+from vloc.app.imagecheck import check_image, kind_of_content_type, sniff
+from vloc.app.problems import Problem
 
 
 def test_sniff_and_content_types():
@@ -42,8 +42,8 @@ def test_bad_images(data, declared, max_pixels, status, kind):
 
 def test_unidentifiable_image_detail_names_no_python_object():
     """Pillow names the file object it was given; the detail must not show it."""
-    from app.imagecheck import check_image
-    from app.problems import Problem
+    from vloc.app.imagecheck import check_image
+    from vloc.app.problems import Problem
 
     with pytest.raises(Problem) as info:
         check_image(b"\xff\xd8\xff" + bytes(200), max_pixels=10**6)

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from app.sessions.service import INITIAL_POSE_MARGIN_M
 from tests.app.conftest import ADMIN, PROBLEM, snapshot
 from tests.app.test_sessions import post_frame
+from vloc.app.sessions.service import INITIAL_POSE_MARGIN_M
 
 
 def _extent(service) -> dict:

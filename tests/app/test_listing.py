@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from app.maps.coverage import haversine_m
 from tests.app.conftest import ADMIN, PROBLEM
+from vloc.app.maps.coverage import haversine_m
 
 
 def test_maps_and_sessions_page(service):

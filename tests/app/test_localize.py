@@ -8,7 +8,7 @@ import pytest
 
 from tests.app.conftest import ADMIN, PROBLEM, snapshot
 from tests.app.imagery import png
-from workers.core.accuracy import horizontal_accuracy
+from vloc.workers.core.accuracy import horizontal_accuracy
 
 JPEG = {**ADMIN, "Content-Type": "image/jpeg"}
 

@@ -7,7 +7,7 @@ import logging
 
 import pytest
 
-from app import logs
+from vloc.app import logs
 
 TOKEN = "ZB8epzz8KZBn9JmGAjf_iTa85WMeWk_8iILEL3vPNkM"
 

@@ -11,11 +11,11 @@ from PIL import ExifTags, Image
 from PIL.TiffImagePlugin import IFDRational
 from sqlalchemy import func, select, update
 
-from app.maps.models import ImageGlobalFeature, ImageSift, MapImage
 from tests.app.conftest import ADMIN, PROBLEM, jpeg_files, snapshot, wait_job
 from tests.app.imagery import plain_jpeg
 from tests.app.test_maps import new_map
-from workers.core.exif import write_gps
+from vloc.app.maps.models import ImageGlobalFeature, ImageSift, MapImage
+from vloc.workers.core.exif import write_gps
 
 BAD_FORMS = {
     "huge-alt": {"lat": "41", "lon": "-83", "alt": "1e308"},

@@ -6,9 +6,9 @@ from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import inspect
 
-from app import migrate
-from app.db import make_engine
-from app.models import Base
+from vloc.app import migrate
+from vloc.app.db import make_engine
+from vloc.app.models import Base
 
 TABLES_AT = {
     None: set(),

@@ -9,15 +9,15 @@ from datetime import UTC, datetime
 
 import pytest
 
-from app.sessions import pose
-from app.sessions.models import Pose
-from app.sessions.schemas import PoseEstimate
-from clients.sdk import Pose as ClientPose
 from tests.app.conftest import ADMIN
 from tests.app.test_frames import settled
 from tests.app.test_sessions import open_stream, post_frame
-from workers.core.accuracy import horizontal_accuracy
-from workers.core.estimate import Estimate, Status
+from vloc.app.sessions import pose
+from vloc.app.sessions.models import Pose
+from vloc.app.sessions.schemas import PoseEstimate
+from vloc.clients.sdk import Pose as ClientPose
+from vloc.workers.core.accuracy import horizontal_accuracy
+from vloc.workers.core.estimate import Estimate, Status
 
 
 def test_every_stored_field_has_its_column_and_every_estimate_field_reaches_the_pose():

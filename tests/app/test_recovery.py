@@ -10,10 +10,10 @@ import uuid
 import pytest
 from fastapi.testclient import TestClient
 
-from app.jobs.models import BuildJob
-from app.main import create_app
 from tests.app.conftest import ADMIN, FAST, build_map, service_settings
 from tests.app.test_sessions import open_stream, post_frame
+from vloc.app.jobs.models import BuildJob
+from vloc.app.main import create_app
 
 KEYS = ("x", "y", "sigma_x", "sigma_y", "cov", "feature", "next_feature", "status")
 

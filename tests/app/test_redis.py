@@ -8,10 +8,10 @@ import uuid
 import pytest
 from fastapi.testclient import TestClient
 
-from app.main import create_app
-from app.stream.redis_hub import RedisHub
 from tests.app.conftest import ADMIN, FAST, build_map, service_settings
 from tests.app.test_sessions import open_stream, post_frame
+from vloc.app.main import create_app
+from vloc.app.stream.redis_hub import RedisHub
 
 pytestmark = pytest.mark.redis
 

@@ -9,11 +9,11 @@ from datetime import timedelta
 import pytest
 from sqlalchemy import update
 
-from app.db import utcnow
-from app.sessions.models import LocalisationSession
 from tests.app.conftest import ADMIN, PROBLEM, snapshot
 from tests.app.test_frames import settled
 from tests.app.test_sessions import post_frame
+from vloc.app.db import utcnow
+from vloc.app.sessions.models import LocalisationSession
 
 
 def _age(client, sid: str, seconds: float) -> None:

@@ -7,8 +7,8 @@ import typing
 
 import pytest
 
-from app.sessions import params as edge
 from tests.app.conftest import ADMIN, FAST, PROBLEM, snapshot
+from vloc.app.sessions import params as edge
 
 BAD_PARAMS = {
     "bool-for-int": ({"n_particles": True}, "params.n_particles"),
@@ -98,10 +98,10 @@ def _literal_values(annotation) -> set:
 
 
 def test_the_edge_models_follow_the_core():
-    from workers.core.features import ALL_FEATURE_NAMES
-    from workers.core.localisers import MODES
-    from workers.core.measures import MEASURES
-    from workers.core.pf.config import (
+    from vloc.workers.core.features import ALL_FEATURE_NAMES
+    from vloc.workers.core.localisers import MODES
+    from vloc.workers.core.measures import MEASURES
+    from vloc.workers.core.pf.config import (
         CONFIGS,
         PARAMS,
         REDUCTIONS,

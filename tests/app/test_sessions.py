@@ -45,7 +45,7 @@ def test_create_read_list_delete(service):
     assert body["id"] in {s["id"] for s in c.get("/v1/sessions", headers=ADMIN).json()}
     # The token is stored as a hash only.
     with c.app.state.ctx.db_sessions() as db:
-        from app.sessions.models import LocalisationSession
+        from vloc.app.sessions.models import LocalisationSession
 
         row = db.get(LocalisationSession, uuid.UUID(body["id"]))
         assert body["token"] not in row.token_hash and len(row.token_hash) == 64

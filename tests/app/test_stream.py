@@ -46,7 +46,7 @@ def test_the_query_token_still_works(service):
 def test_frame_meta_seq_is_checked_on_a_subprotocol_stream(service, shots):
     """The token as a subprotocol, frames on the same socket: a frame_meta seq out of range
     is refused and numbers nothing; the largest seq is taken."""
-    from app.sessions.schemas import MAX_SEQ
+    from vloc.app.sessions.schemas import MAX_SEQ
 
     sid, auth = service.new_session()
     token = auth["Authorization"].split()[1]

@@ -8,9 +8,9 @@ import hashlib
 import pydantic
 import pytest
 
-from app.config import Settings
 from tests.app.conftest import ADMIN
 from tests.app.test_frames import settled
+from vloc.app.config import Settings
 
 
 def test_streamed_pose_carries_a_cloud_sample_that_is_not_stored(service, shots):

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.core.exif import encode_jpeg_with_gps
+from vloc.workers.core.exif import encode_jpeg_with_gps
 
 ADMIN_KEY = "client-test-admin-key-0123456789"
 LAT0, LON0 = 41.0345, -83.3057
@@ -117,7 +117,7 @@ def dataset_dir(tmp_path_factory, shots) -> Path:
 
 
 def service_settings(data_dir: Path, **overrides):
-    from app.config import Settings
+    from vloc.app.config import Settings
 
     values = {"data_dir": data_dir, "workers": 1, "admin_key": ADMIN_KEY,
               "max_upload_bytes": 1_000_000, "max_frame_bytes": 400_000,
@@ -131,7 +131,7 @@ def app_client(tmp_path_factory) -> Iterator:
     (each test makes its own maps and sessions)."""
     from fastapi.testclient import TestClient
 
-    from app.main import create_app
+    from vloc.app.main import create_app
 
     app = create_app(service_settings(tmp_path_factory.mktemp("data")))
     with TestClient(app) as tc:
@@ -150,7 +150,7 @@ def live_server(tmp_path_factory) -> Iterator[str]:
     HTTP and WebSocket connections. Yields the base URL."""
     import uvicorn
 
-    from app.main import create_app
+    from vloc.app.main import create_app
 
     app = create_app(service_settings(tmp_path_factory.mktemp("live")))
     port = _free_port()

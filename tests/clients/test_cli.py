@@ -11,10 +11,10 @@ import time
 import pytest
 from click.testing import CliRunner
 
-from clients.cli import COMMANDS
-from clients.cli import main as cli
-from clients.sdk import Client
 from tests.clients.conftest import ADMIN_KEY, FAST
+from vloc.clients.cli import COMMANDS
+from vloc.clients.cli import main as cli
+from vloc.clients.sdk import Client
 
 UUID = re.compile(r"^[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}$")
 
@@ -282,7 +282,7 @@ def test_demo_takes_a_port():
 
 
 def test_replay_build_map_reuses_the_map_it_built(sdk, shots):
-    from clients.commands.replay import _existing_map
+    from vloc.clients.commands.replay import _existing_map
 
     maps, _ = shots
     m = sdk.create_map("replayed pass 1")

@@ -6,8 +6,8 @@ import json
 
 from click.testing import CliRunner
 
-from clients.cli import main as cli
 from tests.clients.conftest import ADMIN_KEY
+from vloc.clients.cli import main as cli
 
 
 def test_navigate_teaches_repeats_and_arrives(live_server, tmp_path):

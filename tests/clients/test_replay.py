@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from clients._replay_data import DeviceFrame, load_replay_data
-from clients._replay_report import mode_table, replay_table, summarise
-from clients.cli import main as cli
-from clients.replay import DeviceRun, run_device, truth_in_map_frame
-from clients.sdk import Conflict, FrameError, Pose, Session
 from tests.clients.conftest import ADMIN_KEY, FAST
-from workers.core.geo import GeoOrigin
+from vloc.clients._replay_data import DeviceFrame, load_replay_data
+from vloc.clients._replay_report import mode_table, replay_table, summarise
+from vloc.clients.cli import main as cli
+from vloc.clients.replay import DeviceRun, run_device, truth_in_map_frame
+from vloc.clients.sdk import Conflict, FrameError, Pose, Session
+from vloc.workers.core.geo import GeoOrigin
 
 ORIGIN = GeoOrigin(41.0, -83.0, 0.0)
 T0 = datetime(2024, 1, 1, tzinfo=UTC)
@@ -213,8 +213,8 @@ def test_a_run_without_estimates_scores_nan():
 
 
 def test_relit_frames_are_the_pixels_eval_uses(dataset_dir):
-    from workers.core.experiment import load_experiment
-    from workers.core.image import load_frame
+    from vloc.workers.core.experiment import load_experiment
+    from vloc.workers.core.image import load_frame
 
     data = load_replay_data(dataset_dir, map_pass=1, query_pass=2, photometric="dusk",
                             seed=3, limit=4)
@@ -230,7 +230,7 @@ def test_relit_frames_are_the_pixels_eval_uses(dataset_dir):
 
 
 def test_metadata_goes_with_each_frame(dataset_dir):
-    from workers.core.geo import GeoOrigin
+    from vloc.workers.core.geo import GeoOrigin
 
     data = load_replay_data(dataset_dir, metadata=("gps", "altitude"), gps_accuracy=5.0)
     again = load_replay_data(dataset_dir, metadata=("gps", "altitude"), gps_accuracy=5.0)
@@ -339,7 +339,7 @@ def test_relit_replay_reproduces_eval(live_server, dataset_dir, replayed, tmp_pa
 @pytest.mark.dataset
 @pytest.mark.slow
 def test_seneca_replay_matches_eval(seneca_dir, tmp_path):
-    from clients.demo import server_process
+    from vloc.clients.demo import server_process
 
     key = "seneca-test-admin-key-0123456789"
     with server_process(tmp_path / "data", log_path=tmp_path / "server.log",

@@ -15,8 +15,9 @@ import httpx
 import numpy as np
 import pytest
 
-import clients
-from clients.sdk import (
+import vloc.clients as clients
+from tests.clients.conftest import ADMIN_KEY, FAST
+from vloc.clients.sdk import (
     APIError,
     AsyncClient,
     BadRequest,
@@ -41,9 +42,8 @@ from clients.sdk import (
     VlocError,
     WaitTimeout,
 )
-from clients.sdk._exceptions import error_class, error_for_response
-from clients.sdk.testing import in_process_client
-from tests.clients.conftest import ADMIN_KEY, FAST
+from vloc.clients.sdk._exceptions import error_class, error_for_response
+from vloc.clients.sdk.testing import in_process_client
 
 # -- fixtures --------------------------------------------------------------------------------
 
@@ -397,7 +397,7 @@ def test_stream_timeout(vloc, session):
 
 
 def test_frame_error_message_parsed():
-    from clients.sdk._stream import _interpret
+    from vloc.clients.sdk._stream import _interpret
 
     msg = _interpret(json.dumps({"type": "frame_error", "session_id": "s", "seq": 4,
                                  "kind": "bad_image", "reason": "corrupt", "latency_ms": 2.0}))
@@ -447,8 +447,8 @@ async def test_real_sockets_async(live_server, shots):
 @pytest.mark.anyio
 async def test_async_client_in_process(tmp_path, shots):
     """AsyncClient over ``httpx.ASGITransport``, the app's lifespan on the test's loop."""
-    from app.main import create_app
     from tests.clients.conftest import service_settings
+    from vloc.app.main import create_app
 
     maps, queries = shots
     app = create_app(service_settings(tmp_path / "data"))
@@ -624,7 +624,7 @@ def test_environment_configures_the_client(monkeypatch):
 
 def test_public_surface():
     assert clients.Client is Client and clients.NotFound is NotFound
-    assert set(clients.__all__) == set(__import__("clients.sdk").sdk.__all__)
+    assert set(clients.__all__) == set(__import__("vloc.clients.sdk").clients.sdk.__all__)
     for name in clients.__all__:
         assert getattr(clients, name) is getattr(clients.sdk, name)
     with pytest.raises(AttributeError):
@@ -632,7 +632,7 @@ def test_public_surface():
 
 
 def test_images_are_typed_by_their_bytes():
-    from clients.sdk._requests import image_content_type
+    from vloc.clients.sdk._requests import image_content_type
 
     assert image_content_type(b"\xff\xd8\xff\xe0") == "image/jpeg"
     assert image_content_type(b"\x89PNG\r\n\x1a\n....") == "image/png"
@@ -642,7 +642,7 @@ def test_images_are_typed_by_their_bytes():
 
 
 def test_the_422_class_no_longer_shadows_pydantic():
-    import clients.sdk as sdk
+    import vloc.clients.sdk as sdk
 
     assert not hasattr(sdk, "__all__") or "ValidationError" not in sdk.__all__
     with pytest.warns(DeprecationWarning, match="UnprocessableEntity"):
@@ -652,7 +652,7 @@ def test_the_422_class_no_longer_shadows_pydantic():
 
 
 def test_listings_are_read_page_by_page(vloc, shots, monkeypatch):
-    from clients.sdk import _requests
+    from vloc.clients.sdk import _requests
 
     m = vloc.create_map("paged")
     vloc.upload_images(m.id, [s.jpeg for s in shots[0][:5]])
@@ -670,7 +670,7 @@ def test_listings_are_read_page_by_page(vloc, shots, monkeypatch):
 
 
 def test_localize_coverage_and_keep_alive(vloc, session, shots):
-    from clients.sdk import Localization
+    from vloc.clients.sdk import Localization
 
     maps, queries = shots
     where = vloc.localize(session.map_id, queries[3].jpeg, prior=(queries[3].lat,

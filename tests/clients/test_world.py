@@ -14,15 +14,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from clients.cli import main
-from clients.world import DEFAULT_ORIGIN, generate_world
-from clients.world.camera import Camera, Pose, project
-from clients.world.lighting import ILLUMINATIONS, shadow_mask
-from clients.world.render import Renderer
-from clients.world.routes import lawnmower, rounded_rectangle
-from clients.world.scene import Plane, box_corners, box_solid, ground_plane, plane_from_rect
-from workers.core.exif import read_gps
-from workers.core.sift import extract_sift, match_share
+from vloc.clients.cli import main
+from vloc.clients.world import DEFAULT_ORIGIN, generate_world
+from vloc.clients.world.camera import Camera, Pose, project
+from vloc.clients.world.lighting import ILLUMINATIONS, shadow_mask
+from vloc.clients.world.render import Renderer
+from vloc.clients.world.routes import lawnmower, rounded_rectangle
+from vloc.clients.world.scene import Plane, box_corners, box_solid, ground_plane, plane_from_rect
+from vloc.workers.core.exif import read_gps
+from vloc.workers.core.sift import extract_sift, match_share
 
 HEADER = ["filename", "pass", "captured_at", "lat", "lon", "alt_m"]
 

@@ -25,9 +25,9 @@ from unittest import mock
 import cv2
 import numpy as np
 
-from clients.world import generate_world
-from workers.core.experiment import load_experiment
-from workers.core.localisers import make_localiser
+from vloc.clients.world import generate_world
+from vloc.workers.core.experiment import load_experiment
+from vloc.workers.core.localisers import make_localiser
 
 GOLDEN_FILE = Path(__file__).with_name("golden_estimates.json")
 
@@ -89,8 +89,8 @@ def platform_fingerprint() -> str:
     into other estimates. The recorded answers hold where this digest is the one stored with
     them; elsewhere they are re-recorded rather than compared.
     """
-    from workers.core.features.orb import extract_orb
-    from workers.core.sift import extract_sift
+    from vloc.workers.core.features.orb import extract_orb
+    from vloc.workers.core.sift import extract_sift
 
     rng = np.random.default_rng(0)
     img = cv2.GaussianBlur((rng.random((480, 640)) * 255).astype(np.uint8), (0, 0), 2.0)
@@ -165,7 +165,7 @@ BAD_PARAMS: list[tuple[str, dict]] = [
 
 def validated_params() -> dict:
     """What :func:`validate_params` returns for every case, and its error for bad ones."""
-    from workers.core.localisers import validate_params
+    from vloc.workers.core.localisers import validate_params
 
     good = {f"{mode}/{json.dumps(p, sort_keys=True)}": validate_params(mode, {**p, "seed": 1})
             for mode, p in CASES + [("hybrid", {}), ("global", {"config": "weiss2008"})]}

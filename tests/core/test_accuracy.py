@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.special import erfinv
 
-from workers.core.accuracy import horizontal_accuracy
+from vloc.workers.core.accuracy import horizontal_accuracy
 
 
 def _reference(cov, p, n=4_000_000, seed=3) -> float:

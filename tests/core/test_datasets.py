@@ -11,7 +11,7 @@ import pytest
 from PIL import ExifTags, Image
 from PIL.TiffImagePlugin import IFDRational as R
 
-from workers.core.datasets import (
+from vloc.workers.core.datasets import (
     DatasetError,
     load_dataset,
     load_frames,
@@ -21,9 +21,9 @@ from workers.core.datasets import (
     split_alternate,
     split_by_pass,
 )
-from workers.core.exif import encode_jpeg_with_gps
-from workers.core.geo import GeoOrigin
-from workers.core.image import load_frame
+from vloc.workers.core.exif import encode_jpeg_with_gps
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.image import load_frame
 
 T0 = datetime(2024, 3, 1, 10, 0, 0)
 

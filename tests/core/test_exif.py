@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 from PIL import ExifTags, Image
 from PIL.TiffImagePlugin import IFDRational as R
 
-from workers.core.exif import GpsError, GpsTag, encode_jpeg_with_gps, read_gps, write_gps
-from workers.core.geo import GeoOrigin
-from workers.core.image import ImageError, decode_image
+from vloc.workers.core.exif import GpsError, GpsTag, encode_jpeg_with_gps, read_gps, write_gps
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.image import ImageError, decode_image
 
 
 def _image(seed: int = 0, shape=(48, 64, 3)) -> np.ndarray:

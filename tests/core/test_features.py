@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workers.core.features import (
+from vloc.workers.core.features import (
     FEATURE_NAMES,
     GLOBAL_FEATURES,
     extract,
@@ -24,8 +24,8 @@ from workers.core.features import (
     wgii2_sparse,
     wgoh,
 )
-from workers.core.features.wgii import rotated_offsets
-from workers.core.image import Frame, prepare
+from vloc.workers.core.features.wgii import rotated_offsets
+from vloc.workers.core.image import Frame, prepare
 
 H, W = 48, 64  # 4x4 cells of 12x16 pixels
 

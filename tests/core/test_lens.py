@@ -8,8 +8,8 @@ import pytest
 from PIL import ExifTags, Image
 from PIL.TiffImagePlugin import IFDRational
 
-from workers.core.lens import read_focal_px
-from workers.core.mapbuild import typical_focal_px
+from vloc.workers.core.lens import read_focal_px
+from vloc.workers.core.mapbuild import typical_focal_px
 
 B = ExifTags.Base
 

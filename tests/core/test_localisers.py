@@ -8,15 +8,15 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.core.estimate import Status
-from workers.core.evaluate import choose_starts, evaluate
-from workers.core.geo import GeoOrigin
-from workers.core.image import prepare
-from workers.core.localisers import MODES, make_localiser, validate_params
-from workers.core.mapbuild import assemble_map, extract_image_features
-from workers.core.mapdata import MapData
-from workers.core.metadata import FrameMetadata
-from workers.core.query import QueryFrame
+from vloc.workers.core.estimate import Status
+from vloc.workers.core.evaluate import choose_starts, evaluate
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.image import prepare
+from vloc.workers.core.localisers import MODES, make_localiser, validate_params
+from vloc.workers.core.mapbuild import assemble_map, extract_image_features
+from vloc.workers.core.mapdata import MapData
+from vloc.workers.core.metadata import FrameMetadata
+from vloc.workers.core.query import QueryFrame
 
 PX_PER_M = 12.0
 ORIGIN = GeoOrigin(48.52, 9.05, 300.0)
@@ -176,9 +176,9 @@ def test_validate_params_fills_defaults_and_refuses_bad():
 
 
 def test_single_frame_localisers_have_their_own_configs():
-    from workers.core.localisers.hierarchical import HierarchicalConfig
-    from workers.core.localisers.retrieval import RetrievalConfig
-    from workers.core.sift import RATIO
+    from vloc.workers.core.localisers.hierarchical import HierarchicalConfig
+    from vloc.workers.core.localisers.retrieval import RetrievalConfig
+    from vloc.workers.core.sift import RATIO
 
     assert RetrievalConfig().to_params() == {"feature": "wgoh", "measure": "bradley"}
     assert HierarchicalConfig().sift_ratio == RATIO  # Lowe 2004, the one source of 0.8

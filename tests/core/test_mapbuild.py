@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 
 from tests.core.geometry.scene import F_TRUE, survey
-from workers.core.geo import GeoOrigin
-from workers.core.image import prepare
-from workers.core.mapbuild import (
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.image import prepare
+from vloc.workers.core.mapbuild import (
     ImageFeatures,
     assemble_map,
     extract_image_features,
     map_geometry,
 )
-from workers.core.mapdata import MapData
-from workers.core.sift import SiftFeatures
+from vloc.workers.core.mapdata import MapData
+from vloc.workers.core.sift import SiftFeatures
 
 ORIGIN = GeoOrigin(41.03, -83.30, 260.0)
 

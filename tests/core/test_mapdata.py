@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.core.geo import GeoOrigin
-from workers.core.geometry.camera import Intrinsics, nadir_rotation
-from workers.core.geometry.mapgeometry import MapGeometry
-from workers.core.mapdata import MapData
-from workers.core.sift import SiftFeatures
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.geometry.camera import Intrinsics, nadir_rotation
+from vloc.workers.core.geometry.mapgeometry import MapGeometry
+from vloc.workers.core.mapdata import MapData
+from vloc.workers.core.sift import SiftFeatures
 
 
 def _map(rng: np.random.Generator) -> MapData:
@@ -66,7 +66,7 @@ def test_map_without_geometry_loads_with_none(tmp_path):
 
 
 def test_orb_features_round_trip(tmp_path):
-    from workers.core.features.orb import OrbFeatures
+    from vloc.workers.core.features.orb import OrbFeatures
 
     rng = np.random.default_rng(3)
     orb = [OrbFeatures(rng.uniform(0, 240, (k, 4)).astype(np.float32),

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from workers.core.measures import (
+from vloc.workers.core.measures import (
     D_MAX,
     MEASURES,
     distances,
@@ -226,7 +226,7 @@ def test_inputs_are_left_untouched(measure):
 
 
 def test_descriptor_similarities_are_clipped_cosines():
-    from workers.core.measures import descriptor_similarities
+    from vloc.workers.core.measures import descriptor_similarities
 
     q = np.array([0.6, 0.8, 0.0], np.float32)
     M = np.array([[0.6, 0.8, 0.0], [0.0, 0.0, 1.0], [-0.6, -0.8, 0.0], [0.8, 0.6, 0.0],
@@ -238,7 +238,7 @@ def test_descriptor_similarities_are_clipped_cosines():
 
 
 def test_descriptor_similarities_equal_a_loop_for_any_subset():
-    from workers.core.measures import descriptor_similarities
+    from vloc.workers.core.measures import descriptor_similarities
 
     rng = np.random.default_rng(12)
     M = rng.standard_normal((40, 9)).astype(np.float32)

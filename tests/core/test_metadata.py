@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.metadata import FrameMetadata
+from vloc.workers.core.metadata import FrameMetadata
 
 
 @pytest.mark.parametrize(("fields", "message"), [

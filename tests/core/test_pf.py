@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from workers.core.pf.config import (
+from vloc.workers.core.pf.config import (
     CONFIGS,
     DEFAULT_OVERRIDES,
     PARAMS,
@@ -14,17 +14,17 @@ from workers.core.pf.config import (
     FilterConfig,
     config_from_params,
 )
-from workers.core.pf.filter import ParticleFilter, cloud_sample, cloud_stats
-from workers.core.pf.measurement import (
+from vloc.workers.core.pf.filter import ParticleFilter, cloud_sample, cloud_stats
+from vloc.workers.core.pf.measurement import (
     ImageSimilarity,
     Likelihood,
     distance_factor,
     log_likelihoods,
     normalise_log,
 )
-from workers.core.pf.motion import MotionModel
-from workers.core.pf.resampling import multinomial, systematic
-from workers.core.pf.switching import GLOBAL, SIFT
+from vloc.workers.core.pf.motion import MotionModel
+from vloc.workers.core.pf.resampling import multinomial, systematic
+from vloc.workers.core.pf.switching import GLOBAL, SIFT
 
 # -- resampling --------------------------------------------------------------------------
 

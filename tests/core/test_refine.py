@@ -7,16 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from clients.world.writer import generate_world
 from tests.core.geometry.scene import HEIGHT, WIDTH, observe, survey, tilted_rotation
-from workers.core.experiment import load_experiment
-from workers.core.features.orb import OrbFeatures
-from workers.core.geo import GeoOrigin
-from workers.core.localisers.refine import MIN_MATCHES, interpolate, refine_orb, refine_sift
-from workers.core.localisers.scoring import sift_similarity
-from workers.core.mapbuild import map_geometry
-from workers.core.mapdata import MapData
-from workers.core.sift import SiftFeatures
+from vloc.clients.world.writer import generate_world
+from vloc.workers.core.experiment import load_experiment
+from vloc.workers.core.features.orb import OrbFeatures
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.localisers.refine import MIN_MATCHES, interpolate, refine_orb, refine_sift
+from vloc.workers.core.localisers.scoring import sift_similarity
+from vloc.workers.core.mapbuild import map_geometry
+from vloc.workers.core.mapdata import MapData
+from vloc.workers.core.sift import SiftFeatures
 
 
 def _line_map(n: int = 4, spacing: float = 10.0) -> MapData:

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.core.geo import GeoOrigin
-from workers.core.image import prepare
-from workers.core.localisers.scoring import global_similarity, sift_similarity
-from workers.core.mapbuild import assemble_map, extract_image_features
-from workers.core.measures import weiss_similarity
-from workers.core.query import QueryFrame
-from workers.core.sift import ratio_matches
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.image import prepare
+from vloc.workers.core.localisers.scoring import global_similarity, sift_similarity
+from vloc.workers.core.mapbuild import assemble_map, extract_image_features
+from vloc.workers.core.measures import weiss_similarity
+from vloc.workers.core.query import QueryFrame
+from vloc.workers.core.sift import ratio_matches
 
 
 @pytest.fixture(scope="module")

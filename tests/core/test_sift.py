@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.core.sift import (
+from vloc.workers.core.sift import (
     SiftFeatures,
     extract_sift,
     match_share,

@@ -7,8 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from workers.core.pf.config import CONFIGS, WEISS2008
-from workers.core.pf.switching import (
+from vloc.workers.core.pf.config import CONFIGS, WEISS2008
+from vloc.workers.core.pf.switching import (
     GLOBAL,
     SIFT,
     TRUST_RATE,

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from app.config import Settings, cpu_quota
 from tests.conftest import REPO_ROOT
+from vloc.app.config import Settings, cpu_quota
 
 DOCKER = REPO_ROOT / "docker"
 
@@ -34,10 +34,15 @@ def test_the_lock_pins_every_runtime_dependency_as_installed():
     assert not names & {"pytest", "ruff", "hypothesis", "schemathesis"}
 
 
-def test_the_image_installs_the_lock_and_runs_the_source_as_laid_out():
+def test_the_image_installs_the_lock_then_the_service_as_one_package():
     text = (DOCKER / "Dockerfile").read_text()
     assert "pip install -e" not in text and "requirements.lock" in text
     assert "--no-deps -r /tmp/requirements.lock" in text
+    # the package installed from the folders tests/test_packaging.py checks, run by its script
+    assert "pip install --no-deps /src" in text
+    for folder in ("app", "workers", "clients", "migrations"):
+        assert f"COPY {folder} /src/{folder}" in text
+    assert 'CMD ["vloc", "serve"' in text
     assert (REPO_ROOT / ".dockerignore").read_text().splitlines()[1:] == \
         (DOCKER / "Dockerfile.dockerignore").read_text().splitlines()[1:]
 
@@ -70,7 +75,7 @@ def test_cpu_quota(tmp_path, v2, v1, expected):
 
 
 def test_the_worker_count_follows_the_quota(monkeypatch, tmp_path):
-    import app.config as config
+    import vloc.app.config as config
 
     monkeypatch.setattr(config, "cpu_quota", lambda: 1.2)
     monkeypatch.setattr(config.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})

@@ -105,7 +105,7 @@ def serve_in_thread(settings, timeout: float = 60.0) -> Iterator[LiveServer]:
     """``create_app(settings)`` under uvicorn on a free port, until the generator closes."""
     import uvicorn
 
-    from app.main import create_app
+    from vloc.app.main import create_app
 
     app = create_app(settings)
     port = _free_port()

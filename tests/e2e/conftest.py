@@ -52,7 +52,7 @@ def start_server(data_dir: Path, *, workers: int = 2, env: dict | None = None,
     environ.pop("VLOC_DATABASE_URL", None)
     environ.update(env or {})
     process = subprocess.Popen(
-        [sys.executable, "-m", "clients.cli", "serve", "--host", "127.0.0.1", "--port",
+        [sys.executable, "-m", "vloc.clients.cli", "serve", "--host", "127.0.0.1", "--port",
          str(port), *args], cwd=REPO_ROOT, env=environ, stdout=subprocess.DEVNULL,
         stderr=stderr_path.open("wb"))
     server = Server(f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}", data_dir, process,

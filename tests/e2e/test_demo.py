@@ -28,7 +28,7 @@ ROW = re.compile(r"^\| (hybrid|global|sift) \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) 
 
 
 def demo_command(out) -> list[str]:
-    return [sys.executable, "-m", "clients.cli", "demo", "--frames", str(FRAMES), "--out",
+    return [sys.executable, "-m", "vloc.clients.cli", "demo", "--frames", str(FRAMES), "--out",
             str(out), "--quiet"]
 
 
@@ -115,7 +115,7 @@ def test_keep_leaves_the_server_up_for_the_viewer(tmp_path):
     address and the demo's map in it, until Ctrl-C."""
     import httpx
 
-    cmd = [sys.executable, "-m", "clients.cli", "demo", "--frames", "10", "--out",
+    cmd = [sys.executable, "-m", "vloc.clients.cli", "demo", "--frames", "10", "--out",
            str(tmp_path), "--quiet", "--keep"]
     proc = subprocess.Popen(cmd, cwd=tmp_path, env=clean_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)

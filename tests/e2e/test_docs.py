@@ -14,9 +14,9 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sessions.schemas import PoseEstimate
-from clients.sdk import Pose as ClientPose
 from tests.conftest import REPO_ROOT
+from vloc.app.sessions.schemas import PoseEstimate
+from vloc.clients.sdk import Pose as ClientPose
 
 API_MD = (REPO_ROOT / "docs" / "api.md").read_text()
 CLIENT_MD = (REPO_ROOT / "docs" / "client.md").read_text()

@@ -27,7 +27,7 @@ pytestmark = [pytest.mark.postgres, pytest.mark.redis]
 
 ray = pytest.importorskip("ray")
 
-from workers.engine.ray_engine import shard_name, shard_of  # noqa: E402
+from vloc.workers.engine.ray_engine import shard_name, shard_of  # noqa: E402
 
 ADMIN_KEY = "replica-test-admin-key-0123456789"
 N_SHARDS = 2

@@ -14,8 +14,8 @@ import pytest
 
 from tests.conftest import REPO_ROOT
 from tests.e2e.conftest import start_server
-from workers.core.datasets import load_dataset, split
-from workers.core.geo import GeoOrigin
+from vloc.workers.core.datasets import load_dataset, split
+from vloc.workers.core.geo import GeoOrigin
 
 pytestmark = [pytest.mark.slow, pytest.mark.dataset]
 
@@ -25,7 +25,7 @@ SKIP = 10
 
 def _eval(dataset) -> dict:
     out = subprocess.run(
-        [sys.executable, "-m", "clients.cli", "eval", str(dataset), "--map-pass", "1",
+        [sys.executable, "-m", "vloc.clients.cli", "eval", str(dataset), "--map-pass", "1",
          "--query-pass", "2", "--modes", "hybrid", "--starts", "1", "--skip", str(SKIP),
          "--seed", str(SEED), "--json"], cwd=REPO_ROOT, capture_output=True, text=True,
         check=True, timeout=1200)

@@ -345,7 +345,7 @@ def test_wrong_credentials_are_refused_and_a_token_opens_its_session(browser, li
 
     # the server ends the stream (as on a restart): the page opens it again, and whatever
     # was answered meanwhile comes from the stored poses, neither lost nor doubled
-    from app.stream.hub import GOING_AWAY
+    from vloc.app.stream.hub import GOING_AWAY
 
     live.publish(sid, GOING_AWAY)
     page.wait_for_function(
@@ -363,8 +363,8 @@ def test_wrong_credentials_are_refused_and_a_token_opens_its_session(browser, li
 
 
 def test_replay_file_draws_tracks_against_the_truth(browser, live, tmp_path, shots):
-    from workers.core.evaluate import ModeSummary, Run
-    from workers.core.report import tracks_dict
+    from vloc.workers.core.evaluate import ModeSummary, Run
+    from vloc.workers.core.report import tracks_dict
 
     n = 40
     t = np.arange(n, dtype=float)

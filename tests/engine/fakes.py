@@ -7,7 +7,7 @@ import struct
 import time
 from pathlib import Path
 
-from workers.core.estimate import Estimate, Status
+from vloc.workers.core.estimate import Estimate, Status
 
 
 def square(x: int) -> int:

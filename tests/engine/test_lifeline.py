@@ -12,7 +12,7 @@ import pytest
 
 from tests.conftest import REPO_ROOT
 from tests.procs import descendants, running, wait_gone
-from workers.engine import LocalEngine
+from vloc.workers.engine import LocalEngine
 
 TIMEOUT = 30.0
 
@@ -21,7 +21,7 @@ TIMEOUT = 30.0
 OWNER = """
 import fcntl, sys, termios, time
 from tests.engine.test_pool import _spec
-from workers.engine import LocalEngine
+from vloc.workers.engine import LocalEngine
 
 engine = LocalEngine(2, stall_s=2.0)
 engine.start()

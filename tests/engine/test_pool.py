@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tests.engine import fakes
-from workers.engine import (
+from vloc.workers.engine import (
     Checkpoint,
     Engine,
     FrameDone,
@@ -190,7 +190,7 @@ def test_closed_engine_refuses_work(outcomes):
     eng = LocalEngine(1, on_outcome=outcomes.put)
     eng.start()
     eng.close()
-    from workers.engine import EngineClosed
+    from vloc.workers.engine import EngineClosed
 
     with pytest.raises(EngineClosed):
         eng.call("tests.engine.fakes:square", 2)

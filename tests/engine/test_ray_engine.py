@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from tests.engine import fakes
-from workers.core.geo import GeoOrigin
-from workers.core.mapdata import MapData
-from workers.core.sift import SiftFeatures
-from workers.engine import (
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.mapdata import MapData
+from vloc.workers.core.sift import SiftFeatures
+from vloc.workers.engine import (
     Checkpoint,
     Engine,
     FrameDone,
@@ -31,7 +31,7 @@ from workers.engine import (
 
 ray = pytest.importorskip("ray")
 
-from workers.engine.ray_engine import RayEngine, shard_of  # noqa: E402
+from vloc.workers.engine.ray_engine import RayEngine, shard_of  # noqa: E402
 
 FACTORY = "tests.engine.fakes:make_counting"
 TIMEOUT = 60

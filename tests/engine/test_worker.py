@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.core.geo import GeoOrigin
-from workers.core.mapdata import MapData
-from workers.core.sift import SiftFeatures
-from workers.engine.messages import (
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.mapdata import MapData
+from vloc.workers.core.sift import SiftFeatures
+from vloc.workers.engine.messages import (
     CallDone,
     CallTask,
     CloseSession,
@@ -18,7 +18,7 @@ from workers.engine.messages import (
     OpenSession,
     SessionSpec,
 )
-from workers.engine.worker import WorkerState, resolve
+from vloc.workers.engine.worker import WorkerState, resolve
 
 
 def _map(folder, revision: int) -> str:

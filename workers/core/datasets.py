@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from workers.core.exif import GpsError, read_gps
-from workers.core.geo import GeoOrigin, check_lat_lon
-from workers.core.image import WORK_SIZE, Frame, ImageError, load_frame
-from workers.core.metadata import METADATA_FIELDS, FrameMetadata
+from vloc.workers.core.exif import GpsError, read_gps
+from vloc.workers.core.geo import GeoOrigin, check_lat_lon
+from vloc.workers.core.image import WORK_SIZE, Frame, ImageError, load_frame
+from vloc.workers.core.metadata import METADATA_FIELDS, FrameMetadata
 
 IMAGE_SUFFIXES: tuple[str, ...] = (".jpg", ".jpeg", ".png")
 CSV_NAMES: tuple[str, ...] = ("ground_truth.csv", "positions.csv")

@@ -19,8 +19,8 @@ import numpy as np
 from PIL import ExifTags, Image, UnidentifiedImageError
 from PIL.TiffImagePlugin import IFDRational
 
-from workers.core.geo import check_lat_lon
-from workers.core.image import ImageError
+from vloc.workers.core.geo import check_lat_lon
+from vloc.workers.core.image import ImageError
 
 _GPS = ExifTags.GPS
 _BASE = ExifTags.Base

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.core.features.orb import OrbFeatures
-from workers.core.features.vocabulary import Vocabulary
-from workers.core.sift import SiftFeatures
+from vloc.workers.core.features.orb import OrbFeatures
+from vloc.workers.core.features.vocabulary import Vocabulary
+from vloc.workers.core.sift import SiftFeatures
 
 
 def inspect_image(data: bytes, *, max_pixels: int) -> tuple[int, int]:
     """Decode an image fully; (width, height), or ImageError (a ValueError)."""
-    from workers.core.image import decode_image
+    from vloc.workers.core.image import decode_image
 
     image = decode_image(data, max_pixels=max_pixels)
     return int(image.shape[1]), int(image.shape[0])

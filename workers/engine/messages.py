@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-DEFAULT_FACTORY = "workers.core.localisers:make_localiser"
+DEFAULT_FACTORY = "vloc.workers.core.localisers:make_localiser"
 
 
 @dataclass(frozen=True, slots=True)

@@ -53,7 +53,8 @@ RESPAWN_RETRY_S = 1.0
 STALL_S = 5.0
 """A worker whose heartbeat is older than this is not counted as alive."""
 
-PRELOAD = ["workers.engine.worker", "workers.core.localisers", "workers.core.mapbuild"]
+PRELOAD = ["vloc.workers.engine.worker", "vloc.workers.core.localisers",
+           "vloc.workers.core.mapbuild"]
 
 
 class LocalEngine:

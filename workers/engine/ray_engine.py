@@ -99,7 +99,7 @@ class MapStore:
         that the caller receives the reference rather than the data)."""
         key = (map_id, revision)
         if key not in self.refs:
-            from workers.core.mapdata import MapData
+            from vloc.workers.core.mapdata import MapData
 
             # Read into memory, not memory-mapped: Ray serialises plain arrays out of band
             # (one copy into the store, zero-copy views for its readers), memory maps not.

@@ -89,8 +89,8 @@ class WorkerState:
         return replace(outcome, prev_seq=prev)
 
     def _step(self, task: FrameTask, localiser) -> FrameDone | FrameFailed:
-        from workers.core.image import ImageError, load_frame
-        from workers.core.metadata import FrameMetadata
+        from vloc.workers.core.image import ImageError, load_frame
+        from vloc.workers.core.metadata import FrameMetadata
 
         t0 = time.perf_counter()
         try:
@@ -161,7 +161,7 @@ class WorkerState:
     def _map(self, spec: SessionSpec):
         key = (spec.map_id, spec.revision)
         if key not in self.maps:
-            from workers.core.mapdata import MapData
+            from vloc.workers.core.mapdata import MapData
 
             self.maps[key] = MapData.load(spec.map_folder, mmap=True)
         return self.maps[key]

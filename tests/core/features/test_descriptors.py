@@ -6,18 +6,18 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.core.features import ALL_FEATURE_NAMES, DESCRIPTOR_NAMES, FEATURE_NAMES
-from workers.core.features.descriptors import (
+from vloc.workers.core.features import ALL_FEATURE_NAMES, DESCRIPTOR_NAMES, FEATURE_NAMES
+from vloc.workers.core.features.descriptors import (
     DESCRIPTORS,
     describe,
     get_descriptor,
     local_vectors,
 )
-from workers.core.geo import GeoOrigin
-from workers.core.image import prepare
-from workers.core.mapbuild import ImageFeatures, assemble_map, extract_image_features
-from workers.core.mapdata import MapData
-from workers.core.query import QueryFrame
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.image import prepare
+from vloc.workers.core.mapbuild import ImageFeatures, assemble_map, extract_image_features
+from vloc.workers.core.mapdata import MapData
+from vloc.workers.core.query import QueryFrame
 
 ORIGIN = GeoOrigin(48.52, 9.05, 300.0)
 
@@ -105,7 +105,7 @@ def test_images_without_orb_leave_the_orb_descriptors_out(feats):
 
 
 def test_a_map_image_queried_is_its_own_best_match(frames, place_map):
-    from workers.core.measures import descriptor_similarities
+    from vloc.workers.core.measures import descriptor_similarities
 
     q = QueryFrame(frames[3])
     got, ms = q.global_features(DESCRIPTOR_NAMES + ("wgoh",), place_map.vocabularies)

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.features.bow import bow
-from workers.core.features.vlad import vlad
-from workers.core.features.vocabulary import Vocabulary, quantise, train_vocabulary
+from vloc.workers.core.features.bow import bow
+from vloc.workers.core.features.vlad import vlad
+from vloc.workers.core.features.vocabulary import Vocabulary, quantise, train_vocabulary
 
 
 def _flat(words, idf=None) -> Vocabulary:

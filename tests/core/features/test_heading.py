@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.core.features import north_up
+from vloc.workers.core.features import north_up
 
 
 @pytest.fixture(scope="module")

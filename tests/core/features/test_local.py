@@ -6,8 +6,13 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.core.features.orb import MAX_KEYPOINTS, extract_orb, hamming_ratio_matches, unpack_bits
-from workers.core.features.rootsift import rootsift
+from vloc.workers.core.features.orb import (
+    MAX_KEYPOINTS,
+    extract_orb,
+    hamming_ratio_matches,
+    unpack_bits,
+)
+from vloc.workers.core.features.rootsift import rootsift
 
 
 @pytest.fixture(scope="module")

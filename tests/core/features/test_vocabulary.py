@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.features.vocabulary import (
+from vloc.workers.core.features.vocabulary import (
     Vocabulary,
     cluster_sums,
     inverse_document_frequency,

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from workers.core.geometry.camera import Intrinsics, focal_from_fov, nadir_rotation, project
-from workers.core.geometry.reconstruct import PairMatches
+from vloc.workers.core.geometry.camera import Intrinsics, focal_from_fov, nadir_rotation, project
+from vloc.workers.core.geometry.reconstruct import PairMatches
 
 WIDTH, HEIGHT = 320, 240
 F_TRUE = focal_from_fov(60.0, WIDTH)  # 277.13 px

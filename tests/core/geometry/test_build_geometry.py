@@ -15,8 +15,8 @@ from tests.core.geometry.scene import (
     survey,
     tilted_rotation,
 )
-from workers.core.geometry import build_geometry, register_against
-from workers.core.geometry.camera import Intrinsics, compass_heading_deg
+from vloc.workers.core.geometry import build_geometry, register_against
+from vloc.workers.core.geometry.camera import Intrinsics, compass_heading_deg
 
 K0 = Intrinsics.centred(F_TRUE, WIDTH, HEIGHT)
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tests.core.geometry.scene import tilted_rotation
-from workers.core.geometry.camera import (
+from vloc.workers.core.geometry.camera import (
     Intrinsics,
     backproject_to_ground,
     compass_heading_deg,

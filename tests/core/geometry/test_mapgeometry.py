@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from tests.core.geometry.scene import tilted_rotation
-from workers.core.geometry.camera import Intrinsics, nadir_rotation, project
-from workers.core.geometry.mapgeometry import MapGeometry
-from workers.core.geometry.reconstruct import PlaneReconstruction
+from vloc.workers.core.geometry.camera import Intrinsics, nadir_rotation, project
+from vloc.workers.core.geometry.mapgeometry import MapGeometry
+from vloc.workers.core.geometry.reconstruct import PlaneReconstruction
 
 K = Intrinsics(100.0, 160.0, 120.0)
 

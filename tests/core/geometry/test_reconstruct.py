@@ -18,8 +18,8 @@ from tests.core.geometry.scene import (
     survey,
     tilted_rotation,
 )
-from workers.core.geometry.camera import Intrinsics, backproject_to_ground
-from workers.core.geometry.reconstruct import (
+from vloc.workers.core.geometry.camera import Intrinsics, backproject_to_ground
+from vloc.workers.core.geometry.reconstruct import (
     _initial_headings,
     _transfer,
     _unrobust,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from tests.core.geometry.scene import K_TRUE, tilt_deg, tilted_rotation
-from workers.core.geometry.camera import compass_heading_deg, project
-from workers.core.geometry.register import MIN_INLIERS, register_frame
+from vloc.workers.core.geometry.camera import compass_heading_deg, project
+from vloc.workers.core.geometry.register import MIN_INLIERS, register_frame
 
 
 def _correspondences(rng, R, C, n=150, outliers=0.25):

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.navigation import ControlConfig, Path, path_following_command, unicycle_step
+from vloc.workers.core.navigation import ControlConfig, Path, path_following_command, unicycle_step
 
 
 def test_gains_follow_alpha_and_xi():

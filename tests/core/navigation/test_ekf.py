@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.navigation import UnicycleEKF, unicycle_step
-from workers.core.navigation.ekf import POSE, POSITION, ProcessNoise, motion, motion_jacobian
+from vloc.workers.core.navigation import UnicycleEKF, unicycle_step
+from vloc.workers.core.navigation.ekf import POSE, POSITION, ProcessNoise, motion, motion_jacobian
 
 
 def _numerical_jacobian(f, x, eps=1e-6):

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.navigation import (
+from vloc.workers.core.navigation import (
     ActuationNoise,
     ControlConfig,
     FollowerConfig,

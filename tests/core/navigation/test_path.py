@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.navigation import Path
+from vloc.workers.core.navigation import Path
 
 
 def test_projection_onto_a_line_by_hand():

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.navigation import Arc, relax
-from workers.core.navigation.relaxation import predict, relative_pose
+from vloc.workers.core.navigation import Arc, relax
+from vloc.workers.core.navigation.relaxation import predict, relative_pose
 
 
 def _square(side=10.0, per_side=4):

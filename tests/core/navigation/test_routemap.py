@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.navigation import RouteParams, build_route
-from workers.core.navigation.routemap import partition
-from workers.core.navigation.unicycle import wrap_angle
+from vloc.workers.core.navigation import RouteParams, build_route
+from vloc.workers.core.navigation.routemap import partition
+from vloc.workers.core.navigation.unicycle import wrap_angle
 
 
 def _taught_loop(rng, drift_deg_per_m=0.4, spacing=0.6):

@@ -5,13 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from workers.core.navigation.visual import (
+from vloc.workers.core.navigation.visual import (
     camera_matrix,
     intersect,
     locate,
     relative_view,
 )
-from workers.core.sift import SiftFeatures
+from vloc.workers.core.sift import SiftFeatures
 
 K = camera_matrix(320, 240, 60.0)
 

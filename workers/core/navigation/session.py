@@ -27,7 +27,7 @@ WINDOW_BEHIND_M, WINDOW_AHEAD_M = 3.0, 6.0
 images from this far behind it to this far ahead (Li et al.: the coarse stage finds the
 node, then SIFT against that part of the map localises accurately)."""
 
-FACTORY = "workers.core.navigation.session:make_navigating_localiser"
+FACTORY = "vloc.workers.core.navigation.session:make_navigating_localiser"
 MIN_POSITION_SIGMA = 0.2
 """Metres: a localiser's stated spread is floored here before the EKF trusts it (a single
 best map image says "here" with no spread at all)."""
