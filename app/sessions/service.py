@@ -183,11 +183,17 @@ def list_sessions(db: Session, *, runtime: SessionRuntime, limit: int | None = N
     rows = db.scalars(select(LocalisationSession)
                       .order_by(LocalisationSession.created_at, LocalisationSession.id)
                       .offset(offset).limit(limit))
-    return [read_session(db, row=row, runtime=runtime) for row in rows]
+    return [read_session(db, row=row, runtime=runtime) for row in list(rows)]
 
 
 def read_session(db: Session, *, row: LocalisationSession,
                  runtime: SessionRuntime) -> SessionRead:
+    # The frames still pending are counted before the session is read (again): when none
+    # is, every frame accepted until now is stored, and the counters below include it. The
+    # read transaction is ended first, since SQLite would otherwise keep its older snapshot.
+    pending = runtime.pending(row.id)
+    db.commit()
+    db.refresh(row)
     total, sift, mean_ms = db.execute(
         select(func.count(Pose.id), func.count(Pose.id).filter(Pose.feature == "sift"),
                func.avg(Pose.processing_ms)).where(Pose.session_id == row.id)).one()
@@ -204,7 +210,7 @@ def read_session(db: Session, *, row: LocalisationSession,
         id=row.id, map_id=row.map_id, map_revision=row.map_revision, mode=row.mode,
         params=row.params, seed=row.seed, created_at=row.created_at, last_seq=row.last_seq,
         frames_processed=row.frames_processed, frames_failed=row.frames_failed,
-        frames_pending=runtime.pending(row.id), stats=stats,
+        frames_pending=pending, stats=stats,
         last_pose=pose_read(last, row) if last is not None else None,
         navigation=_navigation_read(row.navigation), **lifetime(row))
 

@@ -63,6 +63,36 @@ def test_seq_bounds_over_the_websocket(service, shots):
     assert (s["last_seq"], s["frames_processed"], s["frames_failed"]) == (MAX_SEQ, 2, 0)
 
 
+def test_a_session_read_with_nothing_pending_counts_every_frame_stored(service, shots):
+    """The frames pending are counted before the session's counters are read: a frame
+    stored in between (by the writer thread) is in the counters once it is no longer
+    pending, so a reader waiting for ``frames_pending == 0`` sees it."""
+    from vloc.app.sessions import service as sessions_service
+    from vloc.app.sessions.models import LocalisationSession
+
+    c = service.client
+    sid, auth = service.new_session()
+    assert post_frame(c, sid, shots[1][0].jpeg, auth, wait="true").status_code == 200
+    ctx = c.app.state.ctx
+
+    class StoredMeanwhile:
+        """A runtime whose last frame is stored just as its pending frames are counted."""
+
+        def pending(self, session_id):
+            with ctx.db_sessions() as other:
+                row = other.get(LocalisationSession, session_id)
+                row.frames_processed += 1
+                row.last_seq = 1
+                other.commit()
+            return 0
+
+    with ctx.db_sessions() as db:
+        row = db.get(LocalisationSession, uuid.UUID(sid))
+        assert (row.frames_processed, row.last_seq) == (1, 0)  # read before the store
+        read = sessions_service.read_session(db, row=row, runtime=StoredMeanwhile())
+    assert (read.frames_pending, read.frames_processed, read.last_seq) == (0, 2, 1)
+
+
 def settled(client, sid: str, auth: dict) -> dict:
     """The session once every frame it accepted is stored (the stream runs ahead)."""
     deadline = time.monotonic() + TIMEOUT
