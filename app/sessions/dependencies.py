@@ -13,8 +13,9 @@ from vloc.app.deps import AdminSchemes, Ctx, DbSession, session_bearer, unauthen
 from vloc.app.maps.dependencies import parse_id
 from vloc.app.problems import Problem, not_found
 from vloc.app.security import matches, presented_secret
+from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.models import LocalisationSession
-from vloc.app.sessions.runtime import LiveSession, expired_problem
+from vloc.app.sessions.runtime import expired_problem
 from vloc.app.validation import check_metadata
 
 

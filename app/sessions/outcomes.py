@@ -20,12 +20,12 @@ from vloc.app.config import Settings
 from vloc.app.db import utcnow
 from vloc.app.engine import Checkpoint, FrameDone, Outcome
 from vloc.app.sessions import pose
+from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.schemas import FrameError
 from vloc.app.sessions.store import OutcomeRecord
 from vloc.app.stream.hub import LocalHub
 
 if TYPE_CHECKING:
-    from vloc.app.sessions.runtime import LiveSession
     from vloc.app.sessions.writer import Writer
 
 STREAM_ONLY = ("cloud",)

@@ -25,8 +25,7 @@ import logging
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
-from datetime import datetime, timedelta
+from datetime import datetime
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -45,6 +44,7 @@ from vloc.app.metrics import Metrics
 from vloc.app.problems import Problem
 from vloc.app.sessions import store
 from vloc.app.sessions.admission import check_revision, next_seq, spec_for
+from vloc.app.sessions.live import Arrival, LiveSession
 from vloc.app.sessions.models import LocalisationSession
 from vloc.app.sessions.outcomes import Outcomes
 from vloc.app.sessions.schemas import MAX_SEQ, FrameError
@@ -55,43 +55,6 @@ from vloc.app.stream.hub import LocalHub
 log = logging.getLogger(__name__)
 
 OPEN_TIMEOUT_S = 120.0
-
-
-@dataclass(slots=True)
-class Arrival:
-    t0: float
-    """``time.perf_counter()`` when the frame arrived."""
-    received_at: datetime
-    captured_at: datetime | None
-    data: bytes | None
-    """The frame, until it goes to the engine."""
-    queued: asyncio.Future
-    """Resolves with the seq once the frame is recorded and queued in the engine."""
-    previous_seq: int | None
-    """The session's last seq before this frame: restored if the record fails."""
-    metadata: dict | None = None
-    """The frame's :class:`~workers.core.metadata.FrameMetadata`, as its ``to_dict()``."""
-
-
-@dataclass(eq=False)
-class LiveSession:
-    id: str
-    token_hash: str
-    spec: SessionSpec
-    last_seq: int | None
-    """Highest sequence number accepted (processed, queued, or recorded before a restart)."""
-    arrivals: dict[int, Arrival] = field(default_factory=dict)
-    """Frames accepted and not yet answered, by sequence number."""
-    converged: bool = False
-    """Whether an estimate converged since the start, the last reset or initial pose."""
-    ttl_s: int = 3600
-    last_active: datetime = field(default_factory=utcnow)
-    """The last frame accepted or keep-alive; the session expires ``ttl_s`` after it."""
-
-    def expired(self, now: datetime | None = None) -> bool:
-        return (now or utcnow()) > self.last_active + timedelta(seconds=self.ttl_s)
-    last_frame: tuple[int, bytes] | None = None
-    """The latest accepted frame (seq, image bytes), for viewers; kept in memory only."""
 
 
 class SessionRuntime:

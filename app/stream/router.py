@@ -41,7 +41,7 @@ from vloc.app.imagecheck import check_image
 from vloc.app.limits import too_large
 from vloc.app.problems import Problem
 from vloc.app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
-from vloc.app.sessions.runtime import LiveSession
+from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.schemas import Seq
 from vloc.app.stream.geojson import GEOJSON_SUBPROTOCOL, as_feature
 from vloc.app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
