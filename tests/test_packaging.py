@@ -5,6 +5,7 @@ nothing under the generic names themselves."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -34,9 +35,16 @@ def test_every_package_folder_is_listed_under_vloc():
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("wheel")
+    """A wheel built from a copy of what the distribution is made of (setuptools leaves a
+    build folder beside the sources it builds, which is not the repository's to keep)."""
+    src, out = tmp_path_factory.mktemp("src"), tmp_path_factory.mktemp("wheel")
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(REPO_ROOT / name, src / name)
+    for folder in FOLDERS:
+        shutil.copytree(REPO_ROOT / folder, src / folder,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps",
-                    "--wheel-dir", str(out), str(REPO_ROOT)], check=True, timeout=300)
+                    "--wheel-dir", str(out), str(src)], check=True, timeout=300)
     (path,) = out.glob("vloc-*.whl")
     return path
 
