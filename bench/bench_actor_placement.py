@@ -43,7 +43,8 @@ sys.path.insert(0, str(REPO))
 from vloc.workers.core.datasets import load_dataset, load_frames, split  # noqa: E402
 from vloc.workers.core.experiment import build_map  # noqa: E402
 from vloc.workers.engine import SessionSpec  # noqa: E402
-from vloc.workers.engine.ray_engine import MAP_STORE, MapStore, Shard, shard_of  # noqa: E402
+from vloc.workers.engine.ray_actors import MAP_STORE, MapStore, Shard  # noqa: E402
+from vloc.workers.engine.ray_engine import shard_of  # noqa: E402
 
 PLACEMENTS = ("shards", "per-session")
 
