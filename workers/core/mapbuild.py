@@ -8,6 +8,9 @@ every map image (:mod:`workers.core.features.descriptors`), so each build trains
 
 from __future__ import annotations
 
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,7 +63,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  origin: GeoOrigin | None = None, reduce_sift: bool = True,
                  ratio: float = RATIO, geometry: bool = True,
                  focal_px: float | None = None,
-                 descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0) -> MapData:
+                 descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
+                 timings: dict[str, tuple[float, float]] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
     Parameters
@@ -88,11 +92,16 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     seed : int
         Seeds the vocabulary training and the reconstruction's RANSAC: the same images
         give the same map.
+    timings : dict, optional
+        Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
+        ``"vocabularies"`` (training and describing every image), ``"packing"`` and
+        ``"geometry"``.
 
     Returns
     -------
     MapData
     """
+    timings = {} if timings is None else timings
     n = len(names)
     if not (len(lats) == len(lons) == len(alts) == len(features) == n):
         raise ValueError("names, lats, lons, alts and features must have the same length")
@@ -110,21 +119,37 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     glob = {name: np.stack([f.global_features[name] for f in features]).astype(np.float32)
             for name in sorted(names_in_all)}
     sift = [f.sift for f in features]
-    keep = reduction_masks(sift, xy, ratio=ratio) if reduce_sift else None
+    with stage(timings, "sift reduction"):
+        keep = reduction_masks(sift, xy, ratio=ratio) if reduce_sift else None
     times = None
     if captured_at is not None:
         times = np.array([np.nan if t is None else t for t in captured_at], np.float64)
-    trained = train_descriptors(features, descriptors, seed=seed)
+    with stage(timings, "vocabularies"):
+        trained = train_descriptors(features, descriptors, seed=seed)
     glob.update({name: matrix for name, (_, matrix) in trained.items()})
     have_orb = all(f.orb is not None for f in features)
-    data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
-                              global_features=glob, sift=sift, map_id=map_id,
-                              revision=revision, captured_at=times, sift_keep=keep,
-                              vocabularies={n: v for n, (v, _) in trained.items()},
-                              orb=[f.orb for f in features] if have_orb else None)
+    with stage(timings, "packing"):
+        data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
+                                  global_features=glob, sift=sift, map_id=map_id,
+                                  revision=revision, captured_at=times, sift_keep=keep,
+                                  vocabularies={n: v for n, (v, _) in trained.items()},
+                                  orb=[f.orb for f in features] if have_orb else None)
     if geometry:
-        data.geometry = map_geometry(data, focal_px=focal_px, seed=seed)
+        with stage(timings, "geometry"):
+            data.geometry = map_geometry(data, focal_px=focal_px, seed=seed)
     return data
+
+
+@contextmanager
+def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
+    """Add the block's (wall, CPU) seconds to ``timings[name]``; CPU is this process's."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    try:
+        yield
+    finally:
+        before = timings.get(name, (0.0, 0.0))
+        timings[name] = (before[0] + time.perf_counter() - wall,
+                         before[1] + time.process_time() - cpu)
 
 
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0):
