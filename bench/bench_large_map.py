@@ -360,6 +360,63 @@ def database_size(ctx, map_id: str) -> dict:
     return {"bytes": path.stat().st_size, "images": images}
 
 
+POSTGRES_URL = os.environ.get("VLOC_TEST_POSTGRES_URL",
+                              "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+
+
+def postgres_size(ctx, map_id: str, sample: int) -> dict | None:
+    """Bytes per image in PostgreSQL: ``sample`` of the map's images with their feature
+    rows copied from SQLite into a schema of their own (migrated as the service migrates
+    its database), measured with ``pg_total_relation_size`` (tables, indexes, TOAST), then
+    dropped. None when PostgreSQL cannot be reached."""
+    import uuid
+
+    import psycopg
+    from sqlalchemy.engine import make_url
+
+    from app import migrate
+    from app.db import make_engine
+    from app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, Map, MapImage
+
+    url = make_url(POSTGRES_URL)
+    plain = url.set(drivername="postgresql").render_as_string(hide_password=False)
+    schema = f"vloc_bench_{uuid.uuid4().hex[:12]}"
+    try:
+        admin = psycopg.connect(plain, autocommit=True, connect_timeout=3)
+    except psycopg.OperationalError:
+        return None
+    with admin:
+        admin.execute(f'CREATE SCHEMA "{schema}"')
+        try:
+            pg = make_engine(url.update_query_dict({"options": f"-csearch_path={schema}"})
+                             .render_as_string(hide_password=False))
+            migrate.upgrade(pg)
+            with ctx.db_engine.connect() as src, pg.begin() as dst:
+                ids = src.execute(select(MapImage.id).where(MapImage.map_id == _uuid(map_id))
+                                  .order_by(MapImage.id).limit(sample)).scalars().all()
+                _copy(src, dst, Map.__table__, Map.__table__.c.id == _uuid(map_id))
+                _copy(src, dst, MapImage.__table__, MapImage.__table__.c.id.in_(ids))
+                for model in (ImageGlobalFeature, ImageSift, ImageOrb):
+                    _copy(src, dst, model.__table__, model.__table__.c.image_id.in_(ids))
+                dst.exec_driver_sql("ANALYZE")
+            with pg.connect() as conn:
+                size = conn.exec_driver_sql(
+                    "SELECT sum(pg_total_relation_size(c.oid)) FROM pg_class c JOIN "
+                    "pg_namespace n ON n.oid = c.relnamespace WHERE n.nspname = %(s)s AND "
+                    "c.relname IN ('map_images', 'image_global_features', 'image_sift', "
+                    "'image_orb')", {"s": schema}).scalar()
+            pg.dispose()
+        finally:
+            admin.execute(f'DROP SCHEMA "{schema}" CASCADE')
+    return {"bytes": int(size), "images": len(ids)}
+
+
+def _copy(src, dst, table, where) -> None:
+    rows = [dict(r._mapping) for r in src.execute(select(table).where(where))]
+    for start in range(0, len(rows), 500):
+        dst.execute(table.insert(), rows[start:start + 500])
+
+
 # -- bookkeeping ----------------------------------------------------------------------------
 
 def load_stats(work: Path) -> dict:
@@ -511,8 +568,9 @@ def report(args, layout, stats: dict, load: float) -> str:
     ]
     if "postgres" in stats:
         pg = stats["postgres"]
-        lines += [f"PostgreSQL: {pg['bytes'] / 2**20:,.1f} MiB for {pg['images']:,} images "
-                  f"(tables, indexes and TOAST of a schema of its own), "
+        lines += [f"PostgreSQL: {pg['bytes'] / 2**20:,.1f} MiB for {pg['images']:,} of these "
+                  "images with their feature rows, copied into a schema of its own "
+                  "(tables, indexes and TOAST), "
                   f"**{pg['bytes'] / pg['images'] * 1000 / 2**20:,.1f} MiB per 1,000 images**.",
                   ""]
     lines += [
@@ -531,6 +589,8 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None,
                         help="work directory (default /work/large-map-work/IMAGES)")
     parser.add_argument("--frames", type=int, default=200, help="query frames to step")
+    parser.add_argument("--postgres", type=int, default=1000, metavar="IMAGES",
+                        help="images to copy into PostgreSQL for its size (0: skip)")
     parser.add_argument("--no-generate", action="store_true",
                         help="wait for tiles another process generates")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "large_map.md")
@@ -555,6 +615,10 @@ def main() -> None:
         stats["timing"] = time_steps(build_stats["folder"], frames)
         stats["memory"] = session_memory(client, map_id, frames)
         stats["database"] = database_size(client.app.state.ctx, map_id)
+        if args.postgres and "postgres" not in stats:
+            pg = postgres_size(client.app.state.ctx, map_id, args.postgres)
+            if pg is not None:
+                stats["postgres"] = pg
         stats["packed_bytes"] = sum(p.stat().st_size for p in
                                     Path(build_stats["folder"]).rglob("*") if p.is_file())
         save_stats(args.work, stats)
