@@ -310,10 +310,11 @@ def ground_points(rec: PlaneReconstruction, keypoints: list[np.ndarray]) -> list
     return out
 
 
-MAX_BLOCK: int = 2000
-"""Most cameras in one bundle adjustment. Its cost grows faster than the number of cameras
-(a finite-difference Jacobian over every tie point, and more inner iterations as the
-camera chains grow longer), so a large map is adjusted block by block."""
+MAX_BLOCK: int = 250
+"""Most cameras in one bundle adjustment. Its cost grows about with the square of the
+number of cameras (each sparse solve costs as much as the tie points, and takes more inner
+iterations as the chains of cameras grow longer): one adjustment of a 2,000-image survey
+ran for over ten minutes, so a large map is adjusted block by block."""
 
 
 def spatial_blocks(positions: np.ndarray, max_size: int) -> np.ndarray:
