@@ -186,11 +186,13 @@ def _uuid(value: str):
 
 # -- the stages ------------------------------------------------------------------------------
 
-def ingest(client, map_id: str, work: Path, layout, stats: dict, generator) -> None:
-    """Add and extract every tile as soon as it is generated."""
+def ingest(client, map_id: str, work: Path, layout, images: int, stats: dict,
+           generator) -> None:
+    """Add and extract the first ``images`` images of the world, each tile as soon as it
+    is generated."""
     ctx = client.app.state.ctx
     done = stats.setdefault("tiles", {})
-    for tile in range(layout.tiles):
+    for tile in range(-(-images // layout.tile_frames)):
         if str(tile) in done:
             continue
         while not tile_done(work, tile):
@@ -198,7 +200,7 @@ def ingest(client, map_id: str, work: Path, layout, stats: dict, generator) -> N
                 raise RuntimeError(f"world generation failed ({generator.returncode})")
             time.sleep(2.0)
         files = map_images(work, tile)
-        files = files[:max(0, layout.images - tile * layout.tile_frames)]
+        files = files[:max(0, images - tile * layout.tile_frames)]
         with Meter(ctx) as add:
             accepted = add_tile(client, map_id, files)
         with Meter(ctx) as ext:
@@ -303,6 +305,41 @@ def time_steps(folder: str, frames) -> dict:
             "setup_s": setup_s, "candidates": cfg.sift.candidates,
             "global_features": list(cfg.measurement.global_features),
             "map_images": len(data)}
+
+
+def scaled_scoring(data, config, frames, rows: int, work: Path) -> dict:
+    """CPU seconds of scoring every map image, as ``_global_scores`` does, on matrices of
+    ``rows`` rows made by repeating the built map's own rows, memory-mapped from files.
+
+    Only the size differs from the real map: this answers how the shortlist and the global
+    step's all-image scoring (one matrix-vector product per feature) grow with the map, for
+    maps larger than the one built. It is not a map build.
+    """
+    from types import SimpleNamespace
+
+    from workers.core.localisers.scoring import global_similarity
+    from workers.core.query import QueryFrame
+
+    m = config.measurement
+    matrices = {}
+    for name in m.global_features:
+        path = work / f"scaled_{rows}_{name}.npy"
+        if not path.is_file():
+            real = np.asarray(data.global_features[name])
+            np.save(path, np.resize(real, (rows, real.shape[1])))
+        matrices[name] = np.load(path, mmap_mode="r")
+    big = SimpleNamespace(global_features=matrices)
+    k = config.sift.candidates or 20
+    out = []
+    for _, frame, t, _, _ in frames:
+        q, _ = QueryFrame(frame, t).global_features(m.global_features, data.vocabularies)
+        c = time.thread_time()
+        g = global_similarity(q, big, np.arange(rows), features=m.global_features,
+                              measure=m.global_measure)
+        np.argsort(-g, kind="stable")[:k]
+        out.append(time.thread_time() - c)
+    return {"rows": rows, "seconds": out, "top": k,
+            "dims": {name: int(v.shape[1]) for name, v in matrices.items()}}
 
 
 def session_memory(client, map_id: str, frames) -> dict:
@@ -460,6 +497,16 @@ def _p90_ms(values) -> str:
     return f"{1e3 * float(np.percentile(values, 90)):.1f}" if len(values) else "-"
 
 
+def _scaled_rows(stats: dict) -> list[str]:
+    if "scaled" not in stats:
+        return []
+    sc = stats["scaled"]
+    dims = ", ".join(f"{k} {v}-d" for k, v in sc["dims"].items())
+    return [f"| the shortlist's scoring scaled to {sc['rows']:,} images ({dims}, the map's "
+            f"rows repeated, memory-mapped) + top {sc['top']} | {len(sc['seconds'])} | "
+            f"{_median_ms(sc['seconds'])} | {_p90_ms(sc['seconds'])} | < 20 |"]
+
+
 def report(args, layout, stats: dict, load: float) -> str:
     b, t, mem, db = stats["build"], stats["timing"], stats["memory"], stats["database"]
     tiles = stats["tiles"].values()
@@ -514,6 +561,7 @@ def report(args, layout, stats: dict, load: float) -> str:
         f"| the frame's global features ({', '.join(t['global_features'])}) | "
         f"{len(t['global_extraction_s'])} | {_median_ms(t['global_extraction_s'])} | "
         f"{_p90_ms(t['global_extraction_s'])} | |",
+        *_scaled_rows(stats),
         f"| SIFT step (`_filter_step` with SIFT, shortlist included) | {len(steps['sift'])} | "
         f"{_median_ms(steps['sift'])} | {_p90_ms(steps['sift'])} | |",
         f"| whole frame (`localise`), all steps | {len(t['frame_ms'])} | "
@@ -591,6 +639,12 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=200, help="query frames to step")
     parser.add_argument("--postgres", type=int, default=1000, metavar="IMAGES",
                         help="images to copy into PostgreSQL for its size (0: skip)")
+    parser.add_argument("--scale-to", type=int, default=50_000,
+                        help="also time the all-image scoring on matrices of this many rows "
+                             "when the map built is smaller")
+    parser.add_argument("--world-images", type=int, default=None,
+                        help="size of the world to generate, when larger than the map "
+                             "(default: --images)")
     parser.add_argument("--no-generate", action="store_true",
                         help="wait for tiles another process generates")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "large_map.md")
@@ -602,17 +656,25 @@ def main() -> None:
 
     from app.main import create_app
 
-    layout = layout_for(args.images)
+    layout = layout_for(args.world_images or args.images)
     stats = load_stats(args.work)
-    generator = None if args.no_generate else start_generator(args.work, args.images, layout)
+    generator = None if args.no_generate else start_generator(args.work, layout.images,
+                                                              layout)
     app = create_app(service_settings(args.work / "service"))
     with TestClient(app) as client:
         map_id = find_or_create_map(client)
-        ingest(client, map_id, args.work, layout, stats, generator)
+        ingest(client, map_id, args.work, layout, args.images, stats, generator)
         build_stats = pack(client, map_id, stats, args.work)
         print(f"built: {build_stats}", flush=True)
         frames = query_frames(args.work, args.frames)
         stats["timing"] = time_steps(build_stats["folder"], frames)
+        if args.scale_to > stats["build"]["images"]:
+            from workers.core.mapdata import MapData
+            from workers.core.pf.config import config_from_params
+
+            stats["scaled"] = scaled_scoring(
+                MapData.load(build_stats["folder"], mmap=True),
+                config_from_params({"config": "default"}), frames, args.scale_to, args.work)
         stats["memory"] = session_memory(client, map_id, frames)
         stats["database"] = database_size(client.app.state.ctx, map_id)
         if args.postgres and "postgres" not in stats:
