@@ -497,6 +497,10 @@ def _p90_ms(values) -> str:
     return f"{1e3 * float(np.percentile(values, 90)):.1f}" if len(values) else "-"
 
 
+def _generated(work: Path, layout) -> int:
+    return sum(tile_done(work, t) for t in range(layout.tiles))
+
+
 def _scaled_rows(stats: dict) -> list[str]:
     if "scaled" not in stats:
         return []
@@ -517,28 +521,36 @@ def report(args, layout, stats: dict, load: float) -> str:
     steps = {k: [s for used, s in t["steps"] if used == k] for k in ("global", "sift")}
     meas = {k: [s for used, s in t["measurements"] if used == k] for k in ("global", "sift")}
     cmd = " ".join([".venv/bin/python", "bench/bench_large_map.py"] + sys.argv[1:])
+    # per-tile meters: a run stopped in the middle of a tile loses that tile's meter, so
+    # each stage is divided by the images its meters saw
+    added = sum(v["accepted"] for v in tiles)
+    extracted = sum(v["extracted"] for v in tiles)
     rows = [("adding images (`add_images`: screening, EXIF, hash; decode in the worker)",
-             add[0], add[1] + add[2], f"API {add[1]:.0f} + worker {add[2]:.0f}"),
+             added, add[0], add[1] + add[2], f"API {add[1]:.0f} + worker {add[2]:.0f}"),
             ("feature extraction (`extract_image`: decode, 6 global features, SIFT, ORB, "
-             "rows)", ext[0], ext[1] + ext[2], f"API {ext[1]:.0f} + worker {ext[2]:.0f}")]
+             "rows)", extracted, ext[0], ext[1] + ext[2],
+             f"API {ext[1]:.0f} + worker {ext[2]:.0f}")]
     for name, v in b["stages"].items():
-        rows.append((f"packing: {name}", v["wall_s"], v["cpu_s"], "worker"))
-    packed = sum(v["cpu_s"] for v in b["stages"].values())
-    rows.append(("build job in all (extraction left + packing + bookkeeping)", b["wall"],
+        rows.append((f"packing: {name}", n, v["wall_s"], v["cpu_s"], "worker"))
+    rows.append(("build job in all (packing + bookkeeping)", n, b["wall"],
                  b["api_cpu"] + b["worker_cpu"],
                  f"API {b['api_cpu']:.0f} + worker {b['worker_cpu']:.0f}"))
+    per_image = ((add[1] + add[2]) / max(added, 1) + (ext[1] + ext[2]) / max(extracted, 1)
+                 + sum(v["cpu_s"] for v in b["stages"].values()) / n)
     lines = [
         f"# A map of {n:,} images: build, step times and memory",
         "",
         f"`{cmd}`",
         "",
-        f"World: a synthetic UAV survey of {layout.tiles} tiles of {layout.tile_frames:,} "
-        f"frames (a {layout.columns} x {layout.rows} grid, {layout.extent_m[0] / 1e3:.1f} x "
-        f"{layout.extent_m[1] / 1e3:.1f} km), nadir camera {ALTITUDE_M:g} m up, "
-        f"{SPACING_M:g} m between frames on average (30 % gusts), lawnmower lanes "
-        f"{0.6 * 2 * ALTITUDE_M * np.tan(np.radians(30)):.1f} m apart; map pass sunny, with "
-        "2 m GPS noise in its EXIF; tile 0's cloudy pass is the query pass. Generated in a "
-        f"second process alongside the build, {gen_tile:.0f} s per tile (median wall).",
+        f"World: a synthetic UAV survey laid out as {layout.tiles} tiles of "
+        f"{layout.tile_frames:,} frames (a {layout.columns} x {layout.rows} grid, "
+        f"{layout.extent_m[0] / 1e3:.1f} x {layout.extent_m[1] / 1e3:.1f} km), nadir camera "
+        f"{ALTITUDE_M:g} m up, {SPACING_M:g} m between frames on average (30 % gusts), "
+        f"lawnmower lanes {0.6 * 2 * ALTITUDE_M * np.tan(np.radians(30)):.1f} m apart; map "
+        "pass sunny, with 2 m GPS noise in its EXIF; tile 0's cloudy pass is the query pass. "
+        f"{_generated(args.work, layout)} tiles generated, in a second process alongside the "
+        f"build, {gen_tile:.0f} s per tile (median wall); the map holds the first {n:,} "
+        f"images (tiles 1 to {-(-n // layout.tile_frames)}, filled row by row).",
         "",
         "## Per frame, one core (320x240, 300 particles, default hybrid configuration)",
         "",
@@ -596,16 +608,16 @@ def report(args, layout, stats: dict, load: float) -> str:
         "seconds are the API process's plus the worker's, so images/s per core = images / "
         "CPU seconds. The peak RSS of the worker above includes packing the revision.",
         "",
-        "| stage | wall s | CPU s | images/s per core | where |",
-        "|---|---|---|---|---|",
+        "| stage | images | wall s | CPU s | CPU ms per image | images/s per core | where |",
+        "|---|---|---|---|---|---|---|",
     ]
-    for name, wall, cpu, where in rows:
-        lines.append(f"| {name} | {wall:,.0f} | {cpu:,.0f} | {n / max(cpu, 1e-9):,.0f} | "
+    for name, count, wall, cpu, where in rows:
+        lines.append(f"| {name} | {count:,} | {wall:,.0f} | {cpu:,.0f} | "
+                     f"{1e3 * cpu / max(count, 1):.1f} | {count / max(cpu, 1e-9):,.0f} | "
                      f"{where} |")
-    total = add[1] + add[2] + ext[1] + ext[2] + packed
     lines += [
-        f"| **all stages** (adding + extraction + packing) | | {total:,.0f} | "
-        f"{n / total:,.1f} | |",
+        f"| **all stages** (adding + extraction + packing) | | | | {1e3 * per_image:.1f} | "
+        f"{1 / per_image:,.1f} | |",
         "",
         "## Database",
         "",
