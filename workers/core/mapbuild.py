@@ -9,7 +9,7 @@ every map image (:mod:`workers.core.features.descriptors`), so each build trains
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -203,16 +203,40 @@ def train_descriptors(features: list[ImageFeatures], names: tuple[str, ...], *,
     dict name -> (Vocabulary, (N, dim) float32 ndarray of the map images' descriptors)
     """
     have_orb = all(f.orb is not None for f in features)
-    vectors: dict[str, list[np.ndarray]] = {}
+    vectors: dict[str, LocalVectors] = {}
     out = {}
     for name in names:
         spec = get_descriptor(name)
         if spec.local == "orb" and not have_orb:
             continue
         if spec.local not in vectors:
-            vectors[spec.local] = [local_vectors(spec.local, orb=f.orb, sift=f.sift)
-                                   for f in features]
+            vectors[spec.local] = LocalVectors(features, spec.local)
         per_image = vectors[spec.local]
         vocab = train_descriptor_vocabulary(spec, per_image, rng=np.random.default_rng(seed))
         out[name] = (vocab, np.stack([describe(spec, v, vocab) for v in per_image]))
     return out
+
+
+class LocalVectors(Sequence):
+    """The local vectors (:func:`~.features.descriptors.local_vectors`) of each map image,
+    computed when read.
+
+    Unpacked ORB bits are 256 float32 per keypoint, 400 kB an image: a large map's would
+    not fit in memory at once, so training and describing read them image by image.
+    """
+
+    def __init__(self, features: list[ImageFeatures], local: str) -> None:
+        self.features = features
+        self.local = local
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        f = self.features[i]
+        return local_vectors(self.local, orb=f.orb, sift=f.sift)
+
+    def counts(self) -> np.ndarray:
+        """(N,) int: keypoints per image, without computing the vectors."""
+        return np.array([len(f.orb) if self.local == "orb" else len(f.sift)
+                         for f in self.features], np.int64)
