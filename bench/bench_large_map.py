@@ -29,8 +29,11 @@ the packed revision, so an interrupted run resumes where it stopped.
 Usage::
 
     .venv/bin/python bench/bench_large_map.py [--images 50000]
-        [--work /work/large-map-work/50000] [--frames 200]
+        [--work /work/large-map-work/50000] [--frames 200] [--world-images N]
+        [--no-generate] [--scale-to 50000] [--postgres 1000]
         [--out bench/results/large_map.md]
+
+The report is written by :mod:`large_map_report`; ``make bench-large`` runs the default.
 """
 
 from __future__ import annotations
