@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench fuzz eval-seneca lint clean
+.PHONY: demo test bench bench-large fuzz eval-seneca lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -25,6 +25,12 @@ test: $(STAMP)
 ## bench: stage timings and the paper experiments (long; writes bench/results/)
 bench: $(STAMP)
 	$(BIN)/python bench/run_all.py
+
+## bench-large: a 50,000-image UAV map built through the service: build throughput, step
+## times, worker memory, database size (hours on two cores; resumable; writes
+## bench/results/large_map.md, work files under bench/.cache/large-map/)
+bench-large: $(STAMP)
+	$(BIN)/python bench/bench_large_map.py
 
 ## fuzz: Schemathesis with every check against a real server (writes bench/results/fuzz.txt)
 fuzz: $(STAMP)

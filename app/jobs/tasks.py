@@ -11,6 +11,7 @@ the functions that need them.
 
 from __future__ import annotations
 
+import json
 import uuid
 from functools import lru_cache
 from pathlib import Path
@@ -29,6 +30,9 @@ from vloc.app.engine import (
 )
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
 from vloc.app.sessions.pose import write_image_ids
+
+TIMINGS_FILE = "build_timings.json"
+"""Seconds each stage of packing a revision took, beside the revision."""
 
 
 @lru_cache(maxsize=8)
@@ -78,15 +82,19 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     ``map_vocabularies`` under ``revision`` (replacing rows a failed earlier attempt at the
     same revision left); the descriptors over ORB need every image's ORB features.
 
+    The (wall, CPU) seconds of each stage, reading the features included, are written
+    beside the revision as ``build_timings.json``.
+
     Returns
     -------
     dict
         ``origin`` (lat, lon, alt), ``image_ids`` (in map order) and their ``east`` and
         ``north`` in the new local frame.
     """
-    from vloc.workers.core.mapbuild import ImageFeatures, assemble_map, typical_focal_px
+    from vloc.workers.core.mapbuild import ImageFeatures, assemble_map, stage, typical_focal_px
 
-    with _sessions(database_url)() as db:
+    timings: dict[str, tuple[float, float]] = {}
+    with stage(timings, "reading features"), _sessions(database_url)() as db:
         rows = db.execute(
             select(MapImage, ImageSift, ImageOrb)
             .join(ImageSift, ImageSift.image_id == MapImage.id)
@@ -110,8 +118,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                         lats=[img.lat for img in images], lons=[img.lon for img in images],
                         alts=[img.alt for img in images], features=features,
                         captured_at=times, map_id=map_id, revision=revision,
-                        focal_px=typical_focal_px(_readers(lens_files or [])))
-    with _sessions(database_url)() as db, db.begin():
+                        focal_px=typical_focal_px(_readers(lens_files or [])),
+                        timings=timings)
+    with stage(timings, "storing vocabularies"), _sessions(database_url)() as db, db.begin():
         db.execute(delete(MapVocabulary).where(MapVocabulary.map_id == uuid.UUID(map_id),
                                                MapVocabulary.revision == revision))
         for name, vocab in sorted(data.vocabularies.items()):
@@ -120,8 +129,12 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                                  branching=vocab.branching, depth=vocab.depth,
                                  binary=vocab.binary, dim=vocab.dim, centroids=centroids,
                                  idf=idf, projection=projection))
-    data.save(folder)
-    write_image_ids(folder, ids)
+    with stage(timings, "saving"):
+        data.save(folder)
+        write_image_ids(folder, ids)
+    (Path(folder) / TIMINGS_FILE).write_text(json.dumps(
+        {name: {"wall_s": wall, "cpu_s": cpu} for name, (wall, cpu) in timings.items()},
+        indent=1))
     o = data.origin
     return {"origin": (o.lat, o.lon, o.alt), "image_ids": ids,
             "east": np.asarray(data.positions)[:, 0].tolist(),

@@ -65,3 +65,20 @@ def test_assemble_map_without_geometry():
     assert assemble_map(**kwargs, geometry=False).geometry is None
     built = assemble_map(**kwargs)
     assert built.geometry is not None and "sift" in built.geometry.ground
+
+
+def test_assemble_map_reports_the_seconds_of_each_stage():
+    s, data = _survey_map(2)
+    feats = [ImageFeatures({}, SiftFeatures(k, d))
+             for k, d in zip(s.keypoints, s.image_descriptors, strict=True)]
+    lat, lon = ORIGIN.to_wgs84(s.positions[:, 0], s.positions[:, 1])
+    timings: dict = {}
+    assemble_map(names=data.names, lats=lat, lons=lon, alts=list(s.altitudes), features=feats,
+                 origin=ORIGIN, focal_px=F_TRUE, timings=timings)
+    assert set(timings) == {"sift reduction", "vocabularies", "packing", "geometry"}
+    for wall, cpu in timings.values():
+        assert wall >= 0.0 and cpu >= 0.0
+    timings.clear()
+    assemble_map(names=data.names, lats=lat, lons=lon, alts=list(s.altitudes), features=feats,
+                 origin=ORIGIN, focal_px=F_TRUE, geometry=False, timings=timings)
+    assert "geometry" not in timings

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import tracemalloc
+
 import numpy as np
 import pytest
 
@@ -83,3 +85,31 @@ def test_orb_features_round_trip(tmp_path):
         np.testing.assert_array_equal(back.orb(i).keypoints, orb[i].keypoints)
     # a map packed without ORB loads without it
     assert not MapData.load(base.save(tmp_path / "plain")).has_orb
+
+
+def test_reduced_sift_of_one_image_copies_only_that_image(tmp_path):
+    # 400 images of 200 keypoints: the reduced set of image i is its own keypoints under
+    # its own mask, and reading it allocates about one image's worth, not the map's.
+    rng = np.random.default_rng(3)
+    n, k = 400, 200
+    sift = [SiftFeatures(rng.uniform(0, 240, (k, 4)).astype(np.float32),
+                         rng.integers(0, 256, (k, 128), dtype=np.uint8)) for _ in range(n)]
+    keep = [rng.random(k) < 0.6 for _ in range(n)]
+    data = MapData.from_parts(origin=GeoOrigin(41.03, -83.3, 280.0),
+                              names=[f"m{i}" for i in range(n)],
+                              positions=np.column_stack([np.arange(n) * 5.0, np.zeros(n)]),
+                              altitudes=np.full(n, 300.0), global_features={}, sift=sift,
+                              sift_keep=keep)
+    back = MapData.load(data.save(tmp_path / "map"), mmap=True)
+    tracemalloc.start()
+    try:
+        for i in (0, 17, n - 1):
+            reduced = back.sift(i, reduced=True)
+            np.testing.assert_array_equal(reduced.keypoints, sift[i].keypoints[keep[i]])
+            np.testing.assert_array_equal(reduced.descriptors, sift[i].descriptors[keep[i]])
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    whole = n * k * (128 + 16)
+    assert peak < whole / 20
+    np.testing.assert_array_equal(back.sift(5).descriptors, sift[5].descriptors)

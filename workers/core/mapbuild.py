@@ -8,6 +8,9 @@ every map image (:mod:`workers.core.features.descriptors`), so each build trains
 
 from __future__ import annotations
 
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,7 +63,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  origin: GeoOrigin | None = None, reduce_sift: bool = True,
                  ratio: float = RATIO, geometry: bool = True,
                  focal_px: float | None = None,
-                 descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0) -> MapData:
+                 descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
+                 timings: dict[str, tuple[float, float]] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
     Parameters
@@ -88,11 +92,16 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     seed : int
         Seeds the vocabulary training and the reconstruction's RANSAC: the same images
         give the same map.
+    timings : dict, optional
+        Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
+        ``"vocabularies"`` (training and describing every image), ``"packing"`` and
+        ``"geometry"``.
 
     Returns
     -------
     MapData
     """
+    timings = {} if timings is None else timings
     n = len(names)
     if not (len(lats) == len(lons) == len(alts) == len(features) == n):
         raise ValueError("names, lats, lons, alts and features must have the same length")
@@ -110,21 +119,37 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     glob = {name: np.stack([f.global_features[name] for f in features]).astype(np.float32)
             for name in sorted(names_in_all)}
     sift = [f.sift for f in features]
-    keep = reduction_masks(sift, xy, ratio=ratio) if reduce_sift else None
+    with stage(timings, "sift reduction"):
+        keep = reduction_masks(sift, xy, ratio=ratio) if reduce_sift else None
     times = None
     if captured_at is not None:
         times = np.array([np.nan if t is None else t for t in captured_at], np.float64)
-    trained = train_descriptors(features, descriptors, seed=seed)
+    with stage(timings, "vocabularies"):
+        trained = train_descriptors(features, descriptors, seed=seed)
     glob.update({name: matrix for name, (_, matrix) in trained.items()})
     have_orb = all(f.orb is not None for f in features)
-    data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
-                              global_features=glob, sift=sift, map_id=map_id,
-                              revision=revision, captured_at=times, sift_keep=keep,
-                              vocabularies={n: v for n, (v, _) in trained.items()},
-                              orb=[f.orb for f in features] if have_orb else None)
+    with stage(timings, "packing"):
+        data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
+                                  global_features=glob, sift=sift, map_id=map_id,
+                                  revision=revision, captured_at=times, sift_keep=keep,
+                                  vocabularies={n: v for n, (v, _) in trained.items()},
+                                  orb=[f.orb for f in features] if have_orb else None)
     if geometry:
-        data.geometry = map_geometry(data, focal_px=focal_px, seed=seed)
+        with stage(timings, "geometry"):
+            data.geometry = map_geometry(data, focal_px=focal_px, seed=seed)
     return data
+
+
+@contextmanager
+def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
+    """Add the block's (wall, CPU) seconds to ``timings[name]``; CPU is this process's."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    try:
+        yield
+    finally:
+        before = timings.get(name, (0.0, 0.0))
+        timings[name] = (before[0] + time.perf_counter() - wall,
+                         before[1] + time.process_time() - cpu)
 
 
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0):
@@ -178,16 +203,40 @@ def train_descriptors(features: list[ImageFeatures], names: tuple[str, ...], *,
     dict name -> (Vocabulary, (N, dim) float32 ndarray of the map images' descriptors)
     """
     have_orb = all(f.orb is not None for f in features)
-    vectors: dict[str, list[np.ndarray]] = {}
+    vectors: dict[str, LocalVectors] = {}
     out = {}
     for name in names:
         spec = get_descriptor(name)
         if spec.local == "orb" and not have_orb:
             continue
         if spec.local not in vectors:
-            vectors[spec.local] = [local_vectors(spec.local, orb=f.orb, sift=f.sift)
-                                   for f in features]
+            vectors[spec.local] = LocalVectors(features, spec.local)
         per_image = vectors[spec.local]
         vocab = train_descriptor_vocabulary(spec, per_image, rng=np.random.default_rng(seed))
         out[name] = (vocab, np.stack([describe(spec, v, vocab) for v in per_image]))
     return out
+
+
+class LocalVectors(Sequence):
+    """The local vectors (:func:`~.features.descriptors.local_vectors`) of each map image,
+    computed when read.
+
+    Unpacked ORB bits are 256 float32 per keypoint, 400 kB an image: a large map's would
+    not fit in memory at once, so training and describing read them image by image.
+    """
+
+    def __init__(self, features: list[ImageFeatures], local: str) -> None:
+        self.features = features
+        self.local = local
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        f = self.features[i]
+        return local_vectors(self.local, orb=f.orb, sift=f.sift)
+
+    def counts(self) -> np.ndarray:
+        """(N,) int: keypoints per image, without computing the vectors."""
+        return np.array([len(f.orb) if self.local == "orb" else len(f.sift)
+                         for f in self.features], np.int64)

@@ -72,7 +72,6 @@ class MapData:
     orb_descriptors: np.ndarray | None = None
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
     _spacing: float | None = field(default=None, repr=False, compare=False)
-    _reduced: tuple | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         n = len(self.names)
@@ -116,13 +115,17 @@ class MapData:
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
     def sift(self, i: int, *, reduced: bool = False) -> SiftFeatures:
-        """Keypoints of map image ``i``: all, or those kept by the neighbour reduction."""
+        """Keypoints of map image ``i``: all, or those kept by the neighbour reduction.
+
+        The reduced set is gathered for this image alone: a reduced copy of the whole map
+        would be private memory in every worker, where the packed arrays are shared pages.
+        """
+        a, b = int(self.sift_offsets[i]), int(self.sift_offsets[i + 1])
+        kps, desc = self.sift_keypoints[a:b], self.sift_descriptors[a:b]
         if reduced:
-            offsets, kps, desc = self._reduced_arrays()
-        else:
-            offsets, kps, desc = self.sift_offsets, self.sift_keypoints, self.sift_descriptors
-        a, b = int(offsets[i]), int(offsets[i + 1])
-        return SiftFeatures(kps[a:b], desc[a:b])
+            keep = np.asarray(self.sift_keep[a:b])
+            return SiftFeatures(kps[keep], desc[keep])
+        return SiftFeatures(kps, desc)
 
     @property
     def has_orb(self) -> bool:
@@ -132,15 +135,6 @@ class MapData:
         """ORB features of map image ``i`` (the map must have them: :attr:`has_orb`)."""
         a, b = int(self.orb_offsets[i]), int(self.orb_offsets[i + 1])
         return OrbFeatures(self.orb_keypoints[a:b], self.orb_descriptors[a:b])
-
-    def _reduced_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self._reduced is None:
-            keep = np.asarray(self.sift_keep)
-            kept_before = np.concatenate([[0], np.cumsum(keep, dtype=np.int64)])
-            offsets = kept_before[np.asarray(self.sift_offsets)]
-            self._reduced = (offsets, np.asarray(self.sift_keypoints)[keep],
-                             np.asarray(self.sift_descriptors)[keep])
-        return self._reduced
 
     def sift_counts(self) -> np.ndarray:
         return np.diff(self.sift_offsets)

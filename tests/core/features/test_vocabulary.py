@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from vloc.workers.core.features.vocabulary import (
+    Projected,
     Vocabulary,
+    _sample,
     cluster_sums,
     inverse_document_frequency,
     principal_axes,
@@ -184,3 +186,43 @@ def test_projected_vocabulary():
     with pytest.raises(ValueError, match="binary"):
         train_vocabulary(per_image, branching=2, depth=1, binary=True, components=3,
                          rng=np.random.default_rng(1))
+
+
+class _Lazy:
+    """A sequence that builds each image's vectors when read and counts reads."""
+
+    def __init__(self, per_image):
+        self.per_image, self.reads = per_image, 0
+
+    def __len__(self):
+        return len(self.per_image)
+
+    def __getitem__(self, i):
+        self.reads += 1
+        return self.per_image[i].copy()
+
+
+@pytest.mark.parametrize("max_training", [50, 10_000])
+def test_sample_reads_images_one_at_a_time_and_draws_as_concatenating(max_training):
+    rng = np.random.default_rng(4)
+    per_image = [rng.random((int(k), 6)).astype(np.float32) for k in rng.integers(0, 30, 40)]
+    # the obvious reference: every vector concatenated, then the same draw
+    data = np.concatenate(per_image)
+    ref_rng = np.random.default_rng(9)
+    if len(data) > max_training:
+        data = data[np.sort(ref_rng.choice(len(data), size=max_training, replace=False))]
+    lazy = _Lazy(per_image)
+    np.testing.assert_array_equal(_sample(lazy, np.random.default_rng(9), max_training), data)
+
+
+def test_train_vocabulary_on_lazy_images_equals_lists():
+    rng = np.random.default_rng(5)
+    per_image = [rng.random((int(k), 16)).astype(np.float32) for k in rng.integers(5, 40, 60)]
+    kwargs = dict(branching=4, depth=2, binary=False, components=8, max_training=500)
+    eager = train_vocabulary(per_image, rng=np.random.default_rng(1), **kwargs)
+    lazy = train_vocabulary(_Lazy(per_image), rng=np.random.default_rng(1), **kwargs)
+    np.testing.assert_array_equal(lazy.centroids, eager.centroids)
+    np.testing.assert_array_equal(lazy.idf, eager.idf)
+    np.testing.assert_array_equal(lazy.projection, eager.projection)
+    projected = Projected(per_image, eager.projection)
+    np.testing.assert_allclose(projected[3], eager.project(per_image[3]), rtol=1e-6)

@@ -25,7 +25,9 @@ from vloc.workers.core.geometry.reconstruct import (
     _unrobust,
     ground_points,
     match_pairs,
+    reconstruct_in_blocks,
     reconstruct_plane,
+    spatial_blocks,
 )
 
 
@@ -244,3 +246,39 @@ def test_match_pairs_of_unrelated_images_is_empty():
     assert match_pairs(kps, desc, pos, max_distance=50.0, rng=rng) == []
     assert match_pairs(kps[:1], desc[:1], pos[:1], max_distance=50.0, rng=rng) == []
 
+
+
+def test_spatial_blocks_are_compact_and_small_enough():
+    rng = np.random.default_rng(2)
+    positions = rng.uniform(0, 1000, (1000, 2))
+    labels = spatial_blocks(positions, 90)
+    counts = np.bincount(labels)
+    assert counts.sum() == 1000 and counts.max() <= 90 and counts.min() >= 45
+    # bisection: the blocks' bounding boxes do not overlap
+    boxes = [(positions[labels == b].min(axis=0), positions[labels == b].max(axis=0))
+             for b in range(len(counts))]
+    for i, (lo_a, hi_a) in enumerate(boxes):
+        for lo_b, hi_b in boxes[i + 1:]:
+            assert (hi_a < lo_b).any() or (hi_b < lo_a).any()
+    assert (spatial_blocks(positions, 1000) == 0).all()
+
+
+def test_reconstruct_in_blocks_matches_the_whole_adjustment():
+    # 4 x 6 images cut into blocks of at most 8: every camera placed as the whole
+    # adjustment places it, the map's focal length and ground as well.
+    rng = np.random.default_rng(6)
+    s = survey(rng, rows=4, cols=6, max_tilt_deg=8.0)
+    pairs = exact_pairs(s, rng)
+    gps = s.positions + rng.normal(0.0, 0.3, s.positions.shape)
+    alt = s.altitudes + rng.normal(0.0, 0.2, len(gps))
+    K0 = Intrinsics.centred(F_TRUE, WIDTH, HEIGHT)
+    blocks = reconstruct_in_blocks(pairs, gps, alt, K0, max_block=8)
+    assert len(np.unique(spatial_blocks(gps, 8))) >= 3
+    assert blocks.reconstructed.all()
+    assert np.linalg.norm(blocks.centres - s.centres, axis=1).max() < 1.5  # 8-image blocks
+    assert max(_rotation_errors(blocks, s)) < 0.5
+    assert blocks.intrinsics.f == pytest.approx(F_TRUE, rel=0.02)
+    assert blocks.ground_alt == pytest.approx(GROUND_ALT, abs=1.0)
+    assert blocks.residual_px < 0.1 and blocks.gps_rms < 1.0
+    whole = reconstruct_in_blocks(pairs, gps, alt, K0, max_block=len(gps))
+    np.testing.assert_allclose(blocks.centres, whole.centres, atol=1.5)

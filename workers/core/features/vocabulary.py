@@ -33,6 +33,7 @@ Choices left open by the papers, and what is used here:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -185,8 +186,7 @@ def train_vocabulary(per_image: list[np.ndarray], *, branching: int, depth: int,
         if binary:
             raise ValueError("a binary vocabulary takes the bits themselves, not a projection")
         projection = principal_axes(per_image, components, rng=rng, max_training=max_training)
-        per_image = [(np.asarray(v, np.float32) - projection[0]) @ projection[1:].T
-                     for v in per_image]
+        per_image = Projected(per_image, projection)
     data = _sample(per_image, rng, max_training)
     dim = data.shape[1]
     levels = []
@@ -240,16 +240,70 @@ def principal_axes(per_image: list[np.ndarray], n_components: int, *,
     return np.vstack([mean, axes]).astype(np.float32)
 
 
-def _sample(per_image: list[np.ndarray], rng: np.random.Generator,
-            max_training: int) -> np.ndarray:
-    """All vectors of all images, or a random sample of ``max_training`` (in image order)."""
-    dims = {v.shape[1] for v in per_image if np.ndim(v) == 2}
+class Projected(Sequence):
+    """Each image's vectors projected onto principal axes, computed when read.
+
+    A large map's projected vectors would not fit in memory at once; each pass over the
+    images (sampling, the idf) reads them one image at a time.
+
+    Parameters
+    ----------
+    per_image : sequence of (K_i, D) float ndarray
+    projection : (P + 1, D) float32 ndarray
+        As :func:`principal_axes` gives it.
+    """
+
+    def __init__(self, per_image, projection: np.ndarray) -> None:
+        self.per_image = per_image
+        self.projection = projection
+
+    def __len__(self) -> int:
+        return len(self.per_image)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        v = np.asarray(self.per_image[i], np.float32)
+        return (v - self.projection[0]) @ self.projection[1:].T
+
+    def counts(self) -> np.ndarray:
+        """(N,) int: vectors per image, without projecting them."""
+        return vector_counts(self.per_image)
+
+
+def vector_counts(per_image) -> np.ndarray:
+    """Vectors per image: the sequence's own ``counts()`` where it has one (lazy
+    sequences count without computing the vectors), else the lengths of its arrays."""
+    counts = getattr(per_image, "counts", None)
+    if counts is not None:
+        return np.asarray(counts(), np.int64)
+    return np.array([len(v) for v in per_image], np.int64)
+
+
+def _sample(per_image, rng: np.random.Generator, max_training: int) -> np.ndarray:
+    """All vectors of all images, or a random sample of ``max_training`` (in image order).
+
+    The sample's indices are drawn from the per-image counts and each image is read once
+    to gather its share: the map's vectors are never concatenated whole.
+    """
+    counts = vector_counts(per_image)
+    total = int(counts.sum())
+    chosen = None
+    if total > max_training:
+        chosen = np.sort(rng.choice(total, size=max_training, replace=False))
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    parts, dims = [], set()
+    for i in range(len(counts)):
+        v = per_image[i]
+        if np.ndim(v) == 2:
+            dims.add(v.shape[1])
+        if chosen is None:
+            parts.append(np.asarray(v, np.float32))
+            continue
+        lo, hi = np.searchsorted(chosen, [starts[i], starts[i + 1]])
+        if hi > lo:
+            parts.append(np.asarray(v, np.float32)[chosen[lo:hi] - starts[i]])
     if len(dims) != 1:
         raise ValueError(f"expected a list of (K_i, D) arrays of one width D, got widths {dims}")
-    data = np.concatenate([np.asarray(v, np.float32) for v in per_image])
-    if len(data) > max_training:
-        data = data[np.sort(rng.choice(len(data), size=max_training, replace=False))]
-    return data
+    return np.concatenate(parts) if parts else np.zeros((0, dims.pop()), np.float32)
 
 
 def inverse_document_frequency(words_per_image: list[np.ndarray], n_words: int) -> np.ndarray:

@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
-from .reconstruct import match_pairs, reconstruct_plane
+from .reconstruct import match_pairs, reconstruct_in_blocks
 from .register import Registration, register_frame
 
 MAX_RESIDUAL_PX: float = 4.0
@@ -58,7 +58,7 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
     reach = 3.0 * float(np.median(nearest[:, 1]))
     pairs = match_pairs(keypoints, descriptors, positions, max_distance=max(reach, 1.0),
                         rng=rng)
-    rec = reconstruct_plane(pairs, positions, np.asarray(altitudes, np.float64), K0)
+    rec = reconstruct_in_blocks(pairs, positions, np.asarray(altitudes, np.float64), K0)
     done = rec.reconstructed
     if done.mean() < MIN_RECONSTRUCTED or not math.isfinite(rec.residual_px):
         return None

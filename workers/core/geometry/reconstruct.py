@@ -308,3 +308,95 @@ def ground_points(rec: PlaneReconstruction, keypoints: list[np.ndarray]) -> list
         out.append(backproject_to_ground(rec.rotations[i], rec.centres[i], rec.intrinsics,
                                          np.asarray(kp, np.float64)[:, :2]))
     return out
+
+
+MAX_BLOCK: int = 250
+"""Most cameras in one bundle adjustment. Its cost grows about with the square of the
+number of cameras (each sparse solve costs as much as the tie points, and takes more inner
+iterations as the chains of cameras grow longer): one adjustment of a 2,000-image survey
+ran for over ten minutes, so a large map is adjusted block by block."""
+
+
+def spatial_blocks(positions: np.ndarray, max_size: int) -> np.ndarray:
+    """Cut the map into compact blocks of at most ``max_size`` images.
+
+    Recursive bisection at the median of the longer side of each block's bounding box (a
+    k-d tree's cut), so that blocks are contiguous patches of the survey.
+
+    Parameters
+    ----------
+    positions : (N, 2) float ndarray
+    max_size : int
+
+    Returns
+    -------
+    (N,) int ndarray
+        Block index of each image, 0 .. B-1.
+    """
+    if max_size < 1:
+        raise ValueError(f"max_size must be at least 1, got {max_size}")
+    positions = np.asarray(positions, np.float64)
+    labels = np.zeros(len(positions), dtype=np.int64)
+    todo = [np.arange(len(positions))]
+    block = 0
+    while todo:
+        members = todo.pop()
+        if len(members) <= max_size:
+            labels[members] = block
+            block += 1
+            continue
+        pts = positions[members]
+        axis = int(np.argmax(pts.max(axis=0) - pts.min(axis=0)))
+        order = members[np.argsort(pts[:, axis], kind="stable")]
+        half = len(order) // 2
+        todo += [order[half:], order[:half]]
+    return labels
+
+
+def reconstruct_in_blocks(pairs: list[PairMatches], positions: np.ndarray,
+                          altitudes: np.ndarray, K0: Intrinsics, *,
+                          max_block: int = MAX_BLOCK, **options) -> PlaneReconstruction:
+    """:func:`reconstruct_plane` over compact blocks of at most ``max_block`` cameras.
+
+    Each block is adjusted on its own, with the tie points inside it; the map's focal
+    length and ground altitude are the medians over the blocks (weighted by their cameras),
+    the residual the median of the blocks' and the GPS RMS over every camera. A map of at
+    most ``max_block`` images is adjusted whole, as :func:`reconstruct_plane` does.
+    """
+    n = len(positions)
+    if n <= max_block:
+        return reconstruct_plane(pairs, positions, altitudes, K0, **options)
+    labels = spatial_blocks(positions, max_block)
+    by_block: dict[int, list[PairMatches]] = {}
+    for p in pairs:
+        if labels[p.a] == labels[p.b]:
+            by_block.setdefault(int(labels[p.a]), []).append(p)
+    rotations = np.full((n, 3, 3), np.nan)
+    centres = np.full((n, 3), np.nan)
+    focal, ground, residual, sq_gps, weight = [], [], [], 0.0, 0
+    for block_pairs in by_block.values():
+        rec = reconstruct_plane(block_pairs, positions, altitudes, K0, **options)
+        done = rec.reconstructed
+        if not done.any() or not math.isfinite(rec.residual_px):
+            continue
+        rotations[done], centres[done] = rec.rotations[done], rec.centres[done]
+        m = int(done.sum())
+        focal.append((rec.intrinsics.f, m))
+        ground.append((rec.ground_alt, m))
+        residual.append(rec.residual_px)
+        sq_gps += rec.gps_rms ** 2 * m
+        weight += m
+    if not weight:
+        return reconstruct_plane([], positions, altitudes, K0)
+    K = Intrinsics(_weighted_median(focal), K0.cx, K0.cy)
+    return PlaneReconstruction(rotations, centres, K, _weighted_median(ground),
+                               float(np.median(residual)), math.sqrt(sq_gps / weight))
+
+
+def _weighted_median(values: list[tuple[float, int]]) -> float:
+    """Median of ``value`` repeated ``count`` times, over (value, count) pairs."""
+    v = np.array([x for x, _ in values], np.float64)
+    w = np.array([c for _, c in values], np.float64)
+    order = np.argsort(v)
+    cum = np.cumsum(w[order])
+    return float(v[order][np.searchsorted(cum, 0.5 * cum[-1])])
