@@ -31,16 +31,20 @@ class Subscription:
     Messages published by different replicas can reach this one out of that order; one whose
     predecessor has not been passed on waits for it (up to :data:`REORDER_WAIT_S`), so that a
     stream sees the frames in the order they were stepped.
+
+    ``after_seq`` is the session's last accepted seq when the stream began: a predecessor
+    numbered up to it may have been published before, so nothing waits for it.
     """
 
-    def __init__(self, session_id: str, *, reorder_wait_s: float = REORDER_WAIT_S) -> None:
+    def __init__(self, session_id: str, *, after_seq: int | None = None,
+                 reorder_wait_s: float = REORDER_WAIT_S) -> None:
         self.session_id = session_id
         self.queue: asyncio.Queue[dict] = asyncio.Queue(SUBSCRIBER_QUEUE)
         self.overflowed = False
         self.ending = False
         self.reorder_wait_s = reorder_wait_s
-        self._last_seq: int | None = None
-        """The highest seq passed on."""
+        self._last_seq: int = -1 if after_seq is None else after_seq
+        """The highest seq passed on, or the last accepted before the stream began."""
         self._waiting: dict[int, dict] = {}
         """Messages waiting, by the seq they come after."""
         self._timer: asyncio.TimerHandle | None = None
@@ -54,7 +58,7 @@ class Subscription:
             self._enqueue(message)
             return
         prev = message.get("prev_seq")
-        if prev is not None and self._last_seq is not None and prev > self._last_seq:
+        if prev is not None and prev > self._last_seq:
             self._waiting[prev] = message
             if self._timer is None:
                 self._timer = asyncio.get_running_loop().call_later(
@@ -64,8 +68,7 @@ class Subscription:
 
     def _pass(self, message: dict) -> None:
         self._enqueue(message)
-        self._last_seq = max(message["seq"], self._last_seq if self._last_seq is not None
-                             else message["seq"])
+        self._last_seq = max(message["seq"], self._last_seq)
         while (after := self._waiting.pop(self._last_seq, None)) is not None:
             self._enqueue(after)
             self._last_seq = max(self._last_seq, after["seq"])
@@ -117,8 +120,9 @@ class LocalHub:
             for sub in list(subs):
                 sub.put(CLOSED)
 
-    def subscribe(self, session_id: str) -> Subscription:
-        sub = Subscription(session_id)
+    def subscribe(self, session_id: str, *, after_seq: int | None = None) -> Subscription:
+        """A new stream's subscription (``after_seq``: see :class:`Subscription`)."""
+        sub = Subscription(session_id, after_seq=after_seq)
         self._subs[session_id].add(sub)
         self._empty.clear()
         return sub

@@ -50,8 +50,8 @@ class RedisHub(LocalHub):
         if self._redis is not None:
             await self._redis.aclose()
 
-    def subscribe(self, session_id: str):
-        sub = super().subscribe(session_id)
+    def subscribe(self, session_id: str, *, after_seq: int | None = None):
+        sub = super().subscribe(session_id, after_seq=after_seq)
         channel = CHANNEL_PREFIX + session_id
         if channel not in self._channels:
             self._channels[channel] = asyncio.Event()

@@ -72,7 +72,7 @@ async def stream(websocket: WebSocket, session_id: str) -> None:
         return
     # Taken before subscribing: they come before any frame this stream will see.
     interrupted = await ctx.runtime.interrupted(live)
-    sub = ctx.hub.subscribe(live.id)
+    sub = ctx.hub.subscribe(live.id, after_seq=live.last_seq)
     ctx.metrics.stream_subscribers.inc()
     sender = asyncio.create_task(_send_loop(websocket, sub, as_feature if geojson else None))
     try:

@@ -91,11 +91,26 @@ def test_a_message_that_is_not_a_frames_passes_what_waits_before_it():
     assert _run(go()) == [0, 2, CLOSED["type"]]
 
 
-def test_the_first_message_a_late_subscriber_sees_is_passed_whatever_it_follows():
+def test_a_stream_opened_before_any_frame_waits_for_the_first():
+    # The second frame's pose (published by the replica that holds the stream) overtakes
+    # the first's (published by the other one).
     async def go():
-        sub = Subscription("s", reorder_wait_s=5.0)
-        sub.put(_pose(7, 6))
-        sub.put(_pose(8, 7))
-        return _drain(sub)
+        sub = Subscription("s", after_seq=None, reorder_wait_s=5.0)
+        sub.put(_pose(1, 0))
+        held = _drain(sub)
+        sub.put(_pose(0, None))
+        return held, _drain(sub)
 
-    assert _run(go()) == [7, 8]
+    assert _run(go()) == ([], [0, 1])
+
+
+def test_a_late_subscriber_waits_for_nothing_accepted_before_it_began():
+    async def go():
+        sub = Subscription("s", after_seq=6, reorder_wait_s=5.0)
+        sub.put(_pose(7, 6))   # 6 was answered before the stream began
+        sub.put(_pose(9, 8))   # 8 came after: waited for
+        held = _drain(sub)
+        sub.put(_pose(8, 7))
+        return held, _drain(sub)
+
+    assert _run(go()) == ([7], [8, 9])
