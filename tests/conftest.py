@@ -82,8 +82,9 @@ def database_url(request, tmp_path) -> Iterator[str]:
         yield url
 
 
-@pytest.fixture
-def redis_url() -> str:
+def require_redis() -> str:
+    """``REDIS_URL`` once Redis answers there; otherwise the test skips (or fails where the
+    services are required)."""
     import redis
 
     client = redis.Redis.from_url(REDIS_URL, socket_connect_timeout=3)
@@ -94,6 +95,11 @@ def redis_url() -> str:
     finally:
         client.close()
     return REDIS_URL
+
+
+@pytest.fixture
+def redis_url() -> str:
+    return require_redis()
 
 
 # -- Ray: one real local cluster for every test that needs it -------------------------------

@@ -19,7 +19,7 @@ import pytest
 from websockets.asyncio.client import connect
 
 from tests.app.imagery import map_and_queries
-from tests.conftest import REDIS_URL, postgres_schema_url
+from tests.conftest import REDIS_URL, postgres_schema_url, require_redis
 from tests.e2e.conftest import Server, start_server
 from tests.e2e.test_server import _build_map
 
@@ -34,25 +34,11 @@ N_SHARDS = 2
 ENV: dict[str, str] = {}
 
 
-def _redis_or_skip() -> None:
-    import redis
-
-    from tests.conftest import _service_missing
-
-    client = redis.Redis.from_url(REDIS_URL, socket_connect_timeout=3)
-    try:
-        client.ping()
-    except redis.RedisError as exc:
-        _service_missing(f"Redis at {REDIS_URL}", exc)
-    finally:
-        client.close()
-
-
 @pytest.fixture(scope="module")
 def replicas(ray_cluster, tmp_path_factory) -> Iterator[tuple[Server, Server, str]]:
     """Replicas a and b, and the Ray namespace of their shards (their environment and data
     directory in ``ENV``)."""
-    _redis_or_skip()
+    require_redis()
     namespace = f"vloc-e2e-{uuid.uuid4().hex[:8]}"
     data_dir = tmp_path_factory.mktemp("replicas") / "data"
     with postgres_schema_url() as database_url:

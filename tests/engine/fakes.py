@@ -7,7 +7,27 @@ import struct
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 from vloc.workers.core.estimate import Estimate, Status
+from vloc.workers.engine import SessionSpec
+
+COUNTING = "tests.engine.fakes:make_counting"
+"""The factory of :class:`CountingLocaliser` sessions."""
+
+
+def grey_png(level: int) -> bytes:
+    """A small uniform PNG frame of grey ``level`` (the counting localiser's y)."""
+    ok, buf = cv2.imencode(".png", np.full((24, 32), level, np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+def counting_spec(session_id: str, **params) -> SessionSpec:
+    """A session of the counting localiser, with no map."""
+    return SessionSpec(session_id=session_id, map_id="", revision=0, map_folder="",
+                       mode="count", params=params, seed=0, factory=COUNTING)
 
 
 def square(x: int) -> int:

@@ -20,12 +20,12 @@ TIMEOUT = 30.0
 # task larger than a pipe holds, and waits to be killed.
 OWNER = """
 import fcntl, sys, termios, time
-from tests.engine.test_pool import _spec
+from tests.engine.fakes import counting_spec
 from vloc.workers.engine import LocalEngine
 
 engine = LocalEngine(2, stall_s=2.0)
 engine.start()
-engine.open_session(_spec("s")).result(60)
+engine.open_session(counting_spec("s")).result(60)
 print(*engine.worker_pids(), flush=True)
 sys.stdin.readline()  # the test has stopped the session's worker
 engine.submit_frame("s", 0, b"x" * 2**21)

@@ -6,11 +6,10 @@ import os
 import queue
 import signal
 
-import cv2
-import numpy as np
 import pytest
 
 from tests.engine import fakes
+from tests.engine.fakes import COUNTING, counting_spec, grey_png
 from vloc.workers.engine import (
     Checkpoint,
     Engine,
@@ -21,19 +20,7 @@ from vloc.workers.engine import (
     WorkerDied,
 )
 
-FACTORY = "tests.engine.fakes:make_counting"
 TIMEOUT = 60
-
-
-def _png(level: int) -> bytes:
-    ok, buf = cv2.imencode(".png", np.full((24, 32), level, np.uint8))
-    assert ok
-    return buf.tobytes()
-
-
-def _spec(session_id: str, **params) -> SessionSpec:
-    return SessionSpec(session_id=session_id, map_id="", revision=0, map_folder="",
-                       mode="count", params=params, seed=0, factory=FACTORY)
 
 
 @pytest.fixture
@@ -80,20 +67,20 @@ def test_a_call_its_caller_cancelled_leaves_the_engine_working(engine, outcomes,
     held = [engine.call("tests.engine.fakes:wait_for_file", str(release)) for _ in range(2)]
     assert all(fut.cancel() for fut in held)
     release.touch()
-    engine.open_session(_spec("a")).result(TIMEOUT)
-    engine.submit_frame("a", 0, _png(10))
+    engine.open_session(counting_spec("a")).result(TIMEOUT)
+    engine.submit_frame("a", 0, grey_png(10))
     assert isinstance(_take(outcomes, 1)[0], FrameDone)
     assert engine.call("tests.engine.fakes:square", 4).result(TIMEOUT) == 16
 
 
 def test_frames_of_a_session_come_back_in_order(engine, outcomes):
-    engine.open_session(_spec("a")).result(TIMEOUT)
-    engine.open_session(_spec("b", offset=100)).result(TIMEOUT)
+    engine.open_session(counting_spec("a")).result(TIMEOUT)
+    engine.open_session(counting_spec("b", offset=100)).result(TIMEOUT)
     # Least-busy pinning puts the second session on the other worker.
     assert {engine.worker_index("a"), engine.worker_index("b")} == {0, 1}
     for seq in range(5):
-        engine.submit_frame("a", seq, _png(10 * seq))
-        engine.submit_frame("b", seq, _png(20))
+        engine.submit_frame("a", seq, grey_png(10 * seq))
+        engine.submit_frame("b", seq, grey_png(20))
     got = _take(outcomes, 10)
     a = [o for o in got if o.session_id == "a"]
     b = [o for o in got if o.session_id == "b"]
@@ -107,10 +94,10 @@ def test_frames_of_a_session_come_back_in_order(engine, outcomes):
 
 
 def test_bad_image_and_localiser_error_fail_one_frame_only(engine, outcomes):
-    engine.open_session(_spec("s")).result(TIMEOUT)
+    engine.open_session(counting_spec("s")).result(TIMEOUT)
     engine.submit_frame("s", 1, b"\x89PNG\r\n\x1a\n garbage")
-    engine.submit_frame("s", 2, _png(255))
-    engine.submit_frame("s", 3, _png(5))
+    engine.submit_frame("s", 2, grey_png(255))
+    engine.submit_frame("s", 3, grey_png(5))
     bad, error, good = _take(outcomes, 3)
     assert isinstance(bad, FrameFailed) and bad.kind == "bad_image" and bad.seq == 1
     assert isinstance(error, FrameFailed) and error.kind == "error"
@@ -120,10 +107,10 @@ def test_bad_image_and_localiser_error_fail_one_frame_only(engine, outcomes):
 
 
 def test_controls_run_in_order_with_frames_and_checkpoint(engine, outcomes):
-    engine.open_session(_spec("s")).result(TIMEOUT)
-    engine.submit_frame("s", 1, _png(1))
+    engine.open_session(counting_spec("s")).result(TIMEOUT)
+    engine.submit_frame("s", 1, grey_png(1))
     engine.control("s", "set_initial_pose", x=40, y=0).result(TIMEOUT)
-    engine.submit_frame("s", 2, _png(1))
+    engine.submit_frame("s", 2, grey_png(1))
     first, checkpoint, second = _take(outcomes, 3)
     assert (first.estimate["x"], second.estimate["x"]) == (1.0, 41.0)
     # The control's state comes back between the frames, in the session's order.
@@ -136,21 +123,21 @@ def test_controls_run_in_order_with_frames_and_checkpoint(engine, outcomes):
 
 
 def test_unknown_mode_fails_the_open_and_leaves_no_session(engine):
-    spec = SessionSpec("x", "", 0, "", "nope", factory=FACTORY)
+    spec = SessionSpec("x", "", 0, "", "nope", factory=COUNTING)
     with pytest.raises(ValueError, match="unknown mode"):
         engine.open_session(spec).result(TIMEOUT)
     assert not engine.is_open("x")
     with pytest.raises(KeyError):
-        engine.submit_frame("x", 1, _png(1))
+        engine.submit_frame("x", 1, grey_png(1))
 
 
 def test_checkpoint_every_n_frames(outcomes):
     eng = LocalEngine(1, on_outcome=outcomes.put, checkpoint_every=3)
     eng.start()
     try:
-        eng.open_session(_spec("s")).result(TIMEOUT)
+        eng.open_session(counting_spec("s")).result(TIMEOUT)
         for seq in range(6):
-            eng.submit_frame("s", seq, _png(1))
+            eng.submit_frame("s", seq, grey_png(1))
         states = [o.state for o in _take(outcomes, 6)]
         assert [s is not None for s in states] == [False, False, True, False, False, True]
     finally:
@@ -161,15 +148,15 @@ def test_killed_worker_is_replaced_and_its_sessions_resume(outcomes, tmp_path):
     engine = LocalEngine(1, on_outcome=outcomes.put)
     engine.start()
     try:
-        engine.open_session(_spec("s")).result(TIMEOUT)
+        engine.open_session(counting_spec("s")).result(TIMEOUT)
         for seq in range(3):
-            engine.submit_frame("s", seq, _png(1))
+            engine.submit_frame("s", seq, grey_png(1))
         assert [o.estimate["x"] for o in _take(outcomes, 3)] == [1.0, 2.0, 3.0]
         (victim,) = engine.worker_pids()
         # Hold the worker so that the next frames are certainly queued on it when it dies.
         held = engine.call("tests.engine.fakes:wait_for_file", str(tmp_path / "never"))
-        engine.submit_frame("s", 3, _png(1))
-        engine.submit_frame("s", 4, _png(1))
+        engine.submit_frame("s", 3, grey_png(1))
+        engine.submit_frame("s", 4, grey_png(1))
         os.kill(victim, signal.SIGKILL)
         lost = _take(outcomes, 2)
         assert [(o.seq, o.kind) for o in lost] == [(3, "worker_died"), (4, "worker_died")]
@@ -178,7 +165,7 @@ def test_killed_worker_is_replaced_and_its_sessions_resume(outcomes, tmp_path):
             held.result(TIMEOUT)
         assert engine.restarts == 1 and engine.worker_pids() != [victim]
         # The session lives on from its checkpoint after frame 2: three steps, then one more.
-        engine.submit_frame("s", 5, _png(1))
+        engine.submit_frame("s", 5, grey_png(1))
         (after,) = _take(outcomes, 1)
         assert isinstance(after, FrameDone) and after.estimate["x"] == 4.0
         assert engine.alive()
@@ -202,8 +189,8 @@ def test_a_worker_that_cannot_be_replaced_at_once_is_retried(outcomes):
     engine = LocalEngine(1, on_outcome=outcomes.put)
     engine.start()
     try:
-        engine.open_session(_spec("s")).result(TIMEOUT)
-        engine.submit_frame("s", 0, _png(1))
+        engine.open_session(counting_spec("s")).result(TIMEOUT)
+        engine.submit_frame("s", 0, grey_png(1))
         _take(outcomes, 1)
         real, attempts = engine._spawn, []
 
@@ -219,7 +206,7 @@ def test_a_worker_that_cannot_be_replaced_at_once_is_retried(outcomes):
         while engine.restarts == 0 and time.monotonic() < deadline:
             time.sleep(0.05)
         assert attempts == [0, 0] and engine.restarts == 1
-        engine.submit_frame("s", 1, _png(1))
+        engine.submit_frame("s", 1, grey_png(1))
         (after,) = _take(outcomes, 1)
         assert after.estimate["x"] == 2.0  # resumed from the checkpoint after frame 0
     finally:

@@ -10,11 +10,11 @@ import signal
 import time
 import uuid
 
-import cv2
 import numpy as np
 import pytest
 
 from tests.engine import fakes
+from tests.engine.fakes import COUNTING, counting_spec, grey_png
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.mapdata import MapData
 from vloc.workers.core.sift import SiftFeatures
@@ -33,19 +33,7 @@ ray = pytest.importorskip("ray")
 
 from vloc.workers.engine.ray_engine import RayEngine, shard_of  # noqa: E402
 
-FACTORY = "tests.engine.fakes:make_counting"
 TIMEOUT = 60
-
-
-def _png(level: int) -> bytes:
-    ok, buf = cv2.imencode(".png", np.full((24, 32), level, np.uint8))
-    assert ok
-    return buf.tobytes()
-
-
-def _spec(session_id: str, **params) -> SessionSpec:
-    return SessionSpec(session_id=session_id, map_id="", revision=0, map_folder="",
-                       mode="count", params=params, seed=0, factory=FACTORY)
 
 
 def _take(outcomes: queue.Queue, n: int) -> list:
@@ -96,18 +84,18 @@ def test_it_is_a_shared_engine_and_shards_are_found_by_name(cluster):
 
 def test_frames_sent_through_two_engines_are_numbered_and_stepped_in_order(cluster):
     (a, out_a), (b, out_b) = cluster
-    assert a.open_session(_spec("order")).result(TIMEOUT) == "opened"
+    assert a.open_session(counting_spec("order")).result(TIMEOUT) == "opened"
     # The second process finds the session open and leaves its localiser alone.
-    assert b.open_session(_spec("order", offset=100)).result(TIMEOUT) == "kept"
+    assert b.open_session(counting_spec("order", offset=100)).result(TIMEOUT) == "kept"
     seqs = [(a if i % 2 == 0 else b).reserve_seq("order", None).result(TIMEOUT)
             for i in range(6)]
     assert seqs == list(range(6))
     # Sent in the wrong order (the odd ones, through the other engine, first): the shard
     # holds each frame until the ones numbered before it have been stepped.
     for seq in (1, 3, 5):
-        b.submit_frame("order", seq, _png(seq))
+        b.submit_frame("order", seq, grey_png(seq))
     for seq in (0, 2, 4):
-        a.submit_frame("order", seq, _png(seq))
+        a.submit_frame("order", seq, grey_png(seq))
     got = _take(out_a, 3) + _take(out_b, 3)
     by_seq = {o.seq: o for o in got}
     assert all(isinstance(o, FrameDone) for o in got)
@@ -122,11 +110,11 @@ def test_a_frame_waiting_its_turn_longer_than_hold_s_keeps_its_place(cluster):
     # frame 0 is stepping, and wait past their reservation's hold. The one that has arrived
     # is never given up: 2 still goes after 1.
     (a, out_a), (b, out_b) = cluster
-    a.open_session(_spec("slow", step_s=1.0)).result(TIMEOUT)
+    a.open_session(counting_spec("slow", step_s=1.0)).result(TIMEOUT)
     seqs = [a.reserve_seq("slow", None).result(TIMEOUT) for _ in range(3)]
-    a.submit_frame("slow", seqs[0], _png(10))
-    b.submit_frame("slow", seqs[1], _png(11))
-    a.submit_frame("slow", seqs[2], _png(12))
+    a.submit_frame("slow", seqs[0], grey_png(10))
+    b.submit_frame("slow", seqs[1], grey_png(11))
+    a.submit_frame("slow", seqs[2], grey_png(12))
     got = _take(out_a, 2) + _take(out_b, 1)
     assert all(isinstance(o, FrameDone) for o in got)
     # x is the step count, y the frame's grey level: frame k was step k + 1.
@@ -137,12 +125,12 @@ def test_a_frame_waiting_its_turn_longer_than_hold_s_keeps_its_place(cluster):
 def test_a_frame_arriving_while_a_later_one_steps_is_refused_not_stepped_out_of_order(
         cluster):
     (a, out), _ = cluster
-    a.open_session(_spec("late", step_s=3.0)).result(TIMEOUT)
+    a.open_session(counting_spec("late", step_s=3.0)).result(TIMEOUT)
     s0, s1, s2 = (a.reserve_seq("late", None).result(TIMEOUT) for _ in range(3))
     a.release_seq("late", s0)
-    a.submit_frame("late", s2, _png(2))  # given its turn once 1's hold (1.5 s) is over
+    a.submit_frame("late", s2, grey_png(2))  # given its turn once 1's hold (1.5 s) is over
     time.sleep(2.5)  # 2 is stepping now (from 1.5 s to 4.5 s)
-    a.submit_frame("late", s1, _png(1))
+    a.submit_frame("late", s1, grey_png(1))
     first, second = _take(out, 2)
     assert isinstance(first, FrameFailed) and first.seq == s1 and first.kind == "error"
     assert isinstance(second, FrameDone) and second.seq == s2 and second.estimate["x"] == 1.0
@@ -150,7 +138,7 @@ def test_a_frame_arriving_while_a_later_one_steps_is_refused_not_stepped_out_of_
 
 def test_a_seq_given_by_the_client_must_be_after_the_last_one(cluster):
     (a, _), (b, _) = cluster
-    a.open_session(_spec("given"), last_seq=9).result(TIMEOUT)
+    a.open_session(counting_spec("given"), last_seq=9).result(TIMEOUT)
     assert a.reserve_seq("given", None).result(TIMEOUT) == 10
     assert b.reserve_seq("given", 20).result(TIMEOUT) == 20
     with pytest.raises(SeqRefused) as dup:
@@ -166,9 +154,9 @@ def test_a_seq_given_by_the_client_must_be_after_the_last_one(cluster):
 def test_a_released_seq_frees_the_frames_after_it_and_a_lost_one_is_waited_for_a_while(
         cluster):
     (a, out), _ = cluster
-    a.open_session(_spec("gap")).result(TIMEOUT)
+    a.open_session(counting_spec("gap")).result(TIMEOUT)
     s0, s1, s2 = (a.reserve_seq("gap", None).result(TIMEOUT) for _ in range(3))
-    a.submit_frame("gap", s2, _png(2))
+    a.submit_frame("gap", s2, grey_png(2))
     with pytest.raises(queue.Empty):
         out.get(timeout=0.5)  # waits for 0 and 1
     a.release_seq("gap", s0)  # its record failed: it will never come
@@ -178,16 +166,16 @@ def test_a_released_seq_frees_the_frames_after_it_and_a_lost_one_is_waited_for_a
     (late,) = _take(out, 1)
     assert isinstance(late, FrameDone) and late.seq == s2 and late.estimate["x"] == 1.0
     # A frame whose seq was given up comes too late to take its turn: reported, not lost.
-    a.submit_frame("gap", s1, _png(1))
+    a.submit_frame("gap", s1, grey_png(1))
     (refused,) = _take(out, 1)
     assert isinstance(refused, FrameFailed) and refused.seq == s1 and refused.kind == "error"
 
 
 def test_controls_run_after_the_frames_before_them_and_leave_a_checkpoint(cluster):
     (a, out), _ = cluster
-    a.open_session(_spec("ctl")).result(TIMEOUT)
+    a.open_session(counting_spec("ctl")).result(TIMEOUT)
     for _seq in range(3):
-        a.submit_frame("ctl", a.reserve_seq("ctl", None).result(TIMEOUT), _png(1))
+        a.submit_frame("ctl", a.reserve_seq("ctl", None).result(TIMEOUT), grey_png(1))
     a.control("ctl", "set_initial_pose", x=40, y=0).result(TIMEOUT)
     got = _take(out, 4)
     frames = [o for o in got if isinstance(o, FrameDone)]
@@ -204,7 +192,7 @@ def test_controls_run_after_the_frames_before_them_and_leave_a_checkpoint(cluste
 def test_an_unknown_mode_fails_the_open(cluster):
     (a, _), _ = cluster
     with pytest.raises(ValueError, match="unknown mode"):
-        a.open_session(SessionSpec("x", "", 0, "", "nope", factory=FACTORY)).result(TIMEOUT)
+        a.open_session(SessionSpec("x", "", 0, "", "nope", factory=COUNTING)).result(TIMEOUT)
     assert not a.is_open("x")
     with pytest.raises(KeyError):
         a.reserve_seq("x", None).result(TIMEOUT)
@@ -258,7 +246,7 @@ def test_a_killed_shard_fails_its_frames_in_flight_and_the_session_reopens(clust
                        factory="tests.engine.fakes:make_gated")
     a.open_session(spec).result(TIMEOUT)
     for _ in range(4):
-        a.submit_frame(sid, a.reserve_seq(sid, None).result(TIMEOUT), _png(1))
+        a.submit_frame(sid, a.reserve_seq(sid, None).result(TIMEOUT), grey_png(1))
     done = _take(out, 4)
     checkpoint = done[-1].state  # every second frame
     assert [o.estimate["x"] for o in done] == [1.0, 2.0, 3.0, 4.0] and checkpoint
@@ -266,7 +254,7 @@ def test_a_killed_shard_fails_its_frames_in_flight_and_the_session_reopens(clust
     restarts = a.restarts
     gate.unlink()  # the next frame blocks in its step, the one after waits for its turn
     for _ in range(2):
-        a.submit_frame(sid, a.reserve_seq(sid, None).result(TIMEOUT), _png(1))
+        a.submit_frame(sid, a.reserve_seq(sid, None).result(TIMEOUT), grey_png(1))
     stalled = a.control(sid, "stats")
     with pytest.raises(queue.Empty):
         out.get(timeout=0.5)
@@ -282,7 +270,7 @@ def test_a_killed_shard_fails_its_frames_in_flight_and_the_session_reopens(clust
     assert a.alive() and a.restarts == restarts + 1
     assert a.open_session(spec, state=checkpoint, last_seq=5).result(TIMEOUT) == "opened"
     seq = a.reserve_seq(sid, None).result(TIMEOUT)
-    a.submit_frame(sid, seq, _png(1))
+    a.submit_frame(sid, seq, grey_png(1))
     (resumed,) = _take(out, 1)
     # Numbering goes on after the lost frames; the filter goes on from the checkpoint.
     assert (resumed.seq, resumed.estimate["x"]) == (6, 5.0)
