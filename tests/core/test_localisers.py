@@ -12,7 +12,7 @@ from vloc.workers.core.estimate import Status
 from vloc.workers.core.evaluate import choose_starts, evaluate
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.image import prepare
-from vloc.workers.core.localisers import MODES, make_localiser, validate_params
+from vloc.workers.core.localisers import MODES, filtering, make_localiser, validate_params
 from vloc.workers.core.mapbuild import assemble_map, extract_image_features
 from vloc.workers.core.mapdata import MapData
 from vloc.workers.core.metadata import FrameMetadata
@@ -300,9 +300,34 @@ def test_a_global_step_without_a_fix_is_taken_back_for_sift(world, small_map):
     e = loc.step(blank)
     assert e.feature == "sift"
     assert loc.stats["sift_steps"] >= 2
-    # without escalation the same frame stays a global step
+    # without escalation and without the SIFT fallback the same frame stays a global step
     loc2, _, _ = _converged(world, small_map)
-    loc2.config = replace(loc2.config, switching=replace(loc2.config.switching, escalate=False))
+    loc2.config = replace(loc2.config,
+                          switching=replace(loc2.config.switching, escalate=False),
+                          refine=replace(loc2.config.refine, sift_fallback=False))
     blank2 = QueryFrame(prepare(np.full((240, 320, 3), 128, np.uint8)),
                         captured_at=queries[-1].captured_at + 2.5)
     assert loc2.step(blank2).feature == "global"
+
+
+def test_a_global_step_whose_orb_fails_registers_with_sift_before_escalating(
+        world, small_map, monkeypatch):
+    loc, queries, truth = _converged(world, small_map)
+    assert loc.switch.next == "global"
+    nxt, nxt_truth = _queries(world, start=truth[-1, 0] + 5.0, n=1)
+    steps_before = loc.stats["sift_steps"]
+    # ORB finds nothing on this frame; SIFT against the same images does
+    monkeypatch.setattr(filtering, "refine_orb", lambda *a, **k: None)
+    e = loc.step(nxt[0])
+    assert e.feature == "sift"
+    # one step with the global measurement and a SIFT-registered position, no SIFT scoring
+    assert e.measurement == "global+registered"
+    assert loc.stats["sift_steps"] == steps_before + 1
+    assert np.hypot(e.x - nxt_truth[0, 0], e.y - nxt_truth[0, 1]) < 6.0
+    # SIFT steps count the extraction once: the fallback's time is the step's time
+    assert e.processing_ms > 0.0
+    # without the fallback the failed registration takes the frame back for a SIFT step
+    loc2, _, _ = _converged(world, small_map)
+    loc2.config = replace(loc2.config, refine=replace(loc2.config.refine, sift_fallback=False))
+    e2 = loc2.step(nxt[0])
+    assert e2.feature == "sift" and e2.measurement.startswith("sift")

@@ -136,6 +136,11 @@ class QueryFrame:
             self._described[key] = hit
         return hit[1], hit[2]
 
+    @property
+    def has_sift(self) -> bool:
+        """Whether the frame's SIFT features have been extracted already."""
+        return self._sift is not None
+
     def sift(self) -> tuple[SiftFeatures, float]:
         """All SIFT features of the frame and the milliseconds extraction took."""
         if self._sift is None:

@@ -363,14 +363,22 @@ def _kmeans(x: np.ndarray, k: int, *, binary: bool, rng: np.random.Generator,
     return centres, labels
 
 
+_DENSE_MEMBERS = 1 << 20
+"""Largest membership matrix (entries) :func:`cluster_sums` builds dense."""
+
+
 def cluster_sums(x: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
     """Sum of the rows of ``x`` in each of ``k`` clusters: ``(k, D)`` float64.
 
-    One sparse product of the ``(k, K)`` membership matrix with ``x``.
+    One product of the ``(k, K)`` membership matrix with ``x``: dense for one image's
+    features (building a sparse matrix costs more than the product), sparse for training.
     """
     from scipy.sparse import csr_matrix
 
     labels = np.asarray(labels, dtype=np.intp)
+    if k * len(labels) <= _DENSE_MEMBERS:
+        dense = (labels[None, :] == np.arange(k)[:, None]).astype(np.float32)
+        return np.asarray(dense @ np.asarray(x, dtype=np.float32), dtype=np.float64)
     members = csr_matrix((np.ones(len(labels), np.float32), (labels, np.arange(len(labels)))),
                          shape=(k, len(labels)))
     return np.asarray(members @ np.asarray(x, dtype=np.float32), dtype=np.float64)

@@ -99,13 +99,16 @@ class FilterLocaliser(Localiser):
         allowed = self.config.switching.global_misses or 0
         escalate = (used == GLOBAL and self.pinned is None and self.config.switching.escalate)
         before = self.pf.snapshot() if escalate else None
-        result, fixes, tried, ms = self._filter_step(query, used, dt, sensors)
+        result, fixes, tried, fell_back, ms = self._filter_step(query, used, dt, sensors)
+        if fell_back:
+            used = SIFT  # the global step registered, or tried to, with SIFT
         if escalate and tried and not fixes and self.switch.misses + 1 > allowed:
             # the cheap step found no fix that agrees with the cloud: this frame gets SIFT
             self.pf.restore(before)
             used = SIFT
-            result, fixes, tried, more_ms = self._filter_step(query, used, dt, sensors)
-            ms += more_ms
+            result, fixes, tried, _, more_ms = self._filter_step(query, used, dt, sensors)
+            # the SIFT step counts the extraction the fallback already counted
+            ms += more_ms - (query.sift()[1] if fell_back else 0.0)
         self._track(dt, result.stats.mean, anchored=bool(fixes))
         evidence = StepEvidence(used, result.stats.spread, self._global_gap(used, result),
                                 registered=bool(fixes) if tried else None)
@@ -131,19 +134,22 @@ class FilterLocaliser(Localiser):
         return replace(self._result(result, used, ms, heading),
                        metadata_used="+".join(sensors.used), gps_gate=sensors.gps_gate)
 
-    def _filter_step(self, query: QueryFrame, used: str, dt: float | None,
-                     sensors: Sensors) -> tuple[StepResult, list[Refinement], bool, float]:
+    def _filter_step(self, query: QueryFrame, used: str, dt: float | None, sensors: Sensors,
+                     ) -> tuple[StepResult, list[Refinement], bool, bool, float]:
         """One filter step with ``used``'s measurement: the result, the metric fixes it
-        found, whether it tried to refine, and its milliseconds (extraction included)."""
+        found, whether it tried to refine, whether a global step fell back on SIFT, and its
+        milliseconds (extraction included)."""
         measurement, feat_ms = self._measurement(query, used)
         fixes: list[Refinement] = []
-        refine = self._refiner(query, used, fixes, sensors.heading)
+        fallback: list[float] = []
+        refine = self._refiner(query, used, fixes, sensors.heading, fallback)
         t_filter = time.perf_counter()
         drift = sensors.velocity if sensors.velocity is not None \
             else (self.drift if self.config.motion.drift else None)
         result = self.pf.step([measurement, *sensors.positions], dt, refine=refine,
                               drift=drift)
-        return result, fixes, refine is not None, feat_ms + (time.perf_counter() - t_filter) * 1e3
+        ms = feat_ms + sum(fallback) + (time.perf_counter() - t_filter) * 1e3
+        return result, fixes, refine is not None, bool(fallback), ms
 
     def _sensors(self, metadata: FrameMetadata | None, dt: float | None) -> Sensors:
         """What the frame's metadata adds to the step (:func:`.sensors.read_sensors`),
@@ -154,7 +160,7 @@ class FilterLocaliser(Localiser):
                             self.motion.sigma(dt))
 
     def _refiner(self, query: QueryFrame, used: str, fixes: list[Refinement],
-                 compass: tuple[float, float] | None = None):
+                 compass: tuple[float, float] | None, fallback: list[float]):
         """The step's metric refinement (None when off): it solves the frame's pose against
         the map images the step's measurement ranks best and records what it found.
 
@@ -163,8 +169,13 @@ class FilterLocaliser(Localiser):
         map with ORB ground points, register with ORB against the particles' images the
         global features rank best; such a fix is used only where it lies within the gate
         of the predicted cloud and has enough inliers, and the switching rule hears of it.
+        Under ``refine_sift_fallback`` (hybrid only) a global step whose ORB finds no fix
+        registers with SIFT against the same images; ``fallback`` then receives the SIFT
+        extraction's milliseconds where an earlier step had already paid them (a frame
+        replayed through several localisers), so that the step's time stays honest.
         """
         cfg = self.config.refine
+        use_sift = cfg.sift_fallback and self.pinned is None
         if not cfg.enabled:
             return None
         if used == SIFT:
@@ -189,18 +200,33 @@ class FilterLocaliser(Localiser):
             sims = np.zeros(len(self.map))
             sims[images.scored] = images.similarities
             order = near[np.argsort(-sims[near], kind="stable")]
-            fix = refine_orb(query.orb()[0], self.map, order, sims[order] + 1e-12,
-                             frame_shape=query.frame.grey.shape)
-            if fix is None or fix.inliers < cfg.global_inliers \
-                    or not heading_agrees(fix, compass):
-                return None
-            mean = self.pf.xy.mean(axis=0)
-            if np.linalg.norm(fix.xy - mean) > self._gate_radius():
+            shape = query.frame.grey.shape
+            fix = self._gated(refine_orb(query.orb()[0], self.map, order, sims[order] + 1e-12,
+                                         frame_shape=shape, min_inliers=cfg.global_inliers),
+                              compass)
+            if fix is None and use_sift:
+                cached = query.has_sift
+                feats, extract_ms = query.sift()
+                fallback.append(extract_ms if cached else 0.0)
+                fix = self._gated(refine_sift(feats, self.map, order, sims[order] + 1e-12,
+                                              frame_shape=shape), compass)
+            if fix is None:
                 return None
             fixes.append(fix)
             return Position(fix.kind, fix.xy, fix.sigma, cfg.outlier)
 
         return refine_global
+
+    def _gated(self, fix: Refinement | None,
+               compass: tuple[float, float] | None) -> Refinement | None:
+        """A global step's fix, or None where it has too few inliers, disagrees with the
+        compass, or lies outside the gate of the predicted cloud."""
+        if fix is None or fix.inliers < self.config.refine.global_inliers \
+                or not heading_agrees(fix, compass):
+            return None
+        if np.linalg.norm(fix.xy - self.pf.xy.mean(axis=0)) > self._gate_radius():
+            return None
+        return fix
 
     def _track(self, dt: float | None, mean: np.ndarray, *, anchored: bool) -> None:
         """Update the tracked velocity from consecutive steps with metric fixes."""

@@ -107,12 +107,15 @@ def refine_sift(query: SiftFeatures, map_data: MapData, ranked: np.ndarray,
 
 def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
                scores: np.ndarray, *, frame_shape: tuple[int, int],
-               max_images: int = 2) -> Refinement | None:
+               max_images: int = 2, min_inliers: int = MIN_MATCHES) -> Refinement | None:
     """Refine with ORB: register against the best-ranked map images' ground points.
 
     The cheap counterpart of :func:`refine_sift` for global steps: binary descriptors
     matched by Hamming distance, the same pose solver. Only a registration counts: without
-    camera geometry the global similarities already say which images are near.
+    camera geometry the global similarities already say which images are near. The images
+    are added one at a time, best first, and the first registration with at least
+    ``min_inliers`` inliers is the answer: the best image alone usually suffices, and
+    matching is most of the cost.
 
     Parameters are those of :func:`refine_sift`, with the frame's ORB features.
     """
@@ -122,14 +125,21 @@ def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
     ranked, _ = _best(ranked, scores, max_images)
     if len(query) == 0 or len(ranked) == 0:
         return None
-    matches = _matches(ranked, np.asarray(map_data.orb_offsets),
-                       lambda i: hamming_ratio_matches(query.descriptors,
-                                                       map_data.orb(i).descriptors,
-                                                       ratio=REFINE_RATIO))
-    if not matches:
-        return None
-    reg = register_against(geometry, "orb", np.asarray(query.keypoints), matches,
-                           frame_shape=frame_shape)
+    offsets = np.asarray(map_data.orb_offsets)
+    matches: list[tuple[int, np.ndarray, np.ndarray]] = []
+    reg = None
+    for image in ranked:
+        found = _matches(np.array([image]), offsets,
+                         lambda i: hamming_ratio_matches(query.descriptors,
+                                                         map_data.orb(i).descriptors,
+                                                         ratio=REFINE_RATIO))
+        if not found:
+            continue
+        matches += found
+        reg = register_against(geometry, "orb", np.asarray(query.keypoints), matches,
+                               frame_shape=frame_shape)
+        if reg is not None and reg.inliers >= min_inliers:
+            break
     return None if reg is None else Refinement.from_registration(reg)
 
 

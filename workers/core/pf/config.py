@@ -198,6 +198,11 @@ class RefineConfig:
     gate : float
         A global step's fix counts only within this many spreads of the predicted cloud
         (and at least the agreement radius, one map spacing) of its mean.
+    sift_fallback : bool
+        When a global step's ORB registration finds no fix, register the frame with SIFT
+        against the same map images before giving the step up (the step then counts as a
+        SIFT step): the global features have already said where to look, so SIFT verifies
+        two or three images instead of scoring every image under the cloud.
     """
 
     enabled: bool
@@ -206,6 +211,7 @@ class RefineConfig:
     on_global: bool
     global_inliers: int
     gate: float
+    sift_fallback: bool
 
 
 @dataclass(frozen=True)
@@ -285,6 +291,7 @@ PARAMS: dict[str, tuple[str | None, str]] = {
     "refine_global": ("refine", "on_global"),
     "refine_global_inliers": ("refine", "global_inliers"),
     "refine_gate": ("refine", "gate"),
+    "refine_sift_fallback": ("refine", "sift_fallback"),
     "global_misses": ("switching", "global_misses"),
     "escalate": ("switching", "escalate"),
 }
@@ -312,7 +319,8 @@ def _check(c: dict) -> None:
         positive("speed", c["speed"])
     if not 0.0 <= c["global_trust_level"] <= 1.0:
         raise ValueError(f"global_trust_level must be in [0, 1], got {c['global_trust_level']!r}")
-    for name in ("refine", "refine_global", "drift", "velocity", "escalate"):
+    for name in ("refine", "refine_global", "drift", "velocity", "escalate",
+                 "refine_sift_fallback"):
         if not isinstance(c[name], bool):
             raise ValueError(f"{name} must be true or false, got {c[name]!r}")
     inliers = c["refine_global_inliers"]
@@ -384,7 +392,8 @@ WEISS2008 = FilterConfig(
         inject=0.2,
         on_global=False,
         global_inliers=15,
-        gate=2.0),
+        gate=2.0,
+        sift_fallback=False),
 )
 """The filter of Weiss et al. 2008 (IV-A, IV-B), every value stated."""
 
@@ -399,6 +408,7 @@ DEFAULT_OVERRIDES: dict = {
     "global_features": ["vlad_orb"],
     "global_power": 5.0,
     "refine_global": True,
+    "refine_sift_fallback": True,
     "escalate": True,
 }
 """What ``default`` changes in ``weiss2008``: RANSAC homography verification of SIFT matches,
@@ -409,8 +419,9 @@ a share of the particles drawn around it (seneca-uav mean error 14.4 m without r
 about 8 m with it); and the global step on the map's own vocabulary: VLAD over ORB (place
 recall@1 on seneca-uav 75 % against 45 % for WGOH x WGII) to the power 5, registered with
 ORB where the map has camera geometry, and taken back for SIFT when that finds no fix
-agreeing with the cloud (``escalate``); where it cannot register (maps without geometry),
-global steps are allowed only while the global features' best image keeps agreeing with
+agreeing with the cloud: first a SIFT registration against the same images
+(``refine_sift_fallback``), then a full SIFT step (``escalate``); where it cannot register
+(maps without geometry), global steps are allowed only while the global features' best image keeps agreeing with
 the SIFT estimate (``global_trust``)."""
 
 CONFIGS: dict[str, FilterConfig] = {
