@@ -86,6 +86,9 @@ class FilterParams(_Params):
                                                                      "for a global step's fix")
     refine_gate: float = _unset(gt=0, le=1e3, description="A global step's fix counts "
                                                           "within this many cloud spreads")
+    refine_sift_fallback: bool = _unset(description="Register a global step with SIFT "
+                                                    "against the same map images when ORB "
+                                                    "finds no fix")
     global_misses: int | None = _unset(ge=0, le=1000, description="Global steps in a row "
                                                                   "without a fix allowed")
     escalate: bool = _unset(description="Take back a global step without a fix and use "

@@ -14,8 +14,7 @@ import numpy as np
 
 from .datasets import Dataset, DatasetImage, load_dataset, load_frames, split
 from .image import prepare
-from .mapbuild import (assemble_map, extract_image_features, extract_tie_points,
-                       typical_focal_px)
+from .mapbuild import assemble_map, extract_image_features, extract_tie_points, typical_focal_px
 from .mapdata import MapData
 from .metadata import FrameMetadata
 from .query import QueryFrame

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from tests.core.geometry.scene import K_TRUE, tilt_deg, tilted_rotation
-from vloc.workers.core.geometry.camera import (backproject_to_ground, compass_heading_deg,
-                                                project)
+from vloc.workers.core.geometry.camera import backproject_to_ground, compass_heading_deg, project
 from vloc.workers.core.geometry.register import MIN_INLIERS, register_frame
 
 
