@@ -118,6 +118,9 @@ def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
             continue
         pa = np.asarray(keypoints[a][m[:, 0], :2], np.float64)
         pb = np.asarray(keypoints[b][m[:, 1], :2], np.float64)
+        # OpenCV's RANSAC draws from a per-thread generator whose state depends on what the
+        # process did before: seed it per pair, so that a map builds the same anywhere
+        cv2.setRNGSeed(a * 100_003 + b)
         H, mask = cv2.findHomography(pa, pb, cv2.RANSAC, ransac_px)
         if H is None:
             continue
