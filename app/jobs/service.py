@@ -105,10 +105,10 @@ class BuildRunner(BackgroundRunner):
             await asyncio.to_thread(self._progress, job_id, done, len(todo))
         revision = await asyncio.to_thread(self._next_revision, map_id)
         folder = self.settings.packed_map_dir(str(map_id), revision)
-        lens_files = await asyncio.to_thread(self._lens_sample, map_id)
+        lens_files, image_files = await asyncio.to_thread(self._files, map_id)
         packed = await asyncio.wrap_future(self.engine.call(
             tasks.pack_map, url, str(map_id), revision, str(folder),
-            lens_files=lens_files))
+            lens_files=lens_files, image_files=image_files))
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 
     # -- database steps (threads) -----------------------------------------------------------
@@ -128,14 +128,17 @@ class BuildRunner(BackgroundRunner):
             db.commit()
             return job.map_id, [(img.id, str(image_path(self.settings, img))) for img in images]
 
-    def _lens_sample(self, map_id: uuid.UUID, size: int = 25) -> list[str]:
-        """Files of up to ``size`` of the map's images, spread over the map, whose EXIF
-        gives the camera's focal length for the map's geometry."""
+    def _files(self, map_id: uuid.UUID, lens_sample: int = 25,
+               ) -> tuple[list[str], dict[int, str]]:
+        """Files of up to ``lens_sample`` of the map's images, spread over the map, whose
+        EXIF gives the camera's focal length for the map's geometry; and every image's file
+        by image id, for the reconstruction's tie points."""
         with self.db_sessions() as db:
             images = list(db.scalars(select(MapImage).where(MapImage.map_id == map_id)
                                      .order_by(MapImage.id)))
-        step = max(1, len(images) // size)
-        return [str(image_path(self.settings, img)) for img in images[::step]][:size]
+        step = max(1, len(images) // lens_sample)
+        lens = [str(image_path(self.settings, img)) for img in images[::step]][:lens_sample]
+        return lens, {img.id: str(image_path(self.settings, img)) for img in images}
 
     def _progress(self, job_id: uuid.UUID, done: int, total: int) -> None:
         with self.db_sessions() as db:

@@ -12,7 +12,9 @@ the functions that need them.
 from __future__ import annotations
 
 import json
+import logging
 import uuid
+from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -30,6 +32,8 @@ from vloc.app.engine import (
 )
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
 from vloc.app.sessions.pose import write_image_ids
+
+log = logging.getLogger(__name__)
 
 TIMINGS_FILE = "build_timings.json"
 """Seconds each stage of packing a revision took, beside the revision."""
@@ -71,12 +75,30 @@ def _readers(paths: list[str]):
     return [Path(p).read_bytes for p in paths if Path(p).is_file()]
 
 
+def _tie_points(path: str | None):
+    """Tie points of one map image file, or None where it cannot be read."""
+    from vloc.workers.core.image import ImageError
+    from vloc.workers.core.mapbuild import extract_tie_points
+
+    if path is None or not Path(path).is_file():
+        return None
+    try:
+        return extract_tie_points(Path(path).read_bytes())
+    except (ImageError, OSError):
+        log.warning("map image %s unreadable for tie points; its stored SIFT ties it", path)
+        return None
+
+
 def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
-             lens_files: list[str] | None = None) -> dict:
+             lens_files: list[str] | None = None,
+             image_files: dict[int, str] | None = None) -> dict:
     """Assemble every extracted image of a map into a MapData folder.
 
     ``lens_files`` are some of the map's image files, read for the camera's focal length
-    (EXIF) that the map's camera geometry starts from.
+    (EXIF) that the map's camera geometry starts from. ``image_files`` (image id -> file)
+    are read again for the tie points of the reconstruction
+    (:func:`~vloc.workers.core.mapbuild.extract_tie_points`); an image whose file is
+    missing or unreadable is tied by its stored SIFT.
 
     The place descriptors' vocabularies are trained here on the map's images and stored in
     ``map_vocabularies`` under ``revision`` (replacing rows a failed earlier attempt at the
@@ -113,6 +135,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                                   else decode_orb(o.n_keypoints, o.keypoints, o.descriptors))
                     for img, s, o in rows]
         images = [img for img, _, _ in rows]
+    with stage(timings, "tie points"):
+        ties = [_tie_points((image_files or {}).get(i)) for i in ids]
+    features = [replace(f, tie=t) for f, t in zip(features, ties, strict=True)]
     times = [img.captured_at.timestamp() if img.captured_at else None for img in images]
     data = assemble_map(names=[img.filename for img in images],
                         lats=[img.lat for img in images], lons=[img.lon for img in images],

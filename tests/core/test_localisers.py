@@ -318,10 +318,22 @@ def test_a_global_step_whose_orb_fails_registers_with_sift_before_escalating(
     steps_before = loc.stats["sift_steps"]
     # ORB finds nothing on this frame; SIFT against the same images does
     monkeypatch.setattr(filtering, "refine_orb", lambda *a, **k: None)
+    positions = []
+    step = loc.pf.step
+
+    def spy(measurements, dt, *, refine=None, drift=None):
+        def refine_and_keep(likelihoods):
+            positions.append(refine(likelihoods))
+            return positions[-1]
+        return step(measurements, dt, refine=refine_and_keep, drift=drift)
+
+    monkeypatch.setattr(loc.pf, "step", spy)
     e = loc.step(nxt[0])
     assert e.feature == "sift"
     # one step with the global measurement and a SIFT-registered position, no SIFT scoring
     assert e.measurement == "global+registered"
+    # the SIFT fix weighs the particles without the global features that could not register
+    assert [p.alone for p in positions] == [True]
     assert loc.stats["sift_steps"] == steps_before + 1
     assert np.hypot(e.x - nxt_truth[0, 0], e.y - nxt_truth[0, 1]) < 6.0
     # SIFT steps count the extraction once: the fallback's time is the step's time

@@ -2,20 +2,24 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from tests.core.geometry.scene import F_TRUE, survey
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.image import prepare
 from vloc.workers.core.mapbuild import (
+    TIE_KEYPOINTS,
     ImageFeatures,
     assemble_map,
     extract_image_features,
+    extract_tie_points,
     map_geometry,
 )
 from vloc.workers.core.mapdata import MapData
-from vloc.workers.core.sift import SiftFeatures
+from vloc.workers.core.sift import SiftFeatures, extract_sift
 
 ORIGIN = GeoOrigin(41.03, -83.30, 260.0)
 
@@ -82,3 +86,43 @@ def test_assemble_map_reports_the_seconds_of_each_stage():
     assemble_map(names=data.names, lats=lat, lons=lon, alts=list(s.altitudes), features=feats,
                  origin=ORIGIN, focal_px=F_TRUE, geometry=False, timings=timings)
     assert "geometry" not in timings
+
+
+def test_tie_points_reconstruct_a_map_its_stored_sift_cannot_tie():
+    s, _ = _survey_map(3)
+    # the stored SIFT: a handful of keypoints per image, too few to tie neighbours together
+    few = [SiftFeatures(k[:6], d[:6]) for k, d in zip(s.keypoints, s.image_descriptors,
+                                                      strict=True)]
+    lat, lon = ORIGIN.to_wgs84(s.positions[:, 0], s.positions[:, 1])
+    kwargs = dict(names=[f"m{i}" for i in range(len(few))], lats=lat, lons=lon,
+                  alts=list(s.altitudes), origin=ORIGIN, focal_px=F_TRUE)
+    bare = assemble_map(**kwargs, features=[ImageFeatures({}, f) for f in few])
+    assert bare.geometry is None
+    ties = [SiftFeatures(k, d) for k, d in zip(s.keypoints, s.image_descriptors, strict=True)]
+    tied = assemble_map(**kwargs, features=[ImageFeatures({}, f, tie=t)
+                                            for f, t in zip(few, ties, strict=True)])
+    geo = tied.geometry
+    assert geo is not None and geo.reconstructed.all()
+    # the stored keypoints (not the tie points) are the ones placed on the ground
+    ground = np.asarray(geo.ground["sift"])
+    assert ground.shape == (6 * len(few), 2)
+    truth = s.points[np.concatenate([ids[:6] for ids in s.point_ids])]
+    assert np.median(np.linalg.norm(ground - truth, axis=1)) < 0.5
+    with pytest.raises(ValueError, match="tie points"):
+        map_geometry(tied, tie_points=ties[:-1])
+
+
+def test_tie_points_are_in_working_resolution_pixels():
+    rng = np.random.default_rng(7)
+    # blobs of texture on a 640x480 image: SIFT finds them at both resolutions
+    image = cv2.GaussianBlur(rng.integers(0, 256, (480, 640, 3), dtype=np.uint8), (0, 0), 2.0)
+    ok, png = cv2.imencode(".png", image)
+    ties = extract_tie_points(png.tobytes())
+    assert 300 < len(ties) <= TIE_KEYPOINTS
+    work = extract_sift(prepare(image).grey)
+    # each working-resolution keypoint has a tie point at the same place (a wrong scale or
+    # offset moves them by tens of pixels at the far edges)
+    tree = cKDTree(ties.keypoints[:, :2])
+    d, _ = tree.query(work.keypoints[:, :2])
+    assert np.median(d) < 0.5
+    assert ties.keypoints[:, 0].max() < 320 and ties.keypoints[:, 1].max() < 240

@@ -18,6 +18,7 @@ from vloc.workers.core.pf.filter import ParticleFilter, cloud_sample, cloud_stat
 from vloc.workers.core.pf.measurement import (
     ImageSimilarity,
     Likelihood,
+    Position,
     distance_factor,
     log_likelihoods,
     normalise_log,
@@ -265,6 +266,29 @@ def test_measurements_in_one_step_multiply():
     np.testing.assert_allclose(pf.w[east], np.exp(image - image.max()) /
                                np.exp(image - image.max()).sum(), rtol=1e-9)
     assert not np.array_equal(before, pf.xy)
+
+
+@pytest.mark.parametrize("alone", [False, True])
+def test_a_position_alone_replaces_the_image_similarity_in_the_weights(alone):
+    map_xy = _route()
+    cfg = WEISS2008.with_params(replace_fraction=0.0)
+    pf = ParticleFilter(map_xy, cKDTree(map_xy), cfg, MotionModel(pull=0.0), 2.0,
+                        np.random.default_rng(3))
+    # the images say the platform is at image 0; the position says image 30
+    fix = Position("registered", map_xy[30].copy(), 4.0, 0.05, alone=alone)
+    result = pf.step([_measure(_perfect(map_xy, map_xy[0], 20.0))], None,
+                     refine=lambda likelihoods: fix)
+    assert result.kinds == (SIFT, "registered")
+    image, position = (lk.log for lk in result.likelihoods)
+    expected = position if alone else image + position
+    np.testing.assert_allclose(pf.w, np.exp(expected - expected.max())
+                               / np.exp(expected - expected.max()).sum(), rtol=1e-9)
+    # by hand: the position's Gaussian with its outlier floor
+    d2 = np.sum((pf.xy - map_xy[30]) ** 2, axis=1)
+    np.testing.assert_allclose(position, np.log(0.95 * np.exp(-0.5 * d2 / 16.0) + 0.05))
+    # alone, the heaviest particle lies by the position; multiplied, the images pull it away
+    best = pf.xy[np.argmax(pf.w)]
+    assert (np.linalg.norm(best - map_xy[30]) < 8.0) == alone
 
 
 def test_zero_similarity_everywhere_keeps_uniform_weights():

@@ -12,7 +12,13 @@ from vloc.clients.world.writer import generate_world
 from vloc.workers.core.experiment import load_experiment
 from vloc.workers.core.features.orb import OrbFeatures
 from vloc.workers.core.geo import GeoOrigin
-from vloc.workers.core.localisers.refine import MIN_MATCHES, interpolate, refine_orb, refine_sift
+from vloc.workers.core.localisers.refine import (
+    MIN_MATCHES,
+    interpolate,
+    rank_cloud_images,
+    refine_orb,
+    refine_sift,
+)
 from vloc.workers.core.localisers.scoring import sift_similarity
 from vloc.workers.core.mapbuild import map_geometry
 from vloc.workers.core.mapdata import MapData
@@ -47,6 +53,36 @@ def test_interpolate_ignores_zero_scores():
     np.testing.assert_allclose(r.xy, [20.0, 0.0])
     assert r.images == (3, 1)
     assert interpolate(data, np.array([0, 1]), np.zeros(2)) is None
+
+
+def test_rank_cloud_images_by_hand():
+    # particles nearest images 7, 7, 2, 5, 2, 2 with log-likelihoods; shares by hand
+    nearest = np.array([7, 7, 2, 5, 2, 2])
+    log = np.append(np.log([0.5, 0.5, 0.1, 0.8, 0.1]), -np.inf)
+    images, shares = rank_cloud_images(nearest, log)
+    np.testing.assert_array_equal(images, [7, 5, 2])
+    np.testing.assert_allclose(shares, np.array([1.0, 0.8, 0.2]) / 2.0)
+    # equal shares: more particles first, then the lower index
+    images, _ = rank_cloud_images(np.array([4, 1, 1, 9]), np.log([0.4, 0.2, 0.2, 0.4]))
+    np.testing.assert_array_equal(images, [1, 4, 9])
+    # no finite likelihood anywhere: the particles' share
+    images, shares = rank_cloud_images(np.array([3, 3, 0]), np.full(3, -np.inf))
+    np.testing.assert_array_equal(images, [3, 0])
+    np.testing.assert_allclose(shares, [2 / 3, 1 / 3])
+
+
+def test_rank_cloud_images_against_a_loop():
+    rng = np.random.default_rng(5)
+    nearest = rng.integers(0, 40, 500)
+    log = rng.normal(-30.0, 8.0, 500)
+    images, shares = rank_cloud_images(nearest, log)
+    total = {}
+    for i, lg in zip(nearest.tolist(), log.tolist(), strict=True):
+        total[i] = total.get(i, 0.0) + math.exp(lg)
+    norm = sum(total.values())
+    expected = sorted(total, key=lambda i: -total[i])
+    assert images.tolist() == expected
+    np.testing.assert_allclose(shares, [total[i] / norm for i in expected], rtol=1e-9)
 
 
 def _survey_map(with_geometry: bool):

@@ -7,14 +7,14 @@ image's own tag.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from .datasets import Dataset, DatasetImage, load_dataset, load_frames, split
 from .image import prepare
-from .mapbuild import assemble_map, extract_image_features, typical_focal_px
+from .mapbuild import assemble_map, extract_image_features, extract_tie_points, typical_focal_px
 from .mapdata import MapData
 from .metadata import FrameMetadata
 from .query import QueryFrame
@@ -37,7 +37,8 @@ def _timestamp(img: DatasetImage) -> float | None:
 
 def build_map(images: list[DatasetImage], frames, *, map_id: str = "") -> MapData:
     """Extract every feature of the map images and pack the map."""
-    feats = [extract_image_features(f) for f in frames]
+    feats = [replace(extract_image_features(f), tie=extract_tie_points(im.path.read_bytes()))
+             for im, f in zip(images, frames, strict=True)]
     focal = typical_focal_px([im.path.read_bytes for im in images])
     return assemble_map(names=[im.name for im in images], lats=[im.lat for im in images],
                         lons=[im.lon for im in images], alts=[im.alt for im in images],

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
 
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
@@ -56,9 +57,14 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
     # A KD-tree, not a distance matrix: the matrix of a 50,000-image map is 20 GB.
     nearest, _ = cKDTree(positions).query(positions, k=2)
     reach = 3.0 * float(np.median(nearest[:, 1]))
-    pairs = match_pairs(keypoints, descriptors, positions, max_distance=max(reach, 1.0),
-                        rng=rng)
-    rec = reconstruct_in_blocks(pairs, positions, np.asarray(altitudes, np.float64), K0)
+    # The incremental reconstruction amplifies rounding: the same tie points solved with
+    # OpenBLAS on one thread and on two give focal lengths 0.4 px and camera centres up to
+    # 0.4 m apart. One BLAS thread, as in the engine's workers, makes a map build the same
+    # wherever it runs.
+    with threadpool_limits(limits=1, user_api="blas"):
+        pairs = match_pairs(keypoints, descriptors, positions, max_distance=max(reach, 1.0),
+                            rng=rng)
+        rec = reconstruct_in_blocks(pairs, positions, np.asarray(altitudes, np.float64), K0)
     done = rec.reconstructed
     if done.mean() < MIN_RECONSTRUCTED or not math.isfinite(rec.residual_px):
         return None

@@ -26,7 +26,7 @@ from ..pf.switching import GLOBAL, SIFT, StepEvidence, SwitchState
 from ..query import QueryFrame
 from ..sift import SiftFeatures
 from .base import Localiser
-from .refine import Refinement, refine_orb, refine_sift
+from .refine import Refinement, rank_cloud_images, refine_orb, refine_sift
 from .scoring import check_map_features, global_similarity, sift_similarity
 from .sensors import Sensors, heading_agrees, read_sensors
 
@@ -36,6 +36,12 @@ whole: the platform moved too far for the frames to overlap usefully."""
 
 PINNED = {"global": GLOBAL, "sift": SIFT}
 """Feature type of the single-feature filter modes."""
+
+GLOBAL_IMAGES = 3
+"""Map images a global step registers against with ORB, one at a time, best first."""
+
+FALLBACK_IMAGES = 5
+"""Map images the SIFT fallback of a global step registers against together."""
 
 
 class FilterLocaliser(Localiser):
@@ -195,25 +201,26 @@ class FilterLocaliser(Localiser):
 
         def refine_global(likelihoods: tuple[Likelihood, ...]) -> Position | None:
             images = likelihoods[0]
-            # the predicted cloud's own images, best first under the global features
-            near = np.unique(self.pf.tree.query(self.pf.xy)[1])
-            sims = np.zeros(len(self.map))
-            sims[images.scored] = images.similarities
-            order = near[np.argsort(-sims[near], kind="stable")]
+            # the predicted cloud's own images, by their share of the posterior
+            order, mass = rank_cloud_images(self.pf.tree.query(self.pf.xy)[1], images.log)
             shape = query.frame.grey.shape
-            fix = self._gated(refine_orb(query.orb()[0], self.map, order, sims[order] + 1e-12,
-                                         frame_shape=shape, min_inliers=cfg.global_inliers),
-                              compass)
+            fix = self._gated(refine_orb(query.orb()[0], self.map, order, mass,
+                                         frame_shape=shape, min_inliers=cfg.global_inliers,
+                                         max_images=GLOBAL_IMAGES), compass)
+            alone = False
             if fix is None and use_sift:
                 cached = query.has_sift
                 feats, extract_ms = query.sift()
                 fallback.append(extract_ms if cached else 0.0)
-                fix = self._gated(refine_sift(feats, self.map, order, sims[order] + 1e-12,
-                                              frame_shape=shape), compass)
+                fix = self._gated(refine_sift(feats, self.map, order, mass, frame_shape=shape,
+                                              max_images=FALLBACK_IMAGES), compass)
+                # the global features ranked these images but could not register against
+                # them: the SIFT fix weighs the particles without their likelihood
+                alone = fix is not None
             if fix is None:
                 return None
             fixes.append(fix)
-            return Position(fix.kind, fix.xy, fix.sigma, cfg.outlier)
+            return Position(fix.kind, fix.xy, fix.sigma, cfg.outlier, alone=alone)
 
         return refine_global
 

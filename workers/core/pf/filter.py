@@ -193,7 +193,9 @@ class ParticleFilter:
             A position is a further measurement, and a share of the particles
             (``config.refine.inject``) is first drawn around it: sensor resetting
             (Lenser and Veloso 2000), so the posterior has particles where the position
-            says the platform is even when the motion spread the cloud thin.
+            says the platform is even when the motion spread the cloud thin. A position
+            marked ``alone`` takes the place of the first measurement (the frame's image
+            similarity) in the weights.
         drift : (2,) float ndarray or None
             The platform's tracked velocity (m/s) for the motion step
             (:meth:`MotionModel.move`).
@@ -222,8 +224,9 @@ class ParticleFilter:
                                                                size=(k, 2))
                 likelihoods = tuple(m.likelihood(self.xy, self.tree) for m in measurements)
             likelihoods = likelihoods + (position.likelihood(self.xy, self.tree),)
-        logw = likelihoods[0].log
-        for other in likelihoods[1:]:
+        weighing = likelihoods[1:] if position is not None and position.alone else likelihoods
+        logw = weighing[0].log
+        for other in weighing[1:]:
             logw = logw + other.log
         w = normalise_log(logw)
         # No particle is possible under the measurements: they say nothing, so the

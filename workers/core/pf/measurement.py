@@ -181,12 +181,18 @@ class Position:
         Standard deviation per axis (m).
     outlier : float
         Probability that the position is wrong.
+    alone : bool
+        The position replaces the frame's image similarity in the weights instead of
+        multiplying it: a fix registered with SIFT after the global features' best images
+        failed with ORB is far sharper than those features, whose likelihood would only
+        pull the estimate towards the images they confused.
     """
 
     kind: str
     xy: np.ndarray
     sigma: float
     outlier: float
+    alone: bool = False
 
     def likelihood(self, xy: np.ndarray, tree: cKDTree) -> Likelihood:
         return Likelihood(self.kind, position_log_likelihoods(xy, self.xy, self.sigma,
