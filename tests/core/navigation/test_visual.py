@@ -9,7 +9,9 @@ from vloc.workers.core.navigation.visual import (
     camera_matrix,
     intersect,
     locate,
+    metric_view,
     relative_view,
+    triangulate,
 )
 from vloc.workers.core.sift import SiftFeatures
 
@@ -81,3 +83,63 @@ def test_too_few_matches_give_nothing(scene):
     ref = _view(pts, 0.0, 0.0, 0.0, desc)
     other = SiftFeatures(ref.keypoints[:5], ref.descriptors[:5])
     assert relative_view(other, ref, K) is None
+
+
+def test_triangulate_places_the_shared_points(scene):
+    pts, desc = scene
+    ref = _view(pts, 0.0, 0.0, 0.0, desc)
+    other = _view(pts, -1.2, 0.0, 0.0, desc)
+    rows, points, depth_sigma = triangulate(ref, other, 1.2, K)
+    assert len(rows) > 50
+    # only points seen at enough parallax are kept, and the nearer ones are the sharper
+    depth = np.linalg.norm(points, axis=1)
+    assert np.all(depth_sigma <= depth)
+    assert np.median(depth_sigma[depth < 10]) < np.median(depth_sigma[depth > 20])
+    # back to the world: the ref camera at (0, 0, 1) looking east
+    world = points @ _rotation(0.0) + [0.0, 0.0, 1.0]
+    # the world point behind each of ref's keypoints, selected as _view selects them
+    cam = (pts - [0.0, 0.0, 1.0]) @ _rotation(0.0).T
+    front = np.flatnonzero(cam[:, 2] > 0.5)
+    uvw = cam[front] @ K.T
+    uv = uvw[:, :2] / uvw[:, 2:]
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < 320) & (uv[:, 1] >= 0) & (uv[:, 1] < 240)
+    behind = front[inside]
+    err = np.linalg.norm(world - pts[behind[rows]], axis=1)
+    assert np.max(err) < 0.05
+
+
+@pytest.mark.parametrize("x, y, yaw_deg", [(1.5, 0.6, 20.0), (0.5, -1.0, -20.0), (2.5, 0.0, 5.0)])
+def test_metric_view_places_the_robot_beside_the_path(scene, x, y, yaw_deg):
+    pts, desc = scene
+    ref = _view(pts, 0.0, 0.0, 0.0, desc)
+    other = _view(pts, -1.2, 0.0, 0.0, desc)
+    query = _view(pts, x, y, math.radians(yaw_deg), desc)
+    v = metric_view(query, ref, other, 1.2, K)
+    assert v is not None and v.inliers > 20
+    assert (v.forward, v.left) == pytest.approx((x, y), abs=0.02)
+    assert v.yaw == pytest.approx(math.radians(yaw_deg), abs=math.radians(0.2))
+    # the stated uncertainty: at least the baseline's scale error, and what a pixel of
+    # noise in the triangulation allows; small enough to place the robot beside the path
+    assert np.all(np.linalg.eigvalsh(v.cov) >= 0)
+    assert 0.05 * abs(x) <= math.sqrt(v.cov[0, 0]) < 0.5
+    assert math.sqrt(v.cov[1, 1]) < 0.3
+
+
+def test_metric_view_scales_with_the_baseline(scene):
+    pts, desc = scene
+    ref = _view(pts, 0.0, 0.0, 0.0, desc)
+    other = _view(pts, -1.2, 0.0, 0.0, desc)
+    query = _view(pts, 1.5, 0.6, math.radians(10.0), desc)
+    # a baseline said to be twice as long doubles every distance
+    v = metric_view(query, ref, other, 2.4, K)
+    assert (v.forward, v.left) == pytest.approx((3.0, 1.2), abs=0.04)
+
+
+def test_metric_view_needs_shared_points(scene):
+    pts, desc = scene
+    ref = _view(pts, 0.0, 0.0, 0.0, desc)
+    lonely = SiftFeatures(ref.keypoints[:8], ref.descriptors[:8])
+    query = _view(pts, 1.0, 0.2, 0.0, desc)
+    assert metric_view(query, ref, lonely, 1.2, K) is None
+    assert triangulate(ref, lonely, 1.2, K) is None
+    assert triangulate(ref, ref, 0.0, K) is None

@@ -20,7 +20,7 @@ from ..localisers.base import as_query
 from ..mapdata import MapData
 from .follower import FollowerConfig, PathFollower
 from .path import Path
-from .visual import camera_matrix, relative_view
+from .visual import MAX_REACH, camera_matrix, metric_view, relative_view
 
 WINDOW_BEHIND_M, WINDOW_AHEAD_M = 3.0, 6.0
 """Once the robot's place on the route is known, the frame is matched against the taught
@@ -37,6 +37,15 @@ LATERAL_SIGMA = 2.0
 taken along the path, and hardly at all beside it (a forward view changes little with a
 sidestep of a metre); the bearings from the taught images behind it do that."""
 BEARING_SIGMA = math.radians(6.0)
+METRIC_FLOOR_M, METRIC_FLOOR_RAD = 0.05, math.radians(0.5)
+"""Floors of a triangulated-point pose's standard deviations (:func:`.visual.metric_view`):
+the taught path's own positions are not exact."""
+AGREEMENT_CHI2 = 11.3
+"""99 % quantile of chi-square with 3 degrees of freedom: two triangulated-point poses
+further apart than this disagree."""
+TRIANGULATION_BASELINE_M = 1.0
+"""Two taught images at least this far apart along the path triangulate the points a frame's
+pose is solved against."""
 HEADING_SIGMA = math.radians(2.0)
 YAW_AGREEMENT = math.radians(10.0)
 VISUAL_DEFAULTS = {"visual": True, "hfov_deg": 60.0, "views": 4}
@@ -205,6 +214,9 @@ class NavigatingLocaliser:
         if not self.visual:
             return fix
         feats, _ = query.sift()
+        metric = self._metric_fix(k, feats)
+        if metric is not None:
+            return metric
         bearings, yaws = [], []
         for j in range(k, max(k - self.views, 0) - 1, -1):
             if self.map_index[j] < 0:
@@ -223,6 +235,55 @@ class NavigatingLocaliser:
                 fix["heading"], fix["heading_sigma"] = heading, HEADING_SIGMA
         fix["bearings"] = bearings
         return fix
+
+    def _metric_fix(self, k: int, feats) -> dict | None:
+        """The robot's pose from the points taught images near ``k`` triangulate
+        (:func:`.visual.metric_view`), the best image first and then those behind it, each
+        with the nearest taught image at least :data:`TRIANGULATION_BASELINE_M` behind it.
+
+        Two such poses must agree (within :data:`AGREEMENT_CHI2`) before either is fused:
+        a facade's repeated windows can match along the epipolar lines at the wrong depth
+        and give one confident pose on the path when the robot is beside it.
+        """
+        poses = []
+        for j in range(k, max(k - self.views, 0) - 1, -1):
+            other = self._behind(j)
+            if self.map_index[j] < 0 or other is None:
+                continue
+            baseline = float(np.hypot(*(self.points[j] - self.points[other])))
+            view = metric_view(feats, self.inner.map.sift(self.map_index[j]),
+                               self.inner.map.sift(self.map_index[other]), baseline, self.K)
+            if view is None or math.hypot(view.forward, view.left) > MAX_REACH:
+                continue
+            th = self.thetas[j]
+            c, s = math.cos(th), math.sin(th)
+            rot = np.eye(3)
+            rot[:2, :2] = [[c, -s], [s, c]]
+            pose = np.r_[self.points[j] + rot[:2, :2] @ np.array([view.forward, view.left]),
+                         th + view.yaw]
+            cov = rot @ view.cov @ rot.T + np.diag([METRIC_FLOOR_M ** 2, METRIC_FLOOR_M ** 2,
+                                                    METRIC_FLOOR_RAD ** 2])
+            for earlier, earlier_cov in poses:
+                d = pose - earlier
+                d[2] = math.remainder(d[2], 2 * math.pi)
+                if float(d @ np.linalg.solve(cov + earlier_cov, d)) <= AGREEMENT_CHI2:
+                    # the two agree: their information-weighted mean (the earlier heading
+                    # taken on the same turn as this one)
+                    both = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(earlier_cov))
+                    mean = both @ (np.linalg.solve(cov, pose)
+                                   + np.linalg.solve(earlier_cov, pose - d))
+                    return {"xy": mean[:2], "cov": both[:2, :2], "heading": float(mean[2]),
+                            "heading_sigma": math.sqrt(both[2, 2])}
+            poses.append((pose, cov))
+        return None
+
+    def _behind(self, j: int) -> int | None:
+        """The nearest taught image with a map image at least
+        :data:`TRIANGULATION_BASELINE_M` behind taught image ``j`` along the path."""
+        for i in range(j - 1, -1, -1):
+            if self.point_s[j] - self.point_s[i] >= TRIANGULATION_BASELINE_M:
+                return i if self.map_index[i] >= 0 else None
+        return None
 
     def get_state(self) -> bytes:
         inner = np.frombuffer(self.inner.get_state(), np.uint8)

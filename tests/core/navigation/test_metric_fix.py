@@ -1,0 +1,73 @@
+"""The navigating localiser's fix from triangulated taught views: agreement, then fusion."""
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from vloc.workers.core.navigation import session
+from vloc.workers.core.navigation.session import NavigatingLocaliser
+from vloc.workers.core.navigation.visual import MetricView
+
+
+def _localiser(n: int = 12, spacing: float = 0.6) -> NavigatingLocaliser:
+    """A straight taught path east along y = 0, one map image per taught point."""
+    names = [f"f{i:03d}.jpg" for i in range(n)]
+    inner = SimpleNamespace(map=SimpleNamespace(names=tuple(names), sift=lambda i: i))
+    points = [[spacing * i, 0.0] for i in range(n)]
+    return NavigatingLocaliser(inner, {"points": points, "nodes": [0] * n, "names": names})
+
+
+def _view(forward, left, yaw, sigma=0.1, yaw_sigma=math.radians(1.0)):
+    return MetricView(forward, left, yaw, np.diag([sigma ** 2, sigma ** 2, yaw_sigma ** 2]), 30)
+
+
+def test_two_agreeing_views_are_fused_by_their_information(monkeypatch):
+    loc = _localiser()
+    # the robot at (5.0, 0.8) heading 10 degrees left of east, seen from taught images 8
+    # and 7 (at 4.8 and 4.2 m); image 7's view is twice as sure
+    views = {8: _view(0.2, 0.8, math.radians(10.0), sigma=0.2),
+             7: _view(0.8 + 0.02, 0.8, math.radians(10.5), sigma=0.1)}
+    calls = []
+
+    def fake(feats, ref, other, baseline, K):
+        calls.append((ref, other, baseline))
+        return views.get(ref)
+
+    monkeypatch.setattr(session, "metric_view", fake)
+    fix = loc._metric_fix(8, feats=None)
+    # each view is triangulated against the nearest taught image at least 1 m behind it
+    assert calls[:2] == [(8, 6, pytest.approx(1.2)), (7, 5, pytest.approx(1.2))]
+    # information-weighted mean: weights 1 / (s^2 + floor^2) per axis
+    w8, w7 = 1 / (0.2 ** 2 + 0.05 ** 2), 1 / (0.1 ** 2 + 0.05 ** 2)
+    assert fix["xy"][0] == pytest.approx((w8 * 5.0 + w7 * 5.02) / (w8 + w7), abs=1e-9)
+    assert fix["xy"][1] == pytest.approx(0.8, abs=1e-9)
+    assert fix["cov"][0, 0] == pytest.approx(1 / (w8 + w7))
+    assert math.degrees(fix["heading"]) == pytest.approx(10.25, abs=0.01)
+
+
+def test_views_that_disagree_give_no_fix(monkeypatch):
+    loc = _localiser()
+    # one view puts the robot on the path, the other a metre beside it: repeated facades
+    # matched at the wrong depth look like this
+    views = {8: _view(0.2, 0.0, 0.0), 7: _view(0.8, 1.0, math.radians(2.0)),
+             6: _view(1.4, -1.0, 0.0)}
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, o, b, K: views.get(ref))
+    assert loc._metric_fix(8, feats=None) is None
+
+
+def test_a_view_beyond_reach_is_not_used(monkeypatch):
+    loc = _localiser()
+    views = {8: _view(6.0, 0.0, 0.0), 7: _view(6.6, 0.0, 0.0)}
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, o, b, K: views.get(ref))
+    assert loc._metric_fix(8, feats=None) is None
+
+
+def test_no_image_far_enough_behind_gives_no_view(monkeypatch):
+    loc = _localiser()
+    monkeypatch.setattr(session, "metric_view",
+                        lambda *a: pytest.fail("needs two taught images 1 m apart"))
+    # images 0 and 1 have nothing 1 m behind them
+    loc.views = 1
+    assert loc._metric_fix(1, feats=None) is None
