@@ -96,6 +96,8 @@ def test_image_similarity_scores_each_distinct_nearest_image_once():
     np.testing.assert_allclose(lk.log, 2.0 * np.log(s) - 0.5 * (d / 5.0) ** 2, rtol=1e-12)
     assert lk.kind == SIFT and lk.power == 2.0
     assert lk.scored.tolist() == [0, 1] and lk.similarities.tolist() == [0.2, 0.5]
+    # each particle's nearest image, as looked up: later steps of the frame reuse it
+    assert lk.nearest.tolist() == [0, 1, 1, 0]
 
 
 def test_image_similarity_every_image_and_candidates():

@@ -31,10 +31,12 @@ def test_two_agreeing_views_are_fused_by_their_information(monkeypatch):
              7: _view(0.8 + 0.02, 0.8, math.radians(10.5), sigma=0.1)}
     calls = []
 
-    def fake(feats, ref, other, baseline, K):
-        calls.append((ref, other, baseline))
+    def fake(feats, ref, tri, K):
+        calls.append(tri)
         return views.get(ref)
 
+    monkeypatch.setattr(session, "triangulate", lambda ref, other, baseline, K:
+                        (ref, other, baseline))
     monkeypatch.setattr(session, "metric_view", fake)
     fix = loc._metric_fix(8, feats=None)
     # each view is triangulated against the nearest taught image at least 1 m behind it
@@ -53,20 +55,33 @@ def test_views_that_disagree_give_no_fix(monkeypatch):
     # matched at the wrong depth look like this
     views = {8: _view(0.2, 0.0, 0.0), 7: _view(0.8, 1.0, math.radians(2.0)),
              6: _view(1.4, -1.0, 0.0)}
-    monkeypatch.setattr(session, "metric_view", lambda f, ref, o, b, K: views.get(ref))
+    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     assert loc._metric_fix(8, feats=None) is None
 
 
 def test_a_view_beyond_reach_is_not_used(monkeypatch):
     loc = _localiser()
     views = {8: _view(6.0, 0.0, 0.0), 7: _view(6.6, 0.0, 0.0)}
-    monkeypatch.setattr(session, "metric_view", lambda f, ref, o, b, K: views.get(ref))
+    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     assert loc._metric_fix(8, feats=None) is None
+
+
+def test_the_taught_points_are_triangulated_once(monkeypatch):
+    loc = _localiser()
+    pairs = []
+    monkeypatch.setattr(session, "triangulate",
+                        lambda ref, other, baseline, K: pairs.append((ref, other)))
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: None)
+    loc._metric_fix(8, feats=None)
+    loc._metric_fix(8, feats=None)
+    assert pairs == [(8, 6), (7, 5), (6, 4), (5, 3), (4, 2)]
 
 
 def test_no_image_far_enough_behind_gives_no_view(monkeypatch):
     loc = _localiser()
-    monkeypatch.setattr(session, "metric_view",
+    monkeypatch.setattr(session, "triangulate",
                         lambda *a: pytest.fail("needs two taught images 1 m apart"))
     # images 0 and 1 have nothing 1 m behind them
     loc.views = 1

@@ -114,7 +114,7 @@ def test_metric_view_places_the_robot_beside_the_path(scene, x, y, yaw_deg):
     ref = _view(pts, 0.0, 0.0, 0.0, desc)
     other = _view(pts, -1.2, 0.0, 0.0, desc)
     query = _view(pts, x, y, math.radians(yaw_deg), desc)
-    v = metric_view(query, ref, other, 1.2, K)
+    v = metric_view(query, ref, triangulate(ref, other, 1.2, K), K)
     assert v is not None and v.inliers > 20
     assert (v.forward, v.left) == pytest.approx((x, y), abs=0.02)
     assert v.yaw == pytest.approx(math.radians(yaw_deg), abs=math.radians(0.2))
@@ -131,7 +131,7 @@ def test_metric_view_scales_with_the_baseline(scene):
     other = _view(pts, -1.2, 0.0, 0.0, desc)
     query = _view(pts, 1.5, 0.6, math.radians(10.0), desc)
     # a baseline said to be twice as long doubles every distance
-    v = metric_view(query, ref, other, 2.4, K)
+    v = metric_view(query, ref, triangulate(ref, other, 2.4, K), K)
     assert (v.forward, v.left) == pytest.approx((3.0, 1.2), abs=0.04)
 
 
@@ -140,6 +140,6 @@ def test_metric_view_needs_shared_points(scene):
     ref = _view(pts, 0.0, 0.0, 0.0, desc)
     lonely = SiftFeatures(ref.keypoints[:8], ref.descriptors[:8])
     query = _view(pts, 1.0, 0.2, 0.0, desc)
-    assert metric_view(query, ref, lonely, 1.2, K) is None
+    assert metric_view(query, ref, triangulate(ref, lonely, 1.2, K), K) is None
     assert triangulate(ref, lonely, 1.2, K) is None
     assert triangulate(ref, ref, 0.0, K) is None

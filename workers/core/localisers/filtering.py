@@ -202,7 +202,7 @@ class FilterLocaliser(Localiser):
         def refine_global(likelihoods: tuple[Likelihood, ...]) -> Position | None:
             images = likelihoods[0]
             # the predicted cloud's own images, by their share of the posterior
-            order, mass = rank_cloud_images(self.pf.tree.query(self.pf.xy)[1], images.log)
+            order, mass = rank_cloud_images(images.nearest, images.log)
             shape = query.frame.grey.shape
             fix = self._gated(refine_orb(query.orb()[0], self.map, order, mass,
                                          frame_shape=shape, min_inliers=cfg.global_inliers,

@@ -20,7 +20,14 @@ from ..localisers.base import as_query
 from ..mapdata import MapData
 from .follower import FollowerConfig, PathFollower
 from .path import Path
-from .visual import MAX_REACH, camera_matrix, metric_view, relative_view
+from .visual import (
+    MAX_REACH,
+    Triangulation,
+    camera_matrix,
+    metric_view,
+    relative_view,
+    triangulate,
+)
 
 WINDOW_BEHIND_M, WINDOW_AHEAD_M = 3.0, 6.0
 """Once the robot's place on the route is known, the frame is matched against the taught
@@ -143,6 +150,7 @@ class NavigatingLocaliser:
         self.route_index = {m: k for k, m in enumerate(self.map_index) if m >= 0}
         self.K = camera_matrix(WORK_SIZE[0], WORK_SIZE[1], hfov)
         self.point_s = np.array(_arc_lengths(self.path, points))
+        self._triangulations: dict[int, Triangulation | None] = {}
 
     @property
     def mode(self) -> str:
@@ -247,12 +255,10 @@ class NavigatingLocaliser:
         """
         poses = []
         for j in range(k, max(k - self.views, 0) - 1, -1):
-            other = self._behind(j)
-            if self.map_index[j] < 0 or other is None:
+            if self.map_index[j] < 0:
                 continue
-            baseline = float(np.hypot(*(self.points[j] - self.points[other])))
             view = metric_view(feats, self.inner.map.sift(self.map_index[j]),
-                               self.inner.map.sift(self.map_index[other]), baseline, self.K)
+                               self._triangulation(j), self.K)
             if view is None or math.hypot(view.forward, view.left) > MAX_REACH:
                 continue
             th = self.thetas[j]
@@ -276,6 +282,18 @@ class NavigatingLocaliser:
                             "heading_sigma": math.sqrt(both[2, 2])}
             poses.append((pose, cov))
         return None
+
+    def _triangulation(self, j: int) -> Triangulation | None:
+        """The points taught image ``j`` shares with the taught image behind it
+        (:meth:`_behind`), triangulated once per localiser: they depend on the two taught
+        images only, not on the frame."""
+        if j not in self._triangulations:
+            other = self._behind(j)
+            self._triangulations[j] = None if other is None else triangulate(
+                self.inner.map.sift(self.map_index[j]),
+                self.inner.map.sift(self.map_index[other]),
+                float(np.hypot(*(self.points[j] - self.points[other]))), self.K)
+        return self._triangulations[j]
 
     def _behind(self, j: int) -> int | None:
         """The nearest taught image with a map image at least

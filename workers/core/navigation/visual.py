@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -77,6 +78,19 @@ class MetricView:
     yaw: float
     cov: np.ndarray
     inliers: int
+
+
+class Triangulation(NamedTuple):
+    """Points two taught images share, in the first one's camera frame (:func:`triangulate`).
+
+    ``rows`` are the keypoints of that image with a point, ``points`` (n, 3) their positions
+    in metres (x right, y down, z forward), ``depth_sigma`` the standard deviation of each
+    point's distance along the image's ray.
+    """
+
+    rows: np.ndarray
+    points: np.ndarray
+    depth_sigma: np.ndarray
 
 
 def camera_matrix(width: int, height: int, hfov_deg: float) -> np.ndarray:
@@ -177,7 +191,7 @@ def _match_points(a: SiftFeatures, b: SiftFeatures, ratio: float) -> tuple[np.nd
 
 
 def triangulate(ref: SiftFeatures, other: SiftFeatures, baseline: float, K: np.ndarray, *,
-                ratio: float = RATIO) -> tuple[np.ndarray, np.ndarray] | None:
+                ratio: float = RATIO) -> Triangulation | None:
     """3-D points of taught image ``ref`` from its matches with taught image ``other``.
 
     The two views' essential matrix gives their relative rotation and the direction between
@@ -185,15 +199,10 @@ def triangulate(ref: SiftFeatures, other: SiftFeatures, baseline: float, K: np.n
 
     Returns
     -------
-    rows : (n,) int ndarray
-        Keypoints of ``ref`` with a point.
-    points : (n, 3) float ndarray
-        Their positions in ``ref``'s camera frame (x right, y down, z forward), metres.
-    depth_sigma : (n,) float ndarray
-        Standard deviation of each point's distance along ``ref``'s ray: keypoints of
-        :data:`PIXEL_SIGMA` seen at the point's parallax angle. Views taken along the
-        path see the points ahead at almost no parallax, so these are large there.
-    None when the views share too few consistent matches.
+    Triangulation or None
+        None when the views share too few consistent matches. A point's depth noise is a
+        keypoint's :data:`PIXEL_SIGMA` seen at the point's parallax angle: views taken along
+        the path see the points ahead at almost no parallax, so it is large there.
     """
     if len(ref) < MIN_MATCHES or len(other) < MIN_MATCHES or not baseline > 0:
         return None
@@ -235,13 +244,14 @@ def triangulate(ref: SiftFeatures, other: SiftFeatures, baseline: float, K: np.n
     sharp = depth_sigma <= MAX_DEPTH_ERROR * depth
     if sharp.sum() < MIN_INLIERS:
         return None
-    return m[keep, 0][ok][sharp], X[sharp], depth_sigma[sharp]
+    return Triangulation(m[keep, 0][ok][sharp], X[sharp], depth_sigma[sharp])
 
 
-def metric_view(query: SiftFeatures, ref: SiftFeatures, other: SiftFeatures, baseline: float,
+def metric_view(query: SiftFeatures, ref: SiftFeatures, tri: Triangulation | None,
                 K: np.ndarray, *, ratio: float = RATIO) -> MetricView | None:
-    """The robot's pose against taught image ``ref``, from the points ``ref`` and ``other``
-    (``baseline`` metres apart along the taught path) triangulate.
+    """The robot's pose against taught image ``ref``, from the points ``ref`` and another
+    taught image triangulate (``tri``, :func:`triangulate`; it depends on the two taught
+    images only, so a caller keeps it from frame to frame).
 
     The frame's matches to those points give its pose (EPnP in RANSAC, then Gauss-Newton
     with each point weighed by its own noise, the depth noise of its triangulation
@@ -249,7 +259,6 @@ def metric_view(query: SiftFeatures, ref: SiftFeatures, other: SiftFeatures, bas
     (:data:`BASELINE_ERROR`). None when too few of the frame's matches have a point or agree
     with one pose.
     """
-    tri = triangulate(ref, other, baseline, K, ratio=ratio)
     if tri is None or len(query) < MIN_MATCHES:
         return None
     rows, points, depth_sigma = tri

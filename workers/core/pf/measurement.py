@@ -41,6 +41,8 @@ class Likelihood:
         Their similarities to the frame, in [0, 1].
     power : float
         Exponent the similarities were raised to.
+    nearest : (m,) int ndarray or None
+        Each particle's nearest map image, where the measurement looked them up.
     """
 
     kind: str
@@ -48,6 +50,7 @@ class Likelihood:
     scored: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     similarities: np.ndarray = field(default_factory=lambda: np.zeros(0))
     power: float = 1.0
+    nearest: np.ndarray | None = None
 
 
 class Measurement(Protocol):
@@ -140,7 +143,7 @@ class ImageSimilarity:
             sims = np.asarray(self.similarity(scored), dtype=np.float64)
             per_particle = sims[np.searchsorted(scored, nearest)]
         log = log_likelihoods(per_particle, dist, power=self.power, scale=self.scale)
-        return Likelihood(self.kind, log, scored, sims, self.power)
+        return Likelihood(self.kind, log, scored, sims, self.power, nearest)
 
 
 def position_log_likelihoods(xy: np.ndarray, position: np.ndarray, sigma: float, *,
