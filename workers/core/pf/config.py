@@ -10,20 +10,24 @@ with its source). ``default`` is ``weiss2008`` with the overrides that measureme
 data (seneca-uav) showed to help (:data:`DEFAULT_OVERRIDES`).
 
 Sessions and the command line name parameters by flat keys (``n_particles``, ``sift_ratio``,
-``global_features`` ...): :data:`PARAMS` maps each to its part and field,
+``global_features`` ...): :data:`~.params.PARAMS` maps each to its part and field
+(:mod:`.params`, with their validation),
 :func:`config_from_params` builds a configuration from a named base and flat overrides, and
 :meth:`FilterConfig.to_params` gives the flat view back.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
-RESAMPLERS = ("multinomial", "systematic")
-REPLACEMENTS = ("uniform", "retrieval")
-VERIFICATIONS = ("none", "homography", "fundamental")
-REDUCTIONS = ("both", "map", "query", "none")
+from .params import (
+    PARAMS,
+    REDUCTIONS,
+    REPLACEMENTS,
+    RESAMPLERS,
+    VERIFICATIONS,
+    check_params,
+)
 
 
 @dataclass(frozen=True)
@@ -236,7 +240,7 @@ class FilterConfig:
     refine: RefineConfig
 
     def __post_init__(self) -> None:
-        _check(self.to_params())
+        check_params(self.to_params())
 
     def to_params(self) -> dict:
         """The flat parameters (keys of :data:`PARAMS`, in its order), JSON-ready."""
@@ -259,102 +263,6 @@ class FilterConfig:
         for part, changes in parts.items():
             top[part] = replace(getattr(self, part), **changes)
         return replace(self, **top)
-
-
-PARAMS: dict[str, tuple[str | None, str]] = {
-    "n_particles": (None, "n_particles"),
-    "motion_sigma": ("motion", "sigma"),
-    "speed": ("motion", "speed"),
-    "pull": ("motion", "pull"),
-    "global_power": ("measurement", "global_power"),
-    "replace_fraction": ("reset", "fraction"),
-    "replacement": ("reset", "replacement"),
-    "d_global": ("switching", "d_global"),
-    "d_sift": ("switching", "d_sift"),
-    "distance_scale": ("measurement", "distance_scale"),
-    "global_features": ("measurement", "global_features"),
-    "global_measure": ("measurement", "global_measure"),
-    "sift_ratio": ("sift", "ratio"),
-    "sift_verify": ("sift", "verify"),
-    "sift_reduce": ("sift", "reduce"),
-    "sift_power": ("measurement", "sift_power"),
-    "global_check": ("switching", "global_check"),
-    "sift_candidates": ("sift", "candidates"),
-    "global_trust": ("switching", "global_trust"),
-    "global_trust_level": ("switching", "global_trust_level"),
-    "velocity": ("motion", "velocity"),
-    "drift": ("motion", "drift"),
-    "resampler": (None, "resampler"),
-    "refine": ("refine", "enabled"),
-    "refine_outlier": ("refine", "outlier"),
-    "refine_inject": ("refine", "inject"),
-    "refine_global": ("refine", "on_global"),
-    "refine_global_inliers": ("refine", "global_inliers"),
-    "refine_gate": ("refine", "gate"),
-    "refine_sift_fallback": ("refine", "sift_fallback"),
-    "global_misses": ("switching", "global_misses"),
-    "escalate": ("switching", "escalate"),
-}
-"""Flat parameter name -> (part of :class:`FilterConfig`, or None for its own field; field)."""
-
-
-def _check(c: dict) -> None:
-    """Validate the flat parameters; the first problem found is the error."""
-    def positive(name: str, value: float) -> None:
-        if not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
-            raise ValueError(f"{name} must be a positive number, got {value!r}")
-
-    if not isinstance(c["n_particles"], int) or not 1 <= c["n_particles"] <= 100_000:
-        raise ValueError(f"n_particles must be an integer in 1..100000, got {c['n_particles']!r}")
-    for name in ("motion_sigma", "global_power", "d_global", "d_sift", "sift_ratio",
-                 "sift_power"):
-        positive(name, c[name])
-    for name in ("global_check", "sift_candidates", "global_trust"):
-        value = c[name]
-        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= 1000:
-            raise ValueError(f"{name} must be an integer in 0..1000, got {value!r}")
-    if c["distance_scale"] is not None:
-        positive("distance_scale", c["distance_scale"])
-    if c["speed"] is not None and c["speed"] != "auto":
-        positive("speed", c["speed"])
-    if not 0.0 <= c["global_trust_level"] <= 1.0:
-        raise ValueError(f"global_trust_level must be in [0, 1], got {c['global_trust_level']!r}")
-    for name in ("refine", "refine_global", "drift", "velocity", "escalate",
-                 "refine_sift_fallback"):
-        if not isinstance(c[name], bool):
-            raise ValueError(f"{name} must be true or false, got {c[name]!r}")
-    inliers = c["refine_global_inliers"]
-    if not isinstance(inliers, int) or isinstance(inliers, bool) or not 4 <= inliers <= 10_000:
-        raise ValueError(f"refine_global_inliers must be an integer in 4..10000, got {inliers!r}")
-    positive("refine_gate", c["refine_gate"])
-    misses = c["global_misses"]
-    if misses is not None and (not isinstance(misses, int) or isinstance(misses, bool)
-                               or not 0 <= misses <= 1000):
-        raise ValueError(f"global_misses must be null or an integer in 0..1000, got {misses!r}")
-    if not 0.0 < c["refine_outlier"] < 1.0:
-        raise ValueError(f"refine_outlier must be in (0, 1), got {c['refine_outlier']!r}")
-    if not 0.0 <= c["refine_inject"] < 1.0:
-        raise ValueError(f"refine_inject must be in [0, 1), got {c['refine_inject']!r}")
-    if not 0.0 <= c["pull"] < 1.0:
-        raise ValueError(f"pull must be in [0, 1), got {c['pull']!r}")
-    if not 0.0 <= c["replace_fraction"] < 1.0:
-        raise ValueError(f"replace_fraction must be in [0, 1), got {c['replace_fraction']!r}")
-    if c["sift_ratio"] >= 1.0:
-        raise ValueError(f"sift_ratio must be below 1, got {c['sift_ratio']!r}")
-    for name, allowed in (("replacement", REPLACEMENTS), ("sift_verify", VERIFICATIONS),
-                          ("sift_reduce", REDUCTIONS), ("resampler", RESAMPLERS)):
-        if c[name] not in allowed:
-            raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {c[name]!r}")
-    if not c["global_features"]:
-        raise ValueError("global_features must name at least one feature")
-    from ..features import ALL_FEATURE_NAMES
-    from ..measures import MEASURES
-    for name in c["global_features"]:
-        if name not in ALL_FEATURE_NAMES:
-            raise ValueError(f"unknown global feature {name!r}; valid: "
-                             f"{', '.join(ALL_FEATURE_NAMES)}")
-    if c["global_measure"] not in MEASURES:
-        raise ValueError(f"unknown measure {c['global_measure']!r}; valid: {', '.join(MEASURES)}")
 
 
 WEISS2008 = FilterConfig(
@@ -452,6 +360,6 @@ def config_from_params(params: dict | None = None) -> FilterConfig:
     return CONFIGS[base_name].with_params(**params)
 
 
-__all__ = ["CONFIGS", "DEFAULT_OVERRIDES", "PARAMS", "WEISS2008", "FilterConfig",
-           "MeasurementConfig", "MotionConfig", "ResetConfig", "SiftConfig", "SwitchingConfig",
-           "config_from_params"]
+__all__ = ["CONFIGS", "DEFAULT_OVERRIDES", "PARAMS", "REDUCTIONS", "REPLACEMENTS", "RESAMPLERS",
+           "VERIFICATIONS", "WEISS2008", "FilterConfig", "MeasurementConfig", "MotionConfig",
+           "ResetConfig", "SiftConfig", "SwitchingConfig", "config_from_params"]
