@@ -8,10 +8,12 @@ STAMP  := $(VENV)/.installed-stamp
 
 .PHONY: demo test bench bench-large fuzz eval-seneca lint clean
 
-$(STAMP): pyproject.toml
+# The server's runtime dependencies install at the versions docker/requirements.lock pins (the
+# image's), so a fresh checkout tests what the image runs, whatever PyPI released since.
+$(STAMP): pyproject.toml docker/requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet -c docker/requirements.lock -e '.[dev]'
 	touch $(STAMP)
 
 ## demo: synthetic world -> server on embedded defaults -> map over HTTP -> replay -> table
