@@ -70,6 +70,21 @@ def test_build_geometry_of_a_low_camera_is_none():
     assert _build(big, gps_sigma=0.0) is not None  # the check, not the scene, says no
 
 
+def test_build_geometry_whose_heights_its_altitudes_do_not_follow_is_none():
+    # a street-level map passes for a low survey looking down, but its altitudes say
+    # nothing of the heights it solves: here they scatter by a third of the height
+    s = survey(np.random.default_rng(3), rows=2, max_tilt_deg=5.0)
+    assert _build(s) is not None
+    scattered = np.random.default_rng(4).normal(0.0, 0.35 * np.median(s.centres[:, 2]),
+                                                len(s.altitudes))
+    rng = np.random.default_rng(0)
+    assert build_geometry(s.keypoints, s.image_descriptors, s.positions,
+                          s.altitudes + scattered, K0, rng=rng) is None
+    # without altitudes the check cannot say, and does not refuse
+    assert build_geometry(s.keypoints, s.image_descriptors, s.positions,
+                          np.full(len(s.altitudes), np.nan), K0, rng=rng) is not None
+
+
 def _frame(s, R, C):
     kp, desc, ids = observe(s.points, s.descriptors, R, C, K_TRUE)
     matches = []
