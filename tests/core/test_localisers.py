@@ -10,6 +10,8 @@ import pytest
 
 from vloc.workers.core.estimate import Status
 from vloc.workers.core.evaluate import choose_starts, evaluate
+from vloc.workers.core.features import shortlist
+from vloc.workers.core.features.shortlist import PlaceCodes
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.image import prepare
 from vloc.workers.core.localisers import MODES, filtering, make_localiser, validate_params
@@ -45,18 +47,25 @@ def _view(world, east_m: float) -> np.ndarray:
     return world[:, x0:x0 + 320]
 
 
-def _map(world) -> MapData:
-    east = np.arange(0.0, 560.0, 10.0)  # one map image every 10 m
-    frames = [prepare(_view(world, e)) for e in east]
-    lat, lon = ORIGIN.to_wgs84(east, np.zeros_like(east))
-    return assemble_map(names=[f"m{i}" for i in range(len(east))], lats=lat, lons=lon,
-                        alts=[300.0] * len(east), features=[extract_image_features(f) for f in frames],
-                        captured_at=1000.0 + east / 2.0, origin=ORIGIN)
+MAP_EAST = np.arange(0.0, 560.0, 10.0)  # one map image every 10 m
 
 
 @pytest.fixture(scope="module")
-def small_map(world):
-    return _map(world)
+def map_features(world):
+    return [extract_image_features(prepare(_view(world, e))) for e in MAP_EAST]
+
+
+def _map(features, **kw) -> MapData:
+    east = MAP_EAST[:len(features)]
+    lat, lon = ORIGIN.to_wgs84(east, np.zeros_like(east))
+    return assemble_map(names=[f"m{i}" for i in range(len(east))], lats=lat, lons=lon,
+                        alts=[300.0] * len(east), features=features,
+                        captured_at=1000.0 + east / 2.0, origin=ORIGIN, **kw)
+
+
+@pytest.fixture(scope="module")
+def small_map(map_features):
+    return _map(map_features)
 
 
 def _queries(world, start=3.0, n=40, step=5.0, gain=0.85):
@@ -201,6 +210,86 @@ def test_mapdata_save_load_round_trip(tmp_path, small_map):
             np.testing.assert_array_equal(a.descriptors, b.descriptors)
     full, red = small_map.sift(3), small_map.sift(3, reduced=True)
     assert len(red) <= len(full)
+
+
+def _with_codes(small_map):
+    return replace(small_map, place_codes={
+        "vlad_orb": PlaceCodes.fit(small_map.global_features["vlad_orb"], dims=32)})
+
+
+def test_shortlist_codes_round_trip(tmp_path, small_map):
+    coded = _with_codes(small_map)
+    back = MapData.load(coded.save(tmp_path / "map"), mmap=True)
+    np.testing.assert_array_equal(back.place_codes["vlad_orb"].codes,
+                                  coded.place_codes["vlad_orb"].codes)
+    np.testing.assert_array_equal(back.place_codes["vlad_orb"].basis,
+                                  coded.place_codes["vlad_orb"].basis)
+    assert MapData.load(small_map.save(tmp_path / "plain")).place_codes == {}
+    with pytest.raises(ValueError, match="do not fit"):
+        replace(small_map, place_codes={"vlad_orb": PlaceCodes(
+            coded.place_codes["vlad_orb"].basis, np.zeros((3, 32), np.float32))})
+
+
+def test_a_map_of_more_than_codes_from_images_is_packed_with_codes(map_features, small_map,
+                                                                   monkeypatch):
+    from vloc.workers.core import mapbuild
+
+    assert small_map.place_codes == {}  # 56 images: scored exactly
+    monkeypatch.setattr(mapbuild, "CODES_FROM", 20)
+    timings: dict = {}
+    data = _map(map_features[:25], geometry=False, descriptors=("vlad_orb",), timings=timings)
+    assert set(data.place_codes) == set(data.vocabularies) == {"vlad_orb"}
+    assert "shortlist codes" in timings
+    np.testing.assert_allclose(data.place_codes["vlad_orb"].codes,
+                               data.global_features["vlad_orb"]
+                               @ data.place_codes["vlad_orb"].basis, atol=1e-5)
+
+
+def test_a_shortlist_covering_the_map_leaves_the_estimates_as_they_were(world, small_map):
+    queries, _ = _queries(world, n=25)
+    runs = []
+    for data in (small_map, _with_codes(small_map)):
+        loc = make_localiser("hybrid", data, {"config": "default"}, seed=3)
+        runs.append([(e.x, e.y, e.feature, e.measurement) for e in map(loc.step, queries)])
+    assert runs[0] == runs[1]
+    assert sum(r[2] == "global" for r in runs[0]) >= 5
+
+
+def test_global_steps_on_a_large_map_score_only_the_shortlist(world, small_map, monkeypatch):
+    monkeypatch.setattr(shortlist, "SHORTLIST", 6)
+    scored = []
+    real = filtering.global_similarity
+
+    def counting(query, map_data, idx, **kw):
+        scored.append(len(idx))
+        return real(query, map_data, idx, **kw)
+
+    monkeypatch.setattr(filtering, "global_similarity", counting)
+    queries, truth = _queries(world)
+    loc = make_localiser("hybrid", _with_codes(small_map), {"config": "default"}, seed=3)
+    errors = [np.hypot(e.x - t[0], e.y - t[1]) for e, t in zip(map(loc.step, queries), truth,
+                                                                strict=True)]
+    assert scored and max(scored) < len(small_map)
+    assert np.median(errors[10:]) < 6.0
+
+
+def test_retrieval_on_a_large_map_finds_the_place_among_the_shortlist(world, small_map,
+                                                                      monkeypatch):
+    monkeypatch.setattr(shortlist, "SHORTLIST", 6)
+    queries, truth = _queries(world, n=20)
+    coded = _with_codes(small_map)
+    picked = []
+    real = coded.shortlist
+
+    def recording(q, features):
+        picked.append(real(q, features))
+        return picked[-1]
+
+    monkeypatch.setattr(coded, "shortlist", recording)
+    loc = make_localiser("retrieval", coded, {"feature": "vlad_orb"}, seed=0)
+    errors = [abs(loc.step(q).x - t[0]) for q, t in zip(queries, truth, strict=True)]
+    assert len(picked) == len(queries) and all(len(p) == 6 for p in picked)
+    assert np.median(errors) <= 5.0
 
 
 def test_evaluate_summary_and_starts(world, small_map):

@@ -45,6 +45,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .features.orb import OrbFeatures
+from .features.shortlist import PlaceCodes
 from .features.vocabulary import Vocabulary
 from .geo import GeoOrigin
 from .geometry import MapGeometry
@@ -70,6 +71,7 @@ class MapData:
     orb_offsets: np.ndarray | None = None
     orb_keypoints: np.ndarray | None = None
     orb_descriptors: np.ndarray | None = None
+    place_codes: dict[str, PlaceCodes] = field(default_factory=dict)
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
     _spacing: float | None = field(default=None, repr=False, compare=False)
 
@@ -85,6 +87,10 @@ class MapData:
         for name in self.vocabularies:
             if name not in self.global_features:
                 raise ValueError(f"vocabulary {name!r} comes without its descriptor matrix")
+        for name, codes in self.place_codes.items():
+            if name not in self.global_features or len(codes) != n \
+                    or codes.basis.shape[0] != self.global_features[name].shape[1]:
+                raise ValueError(f"shortlist codes {name!r} do not fit the descriptor matrix")
         if self.sift_keep is None:
             self.sift_keep = np.ones(len(self.sift_descriptors), dtype=bool)
         if self.sift_keep.shape != (len(self.sift_descriptors),):
@@ -135,6 +141,18 @@ class MapData:
         """ORB features of map image ``i`` (the map must have them: :attr:`has_orb`)."""
         a, b = int(self.orb_offsets[i]), int(self.orb_offsets[i + 1])
         return OrbFeatures(self.orb_keypoints[a:b], self.orb_descriptors[a:b])
+
+    def shortlist(self, query: dict[str, np.ndarray],
+                  features: tuple[str, ...]) -> np.ndarray | None:
+        """The map images worth scoring exactly for a frame's global features, ascending, or
+        None where every image should be (a map without shortlist codes for ``features``).
+
+        The codes of the first of ``features`` that has them pick the shortlist
+        (:mod:`.features.shortlist`)."""
+        for name in features:
+            if name in self.place_codes:
+                return self.place_codes[name].shortlist(query[name])
+        return None
 
     def sift_counts(self) -> np.ndarray:
         return np.diff(self.sift_offsets)
@@ -226,9 +244,13 @@ class MapData:
             np.save(tmp / f"vocab_{name}_idf.npy", vocab.idf)
             if vocab.projection is not None:
                 np.save(tmp / f"vocab_{name}_projection.npy", vocab.projection)
+        for name, codes in self.place_codes.items():
+            np.save(tmp / f"codes_{name}_basis.npy", codes.basis)
+            np.save(tmp / f"codes_{name}.npy", codes.codes)
         meta = {"origin": [self.origin.lat, self.origin.lon, self.origin.alt],
                 "names": list(self.names), "features": sorted(self.global_features),
                 "map_id": self.map_id, "revision": self.revision, "orb": self.has_orb,
+                "codes": sorted(self.place_codes),
                 "vocabularies": {name: {"branching": v.branching, "depth": v.depth,
                                         "binary": v.binary,
                                         "projected": v.projection is not None}
@@ -268,7 +290,10 @@ class MapData:
                    geometry=MapGeometry.load(folder, mmap=mmap),
                    orb_offsets=ld("orb_offsets.npy") if orb else None,
                    orb_keypoints=ld("orb_keypoints.npy") if orb else None,
-                   orb_descriptors=ld("orb_descriptors.npy") if orb else None)
+                   orb_descriptors=ld("orb_descriptors.npy") if orb else None,
+                   place_codes={name: PlaceCodes(ld(f"codes_{name}_basis.npy"),
+                                                 ld(f"codes_{name}.npy"))
+                                for name in meta.get("codes", [])})
 
 
 def _concatenate(parts, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

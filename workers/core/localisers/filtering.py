@@ -27,7 +27,12 @@ from ..query import QueryFrame
 from ..sift import SiftFeatures
 from .base import Localiser
 from .refine import Refinement, rank_cloud_images, refine_orb, refine_sift
-from .scoring import check_map_features, global_similarity, sift_similarity
+from .scoring import (
+    check_map_features,
+    every_image_similarity,
+    global_similarity,
+    sift_similarity,
+)
 from .sensors import Sensors, heading_agrees, read_sensors
 
 MIN_REDUCED_KEYPOINTS = 20
@@ -289,8 +294,11 @@ class FilterLocaliser(Localiser):
                                          measure=m.global_measure)
 
             every = cfg.reset.replacement == "retrieval" or cfg.switching.global_check > 0
+            # on a large map, "every image" is the shortlist its codes pick for this frame
+            shortlist = self.map.shortlist(q, m.global_features) if every else None
             return ImageSimilarity(GLOBAL, similarity, m.global_power, self.pf.distance_scale,
-                                   every_image=every), feat_ms
+                                   every_image=every and shortlist is None,
+                                   candidates=shortlist), feat_ms
         if cfg.sift.reduce in ("both", "query"):
             q_sift, feat_ms = query.reduced_sift(self.prev_sift, self.prev_key,
                                                  ratio=cfg.sift.ratio,
@@ -327,8 +335,8 @@ class FilterLocaliser(Localiser):
         """
         m = self.config.measurement
         q, ms = query.global_features(m.global_features, self.map.vocabularies, sift_paid=True)
-        return global_similarity(q, self.map, np.arange(len(self.map)),
-                                 features=m.global_features, measure=m.global_measure), ms
+        return every_image_similarity(q, self.map, features=m.global_features,
+                                      measure=m.global_measure), ms
 
     # -- evidence for the switching rule ---------------------------------------------------
 

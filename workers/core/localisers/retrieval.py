@@ -19,7 +19,7 @@ from ..mapdata import MapData
 from ..measures import MEASURES
 from ..query import QueryFrame
 from .base import SPREAD_CANDIDATES, StatelessLocaliser, candidate_spread, check_param_keys
-from .scoring import check_map_features, global_similarity
+from .scoring import check_map_features, every_image_similarity
 
 
 @dataclass(frozen=True)
@@ -78,8 +78,8 @@ class RetrievalLocaliser(StatelessLocaliser):
     def _step(self, query: QueryFrame, t0: float) -> Estimate:
         q, feat_ms = query.global_features((self.feature,), self.map.vocabularies)
         t1 = time.perf_counter()
-        s = global_similarity(q, self.map, np.arange(len(self.map)), features=(self.feature,),
-                              measure=self.config.measure)
+        s = every_image_similarity(q, self.map, features=(self.feature,),
+                                   measure=self.config.measure)
         top = np.argsort(-s, kind="stable")[:SPREAD_CANDIDATES]
         xy = np.asarray(self.map.positions)
         cov = candidate_spread(xy, top, s[top] - s[top].min() + 1e-12)

@@ -45,6 +45,23 @@ def global_similarity(query: dict[str, np.ndarray], map_data: MapData, idx: np.n
     return s
 
 
+def every_image_similarity(query: dict[str, np.ndarray], map_data: MapData, *,
+                           features: tuple[str, ...], measure: str) -> np.ndarray:
+    """:func:`global_similarity` of the frame with every map image, (N,) float64.
+
+    On a large map only the shortlist its codes pick is scored (:meth:`MapData.shortlist`);
+    the other images stay at zero, below any image worth ranking.
+    """
+    shortlist = map_data.shortlist(query, features)
+    if shortlist is None:
+        return global_similarity(query, map_data, np.arange(len(map_data)),
+                                 features=features, measure=measure)
+    scores = np.zeros(len(map_data))
+    scores[shortlist] = global_similarity(query, map_data, shortlist, features=features,
+                                          measure=measure)
+    return scores
+
+
 def verified_count(query: SiftFeatures, ref: SiftFeatures, matches: np.ndarray,
                    method: str) -> int:
     """Number of matches consistent with one geometric model (RANSAC inliers)."""
