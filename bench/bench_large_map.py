@@ -94,6 +94,16 @@ def worker_cpu(ctx) -> float:
     return total
 
 
+def worker_peak_mib(ctx) -> float:
+    """The largest peak resident memory (VmHWM) of the engine's worker processes (MiB)."""
+    peaks = [0.0]
+    for pid in ctx.engine.worker_pids():
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                peaks.append(int(line.split()[1]) / 1024)
+    return max(peaks)
+
+
 class Meter:
     """Wall and CPU seconds of a block, this process and the worker separately."""
 
@@ -169,7 +179,8 @@ def extract_pending(ctx, map_id: str) -> int:
 
 def build(client, map_id: str) -> dict:
     """Start a build job over the API and wait for it; the job's record."""
-    r = client.post(f"/v1/maps/{map_id}/build", headers=ADMIN)
+    # forced: a map built before (a rerun measuring the build again) is up to date
+    r = client.post(f"/v1/maps/{map_id}/build", params={"force": "true"}, headers=ADMIN)
     r.raise_for_status()
     job_id = r.json()["job_id"]
     while True:
@@ -228,6 +239,7 @@ def pack(client, map_id: str, stats: dict, work: Path) -> dict:
         folder = ctx.settings.packed_map_dir(map_id, m["revision"])
         stats["build"] = {"wall": meter.wall, "api_cpu": meter.api_cpu,
                           "worker_cpu": meter.worker_cpu, "revision": m["revision"],
+                          "worker_peak_mib": worker_peak_mib(ctx),
                           "folder": str(folder), "images": m["image_count"],
                           "stages": json.loads((folder / "build_timings.json").read_text())}
         save_stats(work, stats)
@@ -310,37 +322,56 @@ def time_steps(folder: str, frames) -> dict:
 
 def scaled_scoring(data, config, frames, rows: int, work: Path) -> dict:
     """CPU seconds of scoring every map image, as ``_global_scores`` does, on matrices of
-    ``rows`` rows made by repeating the built map's own rows, memory-mapped from files.
+    ``rows`` rows made by repeating the built map's own rows, memory-mapped from files:
+    exactly (one matrix-vector product per feature over every row, what a map of at most
+    ``CODES_FROM`` images does) and through the shortlist codes a larger map is packed with
+    (the scan over the codes, the exact scores of the shortlist, written into a vector of
+    every image).
 
     Only the size differs from the real map: this answers how the shortlist and the global
-    step's all-image scoring (one matrix-vector product per feature) grow with the map, for
-    maps larger than the one built. It is not a map build.
+    step's all-image scoring grow with the map, for maps larger than the one built. It is
+    not a map build.
     """
     from types import SimpleNamespace
 
+    from vloc.workers.core.features.shortlist import PlaceCodes
     from vloc.workers.core.localisers.scoring import global_similarity
     from vloc.workers.core.query import QueryFrame
 
     m = config.measurement
-    matrices = {}
+    matrices, codes = {}, {}
     for name in m.global_features:
         path = work / f"scaled_{rows}_{name}.npy"
         if not path.is_file():
             real = np.asarray(data.global_features[name])
             np.save(path, np.resize(real, (rows, real.shape[1])))
         matrices[name] = np.load(path, mmap_mode="r")
+        basis, coded = (work / f"scaled_{rows}_{name}_{s}.npy" for s in ("basis", "codes"))
+        if not coded.is_file():
+            fitted = PlaceCodes.fit(matrices[name])
+            np.save(basis, fitted.basis)
+            np.save(coded, fitted.codes)
+        codes[name] = PlaceCodes(np.load(basis), np.load(coded, mmap_mode="r"))
     big = SimpleNamespace(global_features=matrices)
     k = config.sift.candidates or 20
-    out = []
+    exact, short = [], []
     for _, frame, t, _, _ in frames:
         q, _ = QueryFrame(frame, t).global_features(m.global_features, data.vocabularies)
         c = time.thread_time()
         g = global_similarity(q, big, np.arange(rows), features=m.global_features,
                               measure=m.global_measure)
         np.argsort(-g, kind="stable")[:k]
-        out.append(time.thread_time() - c)
-    return {"rows": rows, "seconds": out, "top": k,
-            "dims": {name: int(v.shape[1]) for name, v in matrices.items()}}
+        exact.append(time.thread_time() - c)
+        c = time.thread_time()
+        idx = codes[m.global_features[0]].shortlist(q[m.global_features[0]])
+        g = np.zeros(rows)
+        g[idx] = global_similarity(q, big, idx, features=m.global_features,
+                                   measure=m.global_measure)
+        np.argsort(-g, kind="stable")[:k]
+        short.append(time.thread_time() - c)
+    return {"rows": rows, "seconds": exact, "shortlist_seconds": short, "top": k,
+            "dims": {name: int(v.shape[1]) for name, v in matrices.items()},
+            "code_dims": {name: int(v.basis.shape[1]) for name, v in codes.items()}}
 
 
 def session_memory(client, map_id: str, frames) -> dict:

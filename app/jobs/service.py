@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import shutil
 import uuid
 from dataclasses import dataclass
 
-from sqlalchemy import func, or_, select, update
+from sqlalchemy import bindparam, func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from vloc.app.background import BackgroundRunner
@@ -28,8 +29,12 @@ from vloc.app.problems import Problem
 
 log = logging.getLogger(__name__)
 
-EXTRACT_SHARE = 0.9
-"""Share of the progress bar that feature extraction fills; packing the map is the rest."""
+EXTRACT_SHARE = 0.5
+"""Share of the progress bar that feature extraction fills."""
+
+TIE_SHARE = 0.3
+"""Share it fills next while the reconstruction's tie points are extracted; packing the map
+is the rest."""
 
 
 def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
@@ -106,9 +111,24 @@ class BuildRunner(BackgroundRunner):
         revision = await asyncio.to_thread(self._next_revision, map_id)
         folder = self.settings.packed_map_dir(str(map_id), revision)
         lens_files, image_files = await asyncio.to_thread(self._files, map_id)
-        packed = await asyncio.wrap_future(self.engine.call(
-            tasks.pack_map, url, str(map_id), revision, str(folder),
-            lens_files=lens_files, image_files=image_files))
+        # The reconstruction's tie points, extracted over the images in parallel by the
+        # engine's workers into a folder beside the revision, and removed after the build.
+        tie_dir = folder.with_name(folder.name + ".ties")
+        await asyncio.to_thread(tie_dir.mkdir, parents=True, exist_ok=True)
+        try:
+            ties = [asyncio.wrap_future(self.engine.call(
+                tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id)))
+                for image_id, path in image_files.items()]
+            every = max(1, len(ties) // 100)  # a hundred updates of the bar at most
+            for done, fut in enumerate(asyncio.as_completed(ties), start=1):
+                await fut
+                if done % every == 0 or done == len(ties):
+                    await asyncio.to_thread(self._tie_progress, job_id, done, len(ties))
+            packed = await asyncio.wrap_future(self.engine.call(
+                tasks.pack_map, url, str(map_id), revision, str(folder),
+                lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir)))
+        finally:
+            await asyncio.to_thread(shutil.rmtree, tie_dir, True)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 
     # -- database steps (threads) -----------------------------------------------------------
@@ -146,6 +166,12 @@ class BuildRunner(BackgroundRunner):
                 n_extracted=done, progress=EXTRACT_SHARE * done / max(total, 1)))
             db.commit()
 
+    def _tie_progress(self, job_id: uuid.UUID, done: int, total: int) -> None:
+        with self.db_sessions() as db:
+            db.execute(update(BuildJob).where(BuildJob.id == job_id).values(
+                progress=EXTRACT_SHARE + TIE_SHARE * done / max(total, 1)))
+            db.commit()
+
     def _next_revision(self, map_id: uuid.UUID) -> int:
         with self.db_sessions() as db:
             return db.get(Map, map_id).revision + 1
@@ -157,11 +183,14 @@ class BuildRunner(BackgroundRunner):
             lat, lon, alt = packed["origin"]
             m.revision, m.origin_lat, m.origin_lon, m.origin_alt = revision, lat, lon, alt
             m.built_at = utcnow()
-            for image_id, east, north in zip(packed["image_ids"], packed["east"],
-                                             packed["north"], strict=True):
-                db.execute(update(MapImage).where(MapImage.id == image_id).values(
-                    east=east, north=north,
-                    built_revision=func.coalesce(MapImage.built_revision, revision)))
+            # one statement executed for every image (executemany), not one round trip each
+            table = MapImage.__table__
+            db.execute(update(table).where(table.c.id == bindparam("image_id")).values(
+                east=bindparam("image_east"), north=bindparam("image_north"),
+                built_revision=func.coalesce(table.c.built_revision, revision)),
+                [{"image_id": i, "image_east": e, "image_north": n}
+                 for i, e, n in zip(packed["image_ids"], packed["east"], packed["north"],
+                                    strict=True)])
             # Images uploaded while the job ran are not in this revision yet.
             waiting = db.scalar(select(func.count(MapImage.id)).where(
                 MapImage.map_id == map_id, MapImage.built_revision.is_(None)))

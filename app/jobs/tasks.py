@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import uuid
-from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -37,6 +37,10 @@ log = logging.getLogger(__name__)
 
 TIMINGS_FILE = "build_timings.json"
 """Seconds each stage of packing a revision took, beside the revision."""
+
+
+_BATCH = 500
+"""Rows read at a time when a map's stored features are packed."""
 
 
 @lru_cache(maxsize=8)
@@ -75,30 +79,94 @@ def _readers(paths: list[str]):
     return [Path(p).read_bytes for p in paths if Path(p).is_file()]
 
 
-def _tie_points(path: str | None):
-    """Tie points of one map image file, or None where it cannot be read."""
+def extract_ties(path: str | None, stem: str) -> int:
+    """Extract one map image file's tie points and write them beside ``stem``
+    (:func:`~vloc.workers.core.mapbuild.save_tie_points`), for a build's reconstruction;
+    run by the engine's workers, one image per call. Returns the number of tie points, or
+    -1 where the file is missing or unreadable (the image's stored SIFT then ties it)."""
     from vloc.workers.core.image import ImageError
-    from vloc.workers.core.mapbuild import extract_tie_points
+    from vloc.workers.core.mapbuild import extract_tie_points, save_tie_points
 
     if path is None or not Path(path).is_file():
-        return None
+        return -1
     try:
-        return extract_tie_points(Path(path).read_bytes())
+        tie = extract_tie_points(Path(path).read_bytes())
     except (ImageError, OSError):
         log.warning("map image %s unreadable for tie points; its stored SIFT ties it", path)
-        return None
+        return -1
+    save_tie_points(tie, stem)
+    return len(tie)
+
+
+def tie_stem(tie_dir: str | Path, image_id: int) -> str:
+    """Where a build keeps image ``image_id``'s tie points in ``tie_dir``."""
+    return str(Path(tie_dir) / str(image_id))
+
+
+def _read_images(database_url: str, map_id: str) -> list[dict]:
+    """The map's images with extracted features, in map order: the fields a build needs."""
+    with _sessions(database_url)() as db:
+        rows = db.execute(
+            select(MapImage.id, MapImage.filename, MapImage.lat, MapImage.lon, MapImage.alt,
+                   MapImage.captured_at)
+            .join(ImageSift, ImageSift.image_id == MapImage.id)
+            .where(MapImage.map_id == uuid.UUID(map_id)).order_by(MapImage.id)).all()
+    if not rows:
+        raise ValueError("the map has no image with extracted features")
+    return [{"id": i, "filename": f, "lat": lat, "lon": lon, "alt": alt,
+             "captured_at": t.timestamp() if t else None} for i, f, lat, lon, alt, t in rows]
+
+
+def _read_features(database_url: str, map_id: str, images: list[dict], ties: list,
+                   timings: dict) -> list:
+    """The decoded features of ``images`` (from :func:`_read_images`), with their tie points.
+
+    Rows are read a batch at a time and their blobs dropped once decoded, so a large map's
+    stored features are never held twice."""
+    from vloc.workers.core.mapbuild import ImageFeatures, stage
+
+    mid = uuid.UUID(map_id)
+    with stage(timings, "reading features"), _sessions(database_url)() as db:
+        vectors: dict[int, dict[str, np.ndarray]] = {}
+        for image_id, name, data in db.execute(
+                select(ImageGlobalFeature.image_id, ImageGlobalFeature.name,
+                       ImageGlobalFeature.data)
+                .join(MapImage, MapImage.id == ImageGlobalFeature.image_id)
+                .where(MapImage.map_id == mid)
+                .execution_options(yield_per=_BATCH)):
+            vectors.setdefault(image_id, {})[name] = decode_vector(data)
+        features = []
+        for row in db.execute(
+                select(MapImage.id, ImageSift.n_keypoints, ImageSift.keypoints,
+                       ImageSift.descriptors, ImageOrb.n_keypoints, ImageOrb.keypoints,
+                       ImageOrb.descriptors)
+                .join(ImageSift, ImageSift.image_id == MapImage.id)
+                .outerjoin(ImageOrb, ImageOrb.image_id == MapImage.id)
+                .where(MapImage.map_id == mid).order_by(MapImage.id)
+                .execution_options(yield_per=_BATCH)):
+            k = len(features)
+            if k >= len(images) or row[0] != images[k]["id"]:
+                raise RuntimeError("the map's images changed while it was being built")
+            features.append(ImageFeatures(
+                vectors.pop(row[0], {}), decode_sift(row[1], row[2], row[3]),
+                None if row[4] is None else decode_orb(row[4], row[5], row[6]), ties[k]))
+    if len(features) != len(images):
+        raise RuntimeError("the map's images changed while it was being built")
+    return features
 
 
 def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
              lens_files: list[str] | None = None,
-             image_files: dict[int, str] | None = None) -> dict:
+             image_files: dict[int, str] | None = None, tie_dir: str | None = None) -> dict:
     """Assemble every extracted image of a map into a MapData folder.
 
     ``lens_files`` are some of the map's image files, read for the camera's focal length
-    (EXIF) that the map's camera geometry starts from. ``image_files`` (image id -> file)
-    are read again for the tie points of the reconstruction
-    (:func:`~vloc.workers.core.mapbuild.extract_tie_points`); an image whose file is
-    missing or unreadable is tied by its stored SIFT.
+    (EXIF) that the map's camera geometry starts from. The tie points of the
+    reconstruction are read from ``tie_dir``, where :func:`extract_ties` wrote them (the
+    build runs it over the images in parallel); an image without them there has them
+    extracted here from its file in ``image_files`` (image id -> file), and one whose file
+    is missing or unreadable is tied by its stored SIFT. Without ``tie_dir`` they go to a
+    folder beside ``folder``, removed afterwards.
 
     The place descriptors' vocabularies are trained here on the map's images and stored in
     ``map_vocabularies`` under ``revision`` (replacing rows a failed earlier attempt at the
@@ -113,38 +181,42 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         ``origin`` (lat, lon, alt), ``image_ids`` (in map order) and their ``east`` and
         ``north`` in the new local frame.
     """
-    from vloc.workers.core.mapbuild import ImageFeatures, assemble_map, stage, typical_focal_px
+    from vloc.workers.core.mapbuild import (
+        assemble_map,
+        load_tie_points,
+        stage,
+        typical_focal_px,
+    )
 
     timings: dict[str, tuple[float, float]] = {}
-    with stage(timings, "reading features"), _sessions(database_url)() as db:
-        rows = db.execute(
-            select(MapImage, ImageSift, ImageOrb)
-            .join(ImageSift, ImageSift.image_id == MapImage.id)
-            .outerjoin(ImageOrb, ImageOrb.image_id == MapImage.id)
-            .where(MapImage.map_id == uuid.UUID(map_id)).order_by(MapImage.id)).all()
-        ids = [img.id for img, _, _ in rows]
-        vectors: dict[int, dict[str, np.ndarray]] = {i: {} for i in ids}
-        for feat in db.scalars(select(ImageGlobalFeature)
-                               .where(ImageGlobalFeature.image_id.in_(ids))):
-            vectors[feat.image_id][feat.name] = decode_vector(feat.data)
-        if not rows:
-            raise ValueError("the map has no image with extracted features")
-        features = [ImageFeatures(vectors[img.id],
-                                  decode_sift(s.n_keypoints, s.keypoints, s.descriptors),
-                                  None if o is None
-                                  else decode_orb(o.n_keypoints, o.keypoints, o.descriptors))
-                    for img, s, o in rows]
-        images = [img for img, _, _ in rows]
-    with stage(timings, "tie points"):
-        ties = [_tie_points((image_files or {}).get(i)) for i in ids]
-    features = [replace(f, tie=t) for f, t in zip(features, ties, strict=True)]
-    times = [img.captured_at.timestamp() if img.captured_at else None for img in images]
-    data = assemble_map(names=[img.filename for img in images],
-                        lats=[img.lat for img in images], lons=[img.lon for img in images],
-                        alts=[img.alt for img in images], features=features,
-                        captured_at=times, map_id=map_id, revision=revision,
-                        focal_px=typical_focal_px(_readers(lens_files or [])),
-                        timings=timings)
+    images = _read_images(database_url, map_id)
+    own = tie_dir is None
+    ties_at = Path(folder).with_name(Path(folder).name + ".ties") if own else Path(tie_dir)
+    ties_at.mkdir(parents=True, exist_ok=True)
+    try:
+        with stage(timings, "tie points"):
+            ties = []
+            for img in images:
+                stem = tie_stem(ties_at, img["id"])
+                tie = load_tie_points(stem)
+                if tie is None and extract_ties((image_files or {}).get(img["id"]), stem) >= 0:
+                    tie = load_tie_points(stem)
+                ties.append(tie)
+        # The features go straight into the map: holding no list of them here lets the
+        # build drop each image's decoded copy once the map has packed them.
+        data = assemble_map(names=[img["filename"] for img in images],
+                            lats=[img["lat"] for img in images],
+                            lons=[img["lon"] for img in images],
+                            alts=[img["alt"] for img in images],
+                            features=_read_features(database_url, map_id, images, ties,
+                                                    timings),
+                            captured_at=[img["captured_at"] for img in images],
+                            map_id=map_id, revision=revision,
+                            focal_px=typical_focal_px(_readers(lens_files or [])),
+                            timings=timings)
+    finally:
+        if own:
+            shutil.rmtree(ties_at, ignore_errors=True)
     with stage(timings, "storing vocabularies"), _sessions(database_url)() as db, db.begin():
         db.execute(delete(MapVocabulary).where(MapVocabulary.map_id == uuid.UUID(map_id),
                                                MapVocabulary.revision == revision))
@@ -156,11 +228,11 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                                  idf=idf, projection=projection))
     with stage(timings, "saving"):
         data.save(folder)
-        write_image_ids(folder, ids)
+        write_image_ids(folder, [img["id"] for img in images])
     (Path(folder) / TIMINGS_FILE).write_text(json.dumps(
         {name: {"wall_s": wall, "cpu_s": cpu} for name, (wall, cpu) in timings.items()},
         indent=1))
     o = data.origin
-    return {"origin": (o.lat, o.lon, o.alt), "image_ids": ids,
+    return {"origin": (o.lat, o.lon, o.alt), "image_ids": [img["id"] for img in images],
             "east": np.asarray(data.positions)[:, 0].tolist(),
             "north": np.asarray(data.positions)[:, 1].tolist()}

@@ -231,6 +231,9 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     # The packed revision is the images' positions in a frame at their centroid.
     first = MapData.load(ctx.settings.packed_map_dir(map_id, 1))
     assert len(first) == 6 and first.revision == 1
+    # the tie points spilled to disk during the build are gone with it
+    assert not [p for p in ctx.settings.packed_map_dir(map_id, 1).parent.iterdir()
+                if p.name.endswith(".ties")]
     origin = GeoOrigin(m["origin"]["lat"], m["origin"]["lon"], m["origin"]["alt"])
     images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
     assert origin.lat == pytest.approx(np.mean([i["lat"] for i in images]), abs=1e-12)
@@ -361,3 +364,19 @@ def test_a_frame_that_pillow_cannot_identify_has_a_clean_detail(module_client):
         "lat": "41", "lon": "-83"}, files=[("files", ("x.jpg", b"\xff\xd8\xff" + bytes(300),
                                                      "image/jpeg"))])
     assert r.status_code == 422 and "object at 0x" not in r.text
+
+
+def test_tie_points_are_extracted_to_files_and_unreadable_images_say_so(tmp_path, shots):
+    from vloc.app.jobs.tasks import extract_ties
+    from vloc.workers.core.mapbuild import extract_tie_points, load_tie_points
+
+    image = tmp_path / "map.jpg"
+    image.write_bytes(shots[0][0].jpeg)
+    assert extract_ties(str(image), str(tmp_path / "1")) == len(load_tie_points(tmp_path / "1"))
+    want = extract_tie_points(shots[0][0].jpeg)
+    np.testing.assert_array_equal(load_tie_points(tmp_path / "1").descriptors, want.descriptors)
+    # a missing or undecodable file: no tie points, the stored SIFT ties the image
+    assert extract_ties(str(tmp_path / "gone.jpg"), str(tmp_path / "2")) == -1
+    (tmp_path / "bad.jpg").write_bytes(b"not an image")
+    assert extract_ties(str(tmp_path / "bad.jpg"), str(tmp_path / "3")) == -1
+    assert load_tie_points(tmp_path / "2") is None and load_tie_points(tmp_path / "3") is None

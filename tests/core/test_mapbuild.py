@@ -16,7 +16,9 @@ from vloc.workers.core.mapbuild import (
     assemble_map,
     extract_image_features,
     extract_tie_points,
+    load_tie_points,
     map_geometry,
+    save_tie_points,
 )
 from vloc.workers.core.mapdata import MapData
 from vloc.workers.core.sift import SiftFeatures, extract_sift
@@ -126,3 +128,17 @@ def test_tie_points_are_in_working_resolution_pixels():
     d, _ = tree.query(work.keypoints[:, :2])
     assert np.median(d) < 0.5
     assert ties.keypoints[:, 0].max() < 320 and ties.keypoints[:, 1].max() < 240
+
+
+def test_tie_points_saved_and_read_back_memory_mapped(tmp_path):
+    rng = np.random.default_rng(5)
+    for n in (7, 0):
+        tie = SiftFeatures(rng.random((n, 4), dtype=np.float32) * 300,
+                           rng.integers(0, 256, (n, 128), dtype=np.uint8))
+        save_tie_points(tie, tmp_path / f"img{n}")
+        back = load_tie_points(tmp_path / f"img{n}")
+        np.testing.assert_array_equal(back.keypoints, tie.keypoints)
+        np.testing.assert_array_equal(back.descriptors, tie.descriptors)
+        # read through the page cache, not held in the worker's memory
+        assert isinstance(back.descriptors, np.memmap)
+    assert load_tie_points(tmp_path / "never-written") is None
