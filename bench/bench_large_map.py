@@ -2,7 +2,8 @@
 
 A synthetic UAV survey of ``--images`` frames (tiles of 1,000 frames, 40 m up, 6 m apart,
 laid side by side over a few square kilometres: :mod:`large_map_world`) goes through the
-service's own build path, driven in-process on SQLite with one worker process: images enter
+service's own build path, driven in-process on SQLite with ``--workers`` worker processes (one
+by default): images enter
 through ``app.maps.service.add_images`` (screening, full decode in the worker, files and
 rows), each image's features are extracted by ``app.jobs.tasks.extract_image`` in the worker
 as soon as its tile is generated (the world is generated alongside, in a second process),
@@ -77,11 +78,12 @@ CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 # -- the service ---------------------------------------------------------------------------
 
-def service_settings(data_dir: Path):
-    """SQLite in the work directory, one worker process, uploads of synthetic JPEGs."""
+def service_settings(data_dir: Path, workers: int = 1):
+    """SQLite in the work directory, ``workers`` worker processes, uploads of synthetic
+    JPEGs."""
     from vloc.app.config import Settings
 
-    return Settings(data_dir=data_dir, workers=1, admin_key=ADMIN_KEY, log_json=False,
+    return Settings(data_dir=data_dir, workers=workers, admin_key=ADMIN_KEY, log_json=False,
                     max_pixels=2_000_000, session_ttl_s=24 * 3600)
 
 
@@ -514,6 +516,8 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None,
                         help="work directory (default bench/.cache/large-map/IMAGES)")
     parser.add_argument("--frames", type=int, default=200, help="query frames to step")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="the engine's worker processes (the build's parallel stages)")
     parser.add_argument("--postgres", type=int, default=1000, metavar="IMAGES",
                         help="images to copy into PostgreSQL for its size (0: skip)")
     parser.add_argument("--scale-to", type=int, default=50_000,
@@ -537,7 +541,7 @@ def main() -> None:
     stats = load_stats(args.work)
     generator = None if args.no_generate else start_generator(args.work, layout.images,
                                                               layout)
-    settings = service_settings(args.work / "service")
+    settings = service_settings(args.work / "service", args.workers)
     with TestClient(create_app(settings)) as client:
         map_id = find_or_create_map(client)
         ingest(client, map_id, args.work, layout, args.images, stats, generator)

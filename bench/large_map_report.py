@@ -90,8 +90,9 @@ def report(args, layout, stats: dict, load: float) -> str:
     packing = (sum(v["wall_s"] for v in b["stages"].values()),
                sum(v["cpu_s"] for v in b["stages"].values()))
     job_cpu = b["api_cpu"] + b["worker_cpu"]
-    rows.append(("outside the packing: the tie points (`extract_ties`, one call per image on "
-                 "the engine's workers) and bookkeeping", n, b["wall"] - packing[0],
+    rows.append(("outside the packing, on the engine's workers: the tie points "
+                 "(`extract_ties`, one call per image), their pairs (`match_tie_pairs`, "
+                 "batches of pairs) and bookkeeping", n, b["wall"] - packing[0],
                  job_cpu - packing[1], "API + workers"))
     rows.append(("build job in all", n, b["wall"], job_cpu,
                  f"API {b['api_cpu']:.0f} + worker {b['worker_cpu']:.0f}"))
@@ -165,9 +166,9 @@ def report(args, layout, stats: dict, load: float) -> str:
         "",
         "## Build throughput",
         "",
-        "Driven in-process through the service layer on SQLite, one worker process; CPU "
-        "seconds are the API process's plus the worker's, so images/s per core = images / "
-        "CPU seconds.",
+        f"Driven in-process through the service layer on SQLite, {args.workers} worker "
+        "process(es); CPU seconds are the API process's plus the workers', so images/s per "
+        "core = images / CPU seconds.",
         "",
         "| stage | images | wall s | CPU s | CPU ms per image | images/s per core | where |",
         "|---|---|---|---|---|---|---|",

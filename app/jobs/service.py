@@ -12,6 +12,7 @@ import logging
 import shutil
 import uuid
 from dataclasses import dataclass
+from pathlib import Path
 
 from sqlalchemy import bindparam, func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
@@ -32,9 +33,16 @@ log = logging.getLogger(__name__)
 EXTRACT_SHARE = 0.5
 """Share of the progress bar that feature extraction fills."""
 
-TIE_SHARE = 0.3
-"""Share it fills next while the reconstruction's tie points are extracted; packing the map
-is the rest."""
+TIE_SHARE = 0.2
+"""Share it fills next while the reconstruction's tie points are extracted, ..."""
+
+PAIR_SHARE = 0.15
+"""... and next while the engine's workers match them pair by pair; packing the map is the
+rest."""
+
+PAIR_BATCH = 256
+"""Pairs of map images matched per engine call: a few seconds of work, so that a call's
+overhead is small and the progress still moves."""
 
 
 def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
@@ -123,13 +131,37 @@ class BuildRunner(BackgroundRunner):
             for done, fut in enumerate(asyncio.as_completed(ties), start=1):
                 await fut
                 if done % every == 0 or done == len(ties):
-                    await asyncio.to_thread(self._tie_progress, job_id, done, len(ties))
+                    await asyncio.to_thread(self._set_progress, job_id,
+                                            EXTRACT_SHARE + TIE_SHARE * done / len(ties))
+            await self._match_pairs(job_id, url, map_id, tie_dir)
             packed = await asyncio.wrap_future(self.engine.call(
                 tasks.pack_map, url, str(map_id), revision, str(folder),
                 lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir)))
         finally:
             await asyncio.to_thread(shutil.rmtree, tie_dir, True)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
+
+    async def _match_pairs(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
+                           tie_dir: Path) -> None:
+        """The reconstruction's pairs of neighbouring images, matched from their tie points in
+        batches by the engine's workers (:mod:`vloc.workers.core.tiepairs`); the packing
+        reads the results from ``tie_dir``."""
+        plan = await asyncio.wrap_future(self.engine.call(
+            tasks.plan_tie_pairs, url, str(map_id), str(tie_dir)))
+        ids, pairs = plan["image_ids"], plan["pairs"]
+        batches = []
+        for k in range(0, len(pairs), PAIR_BATCH):
+            batch = pairs[k:k + PAIR_BATCH]
+            names = {i: ids[i] for pair in batch for i in pair}
+            batches.append(asyncio.wrap_future(self.engine.call(
+                tasks.match_tie_pairs, str(tie_dir), names, batch, len(batches))))
+        start = EXTRACT_SHARE + TIE_SHARE
+        every = max(1, len(batches) // 100)
+        for done, fut in enumerate(asyncio.as_completed(batches), start=1):
+            await fut
+            if done % every == 0 or done == len(batches):
+                await asyncio.to_thread(self._set_progress, job_id,
+                                        start + PAIR_SHARE * done / len(batches))
 
     # -- database steps (threads) -----------------------------------------------------------
 
@@ -166,10 +198,9 @@ class BuildRunner(BackgroundRunner):
                 n_extracted=done, progress=EXTRACT_SHARE * done / max(total, 1)))
             db.commit()
 
-    def _tie_progress(self, job_id: uuid.UUID, done: int, total: int) -> None:
+    def _set_progress(self, job_id: uuid.UUID, progress: float) -> None:
         with self.db_sessions() as db:
-            db.execute(update(BuildJob).where(BuildJob.id == job_id).values(
-                progress=EXTRACT_SHARE + TIE_SHARE * done / max(total, 1)))
+            db.execute(update(BuildJob).where(BuildJob.id == job_id).values(progress=progress))
             db.commit()
 
     def _next_revision(self, map_id: uuid.UUID) -> int:

@@ -98,6 +98,33 @@ def extract_ties(path: str | None, stem: str) -> int:
     return len(tie)
 
 
+def plan_tie_pairs(database_url: str, map_id: str, tie_dir: str) -> dict:
+    """The pairs of the map's images whose tie points its geometry matches (indices in map
+    order, :func:`vloc.workers.core.tiepairs.plan`) and the image ids they index, recorded
+    in ``tie_dir`` for :func:`pack_map`."""
+    from vloc.workers.core import tiepairs
+
+    images = _read_images(database_url, map_id)
+    ids = [img["id"] for img in images]
+    tiepairs.save_plan(tie_dir, ids)
+    pairs = tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
+                          [img["alt"] for img in images])
+    return {"image_ids": ids, "pairs": pairs}
+
+
+def match_tie_pairs(tie_dir: str, image_ids: dict[int, int], pairs: list[tuple[int, int]],
+                    batch: int) -> int:
+    """Match a batch of the planned pairs (:func:`plan_tie_pairs`) from the tie points in
+    ``tie_dir`` (``image_ids``: map index -> image id of the images they name); run by the
+    engine's workers, the results written to ``tie_dir`` for :func:`pack_map`. Returns how
+    many verified."""
+    from vloc.workers.core import tiepairs
+
+    stems = {i: tie_stem(tie_dir, image_id) for i, image_id in image_ids.items()}
+    return tiepairs.match_batch(stems, [tuple(p) for p in pairs],
+                                Path(tie_dir) / f"pairs-{batch:06d}.npz")
+
+
 def tie_stem(tie_dir: str | Path, image_id: int) -> str:
     """Where a build keeps image ``image_id``'s tie points in ``tie_dir``."""
     return str(Path(tie_dir) / str(image_id))
@@ -166,7 +193,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     build runs it over the images in parallel); an image without them there has them
     extracted here from its file in ``image_files`` (image id -> file), and one whose file
     is missing or unreadable is tied by its stored SIFT. Without ``tie_dir`` they go to a
-    folder beside ``folder``, removed afterwards.
+    folder beside ``folder``, removed afterwards. Pairs of them matched in ``tie_dir``
+    beforehand (:func:`match_tie_pairs`) are not matched again.
 
     The place descriptors' vocabularies are trained here on the map's images and stored in
     ``map_vocabularies`` under ``revision`` (replacing rows a failed earlier attempt at the
@@ -181,6 +209,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         ``origin`` (lat, lon, alt), ``image_ids`` (in map order) and their ``east`` and
         ``north`` in the new local frame.
     """
+    from vloc.workers.core import tiepairs
     from vloc.workers.core.mapbuild import (
         assemble_map,
         load_tie_points,
@@ -202,6 +231,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                 if tie is None and extract_ties((image_files or {}).get(img["id"]), stem) >= 0:
                     tie = load_tie_points(stem)
                 ties.append(tie)
+        with stage(timings, "reading tie pairs"):
+            known = tiepairs.load_results(ties_at, [img["id"] for img in images])
         # The features go straight into the map: holding no list of them here lets the
         # build drop each image's decoded copy once the map has packed them.
         data = assemble_map(names=[img["filename"] for img in images],
@@ -211,7 +242,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                             features=_read_features(database_url, map_id, images, ties,
                                                     timings),
                             captured_at=[img["captured_at"] for img in images],
-                            map_id=map_id, revision=revision,
+                            map_id=map_id, revision=revision, known_pairs=known,
                             focal_px=typical_focal_px(_readers(lens_files or [])),
                             timings=timings)
     finally:

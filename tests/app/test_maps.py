@@ -380,3 +380,54 @@ def test_tie_points_are_extracted_to_files_and_unreadable_images_say_so(tmp_path
     (tmp_path / "bad.jpg").write_bytes(b"not an image")
     assert extract_ties(str(tmp_path / "bad.jpg"), str(tmp_path / "3")) == -1
     assert load_tie_points(tmp_path / "2") is None and load_tie_points(tmp_path / "3") is None
+
+
+def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
+        module_client, shots, tmp_path, monkeypatch):
+    """The build's pair phase (plan, batches on the workers) hands the packing every pair it
+    needs: packed with them, no pair is matched in the packing, and the map is the map the
+    packing builds by matching every pair itself."""
+    from sqlalchemy import select
+
+    from vloc.app.jobs import tasks
+    from vloc.app.maps.models import MapImage
+    from vloc.app.maps.service import image_path
+    from vloc.workers.core import tiepairs
+    from vloc.workers.core.geometry import reconstruct
+
+    c = module_client
+    ctx = c.app.state.ctx
+    map_id = new_map(c)
+    assert c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][:6]),
+                  headers=ADMIN).status_code == 201
+    assert wait_job(c, c.post(f"/v1/maps/{map_id}/build",
+                              headers=ADMIN).json()["job_id"])["status"] == "done"
+    url = ctx.settings.resolved_database_url
+    with ctx.db_sessions() as db:
+        files = {img.id: str(image_path(ctx.settings, img)) for img in db.scalars(
+            select(MapImage).where(MapImage.map_id == uuid.UUID(map_id)))}
+    ties = tmp_path / "ties"
+    ties.mkdir()
+    for image_id, path in files.items():
+        assert tasks.extract_ties(path, tasks.tie_stem(ties, image_id)) > 0
+    plan = tasks.plan_tie_pairs(url, map_id, str(ties))
+    assert plan["image_ids"] == sorted(files) and len(plan["pairs"]) >= 5
+    ids = plan["image_ids"]
+    for k, pair in enumerate(plan["pairs"]):
+        tasks.match_tie_pairs(str(ties), {i: ids[i] for i in pair}, [pair], k)
+    assert len(list(ties.glob(tiepairs.RESULTS_GLOB))) == len(plan["pairs"])
+
+    matched_here = []
+    real = reconstruct.match_pair
+    monkeypatch.setattr(reconstruct, "match_pair",
+                        lambda *a, **k: matched_here.append(a[:2]) or real(*a, **k))
+    tasks.pack_map(url, map_id, 90, str(tmp_path / "apart"), image_files=files,
+                   tie_dir=str(ties))
+    assert matched_here == []
+    tasks.pack_map(url, map_id, 91, str(tmp_path / "here"), image_files=files)
+    assert sorted(matched_here) == sorted(tuple(p) for p in plan["pairs"])
+    apart, here = MapData.load(tmp_path / "apart"), MapData.load(tmp_path / "here")
+    assert (apart.geometry is None) == (here.geometry is None)
+    if here.geometry is not None:
+        np.testing.assert_array_equal(apart.geometry.centres, here.geometry.centres)
+    np.testing.assert_array_equal(apart.positions, here.positions)

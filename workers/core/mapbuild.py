@@ -119,12 +119,26 @@ def load_tie_points(stem: str | Path) -> SiftFeatures | None:
                         np.load(stem.with_name(stem.name + ".desc.npy"), mmap_mode="r"))
 
 
+def local_frame(lats, lons, alts, origin: GeoOrigin | None = None,
+                ) -> tuple[GeoOrigin, np.ndarray, np.ndarray]:
+    """The local frame a map of these images is packed in (``origin``, by default at their
+    centroid), their (N, 2) east/north in it and their (N,) altitudes (NaN where None)."""
+    lat = np.asarray(lats, np.float64)
+    lon = np.asarray(lons, np.float64)
+    alt = np.array([np.nan if a is None else a for a in alts], np.float64)
+    if origin is None:
+        origin = GeoOrigin.centroid_of(lat, lon, np.where(np.isfinite(alt), alt, 0.0))
+    east, north = origin.to_local(lat, lon)
+    return origin, np.stack([np.atleast_1d(east), np.atleast_1d(north)], axis=1), alt
+
+
 def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  captured_at=None, map_id: str = "", revision: int = 0,
                  origin: GeoOrigin | None = None, reduce_sift: bool = True,
                  ratio: float = RATIO, geometry: bool = True,
                  focal_px: float | None = None,
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
+                 known_pairs: dict | None = None,
                  timings: dict[str, tuple[float, float]] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
@@ -153,6 +167,9 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     seed : int
         Seeds the vocabulary training and the reconstruction's RANSAC: the same images
         give the same map.
+    known_pairs : dict, optional
+        The reconstruction's tie-point pairs matched beforehand with the same ``seed``
+        (:mod:`workers.core.tiepairs`); the others are matched here.
     timings : dict, optional
         Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
         ``"vocabularies"`` (training and describing every image), ``"packing"``,
@@ -168,14 +185,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         raise ValueError("names, lats, lons, alts and features must have the same length")
     if n == 0:
         raise ValueError("a map needs at least one image")
-    lat = np.asarray(lats, np.float64)
-    lon = np.asarray(lons, np.float64)
-    alt = np.array([np.nan if a is None else a for a in alts], np.float64)
-    alt0 = np.where(np.isfinite(alt), alt, 0.0)
-    if origin is None:
-        origin = GeoOrigin.centroid_of(lat, lon, alt0)
-    east, north = origin.to_local(lat, lon)
-    xy = np.stack([np.atleast_1d(east), np.atleast_1d(north)], axis=1)
+    origin, xy, alt = local_frame(lats, lons, alts, origin)
     names_in_all = set.intersection(*(set(f.global_features) for f in features))
     glob = {name: np.stack([f.global_features[name] for f in features]).astype(np.float32)
             for name in sorted(names_in_all)}
@@ -207,7 +217,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                                 for name, (_, matrix) in trained.items()}
     if geometry:
         with stage(timings, "geometry"):
-            data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties)
+            data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
+                                         known_pairs=known_pairs)
     return data
 
 
@@ -224,12 +235,14 @@ def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
 
 
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
-                 tie_points: list[SiftFeatures | None] | None = None):
+                 tie_points: list[SiftFeatures | None] | None = None,
+                 known_pairs: dict | None = None):
     """The map's camera geometry with every stored SIFT (and ORB) keypoint on the ground,
     or None.
 
     ``tie_points`` (one per image, None where missing) tie the images together; an image
-    without them is tied by its stored SIFT.
+    without them is tied by its stored SIFT. ``known_pairs`` are pairs of them matched
+    beforehand (:func:`~workers.core.geometry.build_geometry`).
     """
     width, height = WORK_SIZE
     f = focal_px if focal_px else focal_from_fov(DEFAULT_HFOV_DEG, width)
@@ -241,7 +254,8 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     kps = [t.keypoints for t in ties]
     desc = [t.descriptors for t in ties]
     geo = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
-                         Intrinsics.centred(f, width, height), rng=np.random.default_rng(seed))
+                         Intrinsics.centred(f, width, height), seed=seed,
+                         known_pairs=known_pairs)
     if geo is not None:
         geo.add_ground("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets))
         if data.has_orb:

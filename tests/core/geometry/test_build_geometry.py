@@ -25,7 +25,7 @@ def _build(s, gps_sigma=0.3, seed=0):
     rng = np.random.default_rng(seed)
     gps = s.positions + rng.normal(0.0, gps_sigma, s.positions.shape)
     alt = s.altitudes + rng.normal(0.0, 0.2, len(gps))
-    return build_geometry(s.keypoints, s.image_descriptors, gps, alt, K0, rng=rng)
+    return build_geometry(s.keypoints, s.image_descriptors, gps, alt, K0, seed=seed)
 
 
 @pytest.fixture(scope="module")
@@ -52,14 +52,14 @@ def test_build_geometry_of_a_survey(surveyed):
 def test_build_geometry_needs_three_images(n):
     s = survey(np.random.default_rng(0), rows=1, cols=3)
     assert build_geometry(s.keypoints[:n], s.image_descriptors[:n], s.positions[:n],
-                          s.altitudes[:n], K0, rng=np.random.default_rng(0)) is None
+                          s.altitudes[:n], K0) is None
 
 
 def test_build_geometry_of_unrelated_images_is_none():
     rng = np.random.default_rng(1)
     s = survey(rng, rows=1, cols=4)
     desc = [rng.integers(0, 256, d.shape, dtype=np.uint8) for d in s.image_descriptors]
-    assert build_geometry(s.keypoints, desc, s.positions, s.altitudes, K0, rng=rng) is None
+    assert build_geometry(s.keypoints, desc, s.positions, s.altitudes, K0) is None
 
 
 def test_build_geometry_of_a_low_camera_is_none():
@@ -77,12 +77,11 @@ def test_build_geometry_whose_heights_its_altitudes_do_not_follow_is_none():
     assert _build(s) is not None
     scattered = np.random.default_rng(4).normal(0.0, 0.35 * np.median(s.centres[:, 2]),
                                                 len(s.altitudes))
-    rng = np.random.default_rng(0)
     assert build_geometry(s.keypoints, s.image_descriptors, s.positions,
-                          s.altitudes + scattered, K0, rng=rng) is None
+                          s.altitudes + scattered, K0) is None
     # without altitudes the check cannot say, and does not refuse
     assert build_geometry(s.keypoints, s.image_descriptors, s.positions,
-                          np.full(len(s.altitudes), np.nan), K0, rng=rng) is not None
+                          np.full(len(s.altitudes), np.nan), K0) is not None
 
 
 def _frame(s, R, C):

@@ -219,8 +219,7 @@ def test_ground_points_places_keypoints_under_their_cameras():
 def test_match_pairs_finds_the_overlapping_images():
     rng = np.random.default_rng(4)
     s = survey(rng, max_tilt_deg=3.0)
-    pairs = match_pairs(s.keypoints, s.image_descriptors, s.positions, max_distance=40.0,
-                        rng=np.random.default_rng(0))
+    pairs = match_pairs(s.keypoints, s.image_descriptors, s.positions, max_distance=40.0)
     found = {(p.a, p.b) for p in pairs}
     n = len(s.centres)
     overlapping = {(a, b) for a in range(n) for b in range(a + 1, n)
@@ -233,8 +232,7 @@ def test_match_pairs_finds_the_overlapping_images():
         ph = np.column_stack([p.pa, np.ones(len(p.pa))]) @ p.homography.T
         np.testing.assert_allclose(ph[:, :2] / ph[:, 2:], p.pb, atol=1e-2)
     # nothing further apart than max_distance is tried
-    near = match_pairs(s.keypoints, s.image_descriptors, s.positions, max_distance=10.0,
-                       rng=np.random.default_rng(0))
+    near = match_pairs(s.keypoints, s.image_descriptors, s.positions, max_distance=10.0)
     assert near == []
 
 
@@ -243,8 +241,8 @@ def test_match_pairs_of_unrelated_images_is_empty():
     kps = [rng.uniform(0, 300, (200, 4)).astype(np.float32) for _ in range(4)]
     desc = [rng.integers(0, 256, (200, 128), dtype=np.uint8) for _ in range(4)]
     pos = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
-    assert match_pairs(kps, desc, pos, max_distance=50.0, rng=rng) == []
-    assert match_pairs(kps[:1], desc[:1], pos[:1], max_distance=50.0, rng=rng) == []
+    assert match_pairs(kps, desc, pos, max_distance=50.0) == []
+    assert match_pairs(kps[:1], desc[:1], pos[:1], max_distance=50.0) == []
 
 
 

@@ -18,7 +18,13 @@ from threadpoolctl import threadpool_limits
 
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
-from .reconstruct import match_pairs, reconstruct_in_blocks
+from .reconstruct import (
+    PairMatches,
+    candidate_pairs,
+    match_pair,
+    match_pairs,
+    reconstruct_in_blocks,
+)
 from .register import Registration, register_frame
 
 MAX_RESIDUAL_PX: float = 4.0
@@ -42,9 +48,27 @@ the synthetic robot world, where the survey worlds give 0.10 (UAV, 20 m up) and 
 0.035. Maps without altitudes are not judged by it."""
 
 
+def tie_reach(positions: np.ndarray) -> float:
+    """How far apart (m) two map images may be for their tie points to be matched: footprints
+    overlap over a few spacings, so three median spacings to the nearest image."""
+    # A KD-tree, not a distance matrix: the matrix of a 50,000-image map is 20 GB.
+    nearest, _ = cKDTree(positions).query(positions, k=2)
+    return max(3.0 * float(np.median(nearest[:, 1])), 1.0)
+
+
+def tie_pairs(positions: np.ndarray) -> list[tuple[int, int]]:
+    """The pairs of map images whose tie points :func:`build_geometry` matches."""
+    positions = np.asarray(positions, np.float64)
+    if len(positions) < 3:
+        return []
+    return candidate_pairs(positions, max_distance=tie_reach(positions))
+
+
 def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
                    positions: np.ndarray, altitudes: np.ndarray, K0: Intrinsics, *,
-                   rng: np.random.Generator) -> MapGeometry | None:
+                   seed: int = 0,
+                   known_pairs: dict[tuple[int, int], PairMatches | None] | None = None,
+                   ) -> MapGeometry | None:
     """Reconstruct the map cameras, or None when the map is not a plane seen from above.
 
     Parameters
@@ -57,21 +81,22 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
         GPS altitudes, NaN where unknown.
     K0 : Intrinsics
         Initial camera intrinsics (EXIF or an assumed field of view).
+    seed : int
+        Seeds the matching's RANSAC and tie-point draws, pair by pair.
+    known_pairs : dict, optional
+        Pairs of :func:`tie_pairs` matched elsewhere with the same ``seed``
+        (:func:`.reconstruct.match_pair`); the rest are matched here.
     """
     positions = np.asarray(positions, np.float64)
     if len(positions) < 3:
         return None
-    # Footprints overlap over a few spacings; tie images up to three median spacings apart.
-    # A KD-tree, not a distance matrix: the matrix of a 50,000-image map is 20 GB.
-    nearest, _ = cKDTree(positions).query(positions, k=2)
-    reach = 3.0 * float(np.median(nearest[:, 1]))
     # The incremental reconstruction amplifies rounding: the same tie points solved with
     # OpenBLAS on one thread and on two give focal lengths 0.4 px and camera centres up to
     # 0.4 m apart. One BLAS thread, as in the engine's workers, makes a map build the same
     # wherever it runs.
     with threadpool_limits(limits=1, user_api="blas"):
-        pairs = match_pairs(keypoints, descriptors, positions, max_distance=max(reach, 1.0),
-                            rng=rng)
+        pairs = match_pairs(keypoints, descriptors, positions,
+                            max_distance=tie_reach(positions), seed=seed, known=known_pairs)
         rec = reconstruct_in_blocks(pairs, positions, np.asarray(altitudes, np.float64), K0)
     done = rec.reconstructed
     if done.mean() < MIN_RECONSTRUCTED or not math.isfinite(rec.residual_px):
@@ -122,5 +147,6 @@ def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
     return register_frame(fp, gx, img, K, height_range=geometry.height_range())
 
 
-__all__ = ["Intrinsics", "MapGeometry", "Registration", "build_geometry", "focal_from_exif",
-           "focal_from_fov", "register_against"]
+__all__ = ["Intrinsics", "MapGeometry", "PairMatches", "Registration", "build_geometry",
+           "focal_from_exif", "focal_from_fov", "match_pair", "register_against", "tie_pairs",
+           "tie_reach"]

@@ -80,11 +80,61 @@ class PlaneReconstruction:
         return np.isfinite(self.centres[:, 0])
 
 
+def candidate_pairs(positions: np.ndarray, *, max_distance: float,
+                    neighbours: int = 8) -> list[tuple[int, int]]:
+    """Pairs ``(a, b)``, ``a < b``, of map images worth matching, ascending: each image with
+    those of its ``neighbours`` GPS-nearest that lie closer than ``max_distance`` (m)."""
+    n = len(positions)
+    if n < 2:
+        return []
+    dist, idx = cKDTree(positions).query(positions, k=min(neighbours + 1, n))
+    pairs = set()
+    for i in range(n):
+        for d, j in zip(np.atleast_1d(dist[i])[1:], np.atleast_1d(idx[i])[1:], strict=True):
+            if d <= max_distance and j != i:
+                pairs.add((min(i, int(j)), max(i, int(j))))
+    return sorted(pairs)
+
+
+def match_pair(a: int, b: int, keypoints_a: np.ndarray, descriptors_a: np.ndarray,
+               keypoints_b: np.ndarray, descriptors_b: np.ndarray, *, ratio: float = 0.8,
+               min_inliers: int = 10, max_per_pair: int = 30, ransac_px: float = 3.0,
+               seed: int = 0) -> PairMatches | None:
+    """Verified tie points between map images ``a`` and ``b``: ratio-test matches that agree
+    with one RANSAC homography, at most ``max_per_pair`` of them (drawn at random); None
+    when fewer than ``min_inliers`` agree.
+
+    Everything random is seeded by ``(seed, a, b)`` alone, so a pair gives the same tie
+    points whichever process matches it and whatever it matched before.
+    """
+    from ..sift import ratio_matches
+
+    m = ratio_matches(descriptors_a, descriptors_b, ratio=ratio)
+    if len(m) < min_inliers:
+        return None
+    pa = np.asarray(keypoints_a[m[:, 0], :2], np.float64)
+    pb = np.asarray(keypoints_b[m[:, 1], :2], np.float64)
+    # OpenCV's RANSAC draws from a per-thread generator whose state depends on what the
+    # process did before: seed it per pair
+    cv2.setRNGSeed((seed * 1_000_003 + a * 100_003 + b) % 2 ** 31)
+    H, mask = cv2.findHomography(pa, pb, cv2.RANSAC, ransac_px)
+    if H is None:
+        return None
+    sel = np.flatnonzero(mask.ravel())
+    if len(sel) < min_inliers:
+        return None
+    if len(sel) > max_per_pair:
+        rng = np.random.default_rng((seed, a, b))
+        sel = np.sort(rng.choice(sel, size=max_per_pair, replace=False))
+    return PairMatches(a, b, pa[sel], pb[sel], H)
+
+
 def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
                 positions: np.ndarray, *, max_distance: float, neighbours: int = 8,
-                ratio: float = 0.8, min_inliers: int = 10, max_per_pair: int = 30,
-                ransac_px: float = 3.0, rng: np.random.Generator) -> list[PairMatches]:
-    """Verified matches between each map image and its GPS neighbours.
+                seed: int = 0, known: dict[tuple[int, int], PairMatches | None] | None = None,
+                **options) -> list[PairMatches]:
+    """Verified matches between each map image and its GPS neighbours
+    (:func:`candidate_pairs`, :func:`match_pair`).
 
     Parameters
     ----------
@@ -97,40 +147,21 @@ def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
     max_distance : float
         Only pairs closer than this (m) are tried: further apart the footprints cannot
         overlap.
+    known : dict, optional
+        Pairs already matched elsewhere (the build matches them in parallel), their
+        result None where they did not verify; the others are matched here.
+    options
+        :func:`match_pair`'s.
     """
-    from ..sift import ratio_matches
-
-    n = len(keypoints)
-    if n < 2:
-        return []
-    tree = cKDTree(positions)
-    k = min(neighbours + 1, n)
-    dist, idx = tree.query(positions, k=k)
-    pairs = set()
-    for i in range(n):
-        for d, j in zip(np.atleast_1d(dist[i])[1:], np.atleast_1d(idx[i])[1:], strict=True):
-            if d <= max_distance and j != i:
-                pairs.add((min(i, int(j)), max(i, int(j))))
     out = []
-    for a, b in sorted(pairs):
-        m = ratio_matches(descriptors[a], descriptors[b], ratio=ratio)
-        if len(m) < min_inliers:
-            continue
-        pa = np.asarray(keypoints[a][m[:, 0], :2], np.float64)
-        pb = np.asarray(keypoints[b][m[:, 1], :2], np.float64)
-        # OpenCV's RANSAC draws from a per-thread generator whose state depends on what the
-        # process did before: seed it per pair, so that a map builds the same anywhere
-        cv2.setRNGSeed(a * 100_003 + b)
-        H, mask = cv2.findHomography(pa, pb, cv2.RANSAC, ransac_px)
-        if H is None:
-            continue
-        inl = mask.ravel().astype(bool)
-        if inl.sum() < min_inliers:
-            continue
-        sel = np.flatnonzero(inl)
-        if len(sel) > max_per_pair:
-            sel = np.sort(rng.choice(sel, size=max_per_pair, replace=False))
-        out.append(PairMatches(a, b, pa[sel], pb[sel], H))
+    for a, b in candidate_pairs(positions, max_distance=max_distance, neighbours=neighbours):
+        if known is not None and (a, b) in known:
+            p = known[(a, b)]
+        else:
+            p = match_pair(a, b, keypoints[a], descriptors[a], keypoints[b], descriptors[b],
+                           seed=seed, **options)
+        if p is not None:
+            out.append(p)
     return out
 
 

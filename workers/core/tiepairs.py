@@ -1,0 +1,110 @@
+"""The reconstruction's tie-point pairs, matched in parallel ahead of the packing.
+
+Matching the tie points of neighbouring map images (ratio test over two thousand SIFT each,
+then a RANSAC homography; :func:`~workers.core.geometry.match_pair`) is most of a map's
+geometry: about 90 ms an image on one core, an hour and a half for 50,000 images. The pairs
+are independent, and each is seeded by its own indices, so a build plans them
+(:func:`plan`), lets the engine's workers match batches of them from the tie points on disk
+(:func:`match_batch`, one file of results per batch) and hands the results to the packing
+(:func:`load_results`), which matches only what is missing. The map comes out the same as
+when one process matches every pair.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .geometry import PairMatches, match_pair, tie_pairs
+from .mapbuild import load_tie_points, local_frame
+
+RESULTS_GLOB = "pairs-*.npz"
+PLAN_FILE = "pairs-plan.npy"
+"""The image ids, in map order, that the pairs' indices refer to."""
+
+
+def plan(lats, lons, alts) -> list[tuple[int, int]]:
+    """The pairs (indices in map order) whose tie points the map's geometry matches: those
+    :func:`~workers.core.mapbuild.assemble_map` would match for images at these positions."""
+    _, xy, _ = local_frame(lats, lons, alts)
+    return tie_pairs(xy)
+
+
+def save_plan(folder: str | Path, image_ids: list[int]) -> None:
+    """Record which images the pairs matched into ``folder`` index (:func:`load_results`)."""
+    np.save(Path(folder) / PLAN_FILE, np.asarray(image_ids, np.int64))
+
+
+def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | Path, *,
+                seed: int = 0) -> int:
+    """Match ``pairs`` of map images from their tie points and write the results to ``out``
+    (:func:`save_results`).
+
+    ``stems[i]`` is where image ``i``'s tie points were written
+    (:func:`~workers.core.mapbuild.save_tie_points`); a pair with an image whose tie points
+    are missing is left out, for the packing to match from the image's stored SIFT.
+    Returns the number of pairs that verified.
+    """
+    cache: dict[int, object] = {}
+
+    def ties(i: int):
+        if i not in cache:
+            cache[i] = load_tie_points(stems[i])
+        return cache[i]
+
+    done: list[tuple[int, int, PairMatches | None]] = []
+    for a, b in pairs:
+        ta, tb = ties(a), ties(b)
+        if ta is None or tb is None:
+            continue
+        done.append((a, b, match_pair(a, b, ta.keypoints, ta.descriptors, tb.keypoints,
+                                      tb.descriptors, seed=seed)))
+    save_results(done, out)
+    return sum(p is not None for _, _, p in done)
+
+
+def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Path) -> None:
+    """Matched pairs as one ``.npz``: each pair tried, whether it verified, and the tie
+    points and homography of those that did. Written under a temporary name and renamed, so
+    a file under ``out`` is always whole."""
+    ok = [p for _, _, p in done if p is not None]
+    arrays = {
+        "a": np.array([a for a, _, _ in done], np.int64),
+        "b": np.array([b for _, b, _ in done], np.int64),
+        "verified": np.array([p is not None for _, _, p in done], bool),
+        "counts": np.array([len(p.pa) for p in ok], np.int64),
+        "pa": np.concatenate([p.pa for p in ok]) if ok else np.zeros((0, 2)),
+        "pb": np.concatenate([p.pb for p in ok]) if ok else np.zeros((0, 2)),
+        "homographies": np.stack([p.homography for p in ok]) if ok else np.zeros((0, 3, 3)),
+    }
+    out = Path(out)
+    tmp = out.with_name(out.name + ".part.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(out)
+
+
+def load_results(folder: str | Path, image_ids: list[int],
+                 ) -> dict[tuple[int, int], PairMatches | None]:
+    """Every pair matched into ``folder`` (:func:`match_batch`): (a, b) -> its tie points,
+    None where it did not verify. Empty when the plan was made for other images than
+    ``image_ids`` (the map changed in between; the packing then matches every pair)."""
+    out: dict[tuple[int, int], PairMatches | None] = {}
+    plan_file = Path(folder) / PLAN_FILE
+    if not plan_file.is_file() or not np.array_equal(np.load(plan_file),
+                                                      np.asarray(image_ids, np.int64)):
+        return out
+    for path in sorted(Path(folder).glob(RESULTS_GLOB)):
+        with np.load(path) as z:
+            a, b, verified, counts = z["a"], z["b"], z["verified"], z["counts"]
+            pa, pb, hs = z["pa"], z["pb"], z["homographies"]
+        ends = np.concatenate([[0], np.cumsum(counts)])
+        k = 0
+        for i, j, good in zip(a.tolist(), b.tolist(), verified.tolist(), strict=True):
+            if good:
+                out[(i, j)] = PairMatches(i, j, pa[ends[k]:ends[k + 1]],
+                                          pb[ends[k]:ends[k + 1]], hs[k])
+                k += 1
+            else:
+                out[(i, j)] = None
+    return out
