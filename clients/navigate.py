@@ -266,10 +266,13 @@ def run_navigate(opts: NavigateOptions, say: Callable[[str], None] = print) -> d
             f"{results['repeat']['max_cross_track_m']:.2f} m")
         runs = [main]
         starts = []
+        # the starts are drawn apart from the actuation noise, so that they are the same
+        # starts whatever the runs before them did
+        where = np.random.default_rng(opts.seed + 2)
         for i in range(opts.starts):
-            side = rng.choice([-1.0, 1.0])
-            turn = rng.choice([-1.0, 1.0])
-            at = int(rng.integers(5, max(6, len(taught) - 40)))
+            side = where.choice([-1.0, 1.0])
+            turn = where.choice([-1.0, 1.0])
+            at = int(where.integers(5, max(6, len(taught) - 40)))
             st = offset_start(taught, side * 1.0, turn * math.radians(20.0), at=at)
             run = repeat(client, m.id, route.id, camera, taught, st, opts=opts, rng=rng,
                          frames=frames, max_frames=int(opts.start_travel_m / 0.3) + 10,

@@ -64,13 +64,40 @@ def test_outlier_fix_is_gated():
     assert st.state[0] < -10
 
 
+def test_fixes_that_keep_disagreeing_start_the_filter_again():
+    """One fix outside the gate is a false recognition; REACQUIRE of them in a row mean the
+    filter is the one that is wrong, and it starts again from the last fix, keeping its
+    velocities. A fix inside the gate in between resets the count."""
+    from vloc.workers.core.navigation.follower import REACQUIRE
+
+    path = _path()
+    follower = PathFollower(path, [0.0])
+    for k in range(5):
+        follower.step((-15 + 0.6 * k, 0.0), np.eye(2) * 0.01, heading=0.0)
+    for k in range(REACQUIRE - 1):
+        st = follower.step((-12.0 + 0.6 * k, 2.0), np.eye(2) * 0.01, heading=0.3)
+        assert not st.fused and abs(st.state[1]) < 0.5
+    st = follower.step((-10.5, 0.0), np.eye(2) * 0.01, heading=0.0)   # agrees: count reset
+    assert st.fused
+    for k in range(REACQUIRE):
+        st = follower.step((-10.0 + 0.6 * k, 2.0), np.eye(2) * 0.01, heading=0.3)
+    assert st.fused
+    assert st.state[:3] == pytest.approx((-10.0 + 0.6 * (REACQUIRE - 1), 2.0, 0.3))
+    assert st.state[3] > 0.1           # still driving: the velocities were kept
+    # the new estimate is the filter's from now on: fixes beside it are fused
+    assert follower.step((-8.0, 2.0), np.eye(2) * 0.01, heading=0.3).fused
+
+
 def test_checkpoint_restores_the_same_commands():
     path = _path()
     a = PathFollower(path, [0.0])
     for k in range(6):
         a.step((-15 + 0.6 * k, 0.1), np.eye(2) * 0.04, captured_at=float(k))
+    a.step((5.0, 9.0), np.eye(2) * 0.01)   # rejected: the count travels with the state
+    assert a.rejected == 1
     b = PathFollower(path, [0.0])
     b.set_state(a.get_state())
+    assert b.rejected == 1
     sa = a.step((-11.3, 0.2), np.eye(2) * 0.04, captured_at=6.0)
     sb = b.step((-11.3, 0.2), np.eye(2) * 0.04, captured_at=6.0)
     assert sa == sb

@@ -19,8 +19,9 @@ def _localiser(n: int = 12, spacing: float = 0.6) -> NavigatingLocaliser:
     return NavigatingLocaliser(inner, {"points": points, "nodes": [0] * n, "names": names})
 
 
-def _view(forward, left, yaw, sigma=0.1, yaw_sigma=math.radians(1.0)):
-    return MetricView(forward, left, yaw, np.diag([sigma ** 2, sigma ** 2, yaw_sigma ** 2]), 30)
+def _view(forward, left, yaw, sigma=0.1, yaw_sigma=math.radians(1.0), inliers=30):
+    return MetricView(forward, left, yaw, np.diag([sigma ** 2, sigma ** 2, yaw_sigma ** 2]),
+                      inliers)
 
 
 def test_two_agreeing_views_are_fused_by_their_information(monkeypatch):
@@ -58,6 +59,18 @@ def test_views_that_disagree_give_no_fix(monkeypatch):
     monkeypatch.setattr(session, "triangulate", lambda *a: "points")
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     assert loc._metric_fix(8, feats=None) is None
+
+
+def test_a_view_on_too_few_points_is_not_used(monkeypatch):
+    loc = _localiser()
+    few = session.METRIC_MIN_INLIERS - 1
+    views = {8: _view(0.2, 0.8, 0.0, inliers=few), 7: _view(0.8, 0.8, 0.0),
+             6: _view(1.4, 0.8, 0.0, inliers=few)}
+    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
+    assert loc._metric_fix(8, feats=None) is None
+    views[6] = _view(1.4, 0.8, 0.0, inliers=few + 1)
+    assert loc._metric_fix(8, feats=None)["xy"][1] == pytest.approx(0.8)
 
 
 def test_a_view_beyond_reach_is_not_used(monkeypatch):

@@ -15,6 +15,12 @@ CHI2_GATE = {1: 10.8, 2: 13.8, 3: 16.3}
 """99.9 % quantiles of chi-square with 1, 2 and 3 degrees of freedom: a fix further than this
 from the filter's prediction is taken for a false recognition and not fused (Li et al.
 trace the failures of Fig. 13 to false recognitions)."""
+REACQUIRE = 3
+"""After this many fixes in a row fall outside the gate, the filter is started again from the
+last one. A gate protects a right estimate from a false recognition, but it also keeps a
+wrong, overconfident estimate from ever hearing the fixes that would correct it: starting
+1 m beside the path and 20 degrees off, such a filter drove the robot several metres away
+while the fixes said where it was."""
 
 
 @dataclass(frozen=True)
@@ -116,6 +122,7 @@ class PathFollower:
         self.arrived = False
         self.last_time: float | None = None
         self.fixes = 0
+        self.rejected = 0
 
     def step(self, xy, position_cov, *, heading: float | None = None,
              heading_sigma: float | None = None, bearings=(),
@@ -169,7 +176,11 @@ class PathFollower:
             else:
                 zz, idx, r = z, POSITION, cov
             fused = not cfg.gate or self.fixes < 3 or ekf.mahalanobis(zz, idx, r) <= CHI2_GATE[len(idx)]
-            if fused:
+            self.rejected = 0 if fused else self.rejected + 1
+            if self.rejected >= REACQUIRE:
+                self._start(z, cov, heading, velocities=ekf.x[3:])
+                self.rejected, fused = 0, True
+            elif fused:
                 ekf.update(zz, idx, r)
                 for lx, ly, bearing, sigma in bearings:
                     ekf.update_bearing((lx, ly), bearing, sigma,
@@ -185,7 +196,8 @@ class PathFollower:
         self.ekf.update(self.command, VELOCITIES,
                         np.diag([cfg.command_sigma_v ** 2, cfg.command_sigma_w ** 2]))
 
-    def _start(self, z: np.ndarray, cov: np.ndarray, heading: float | None) -> None:
+    def _start(self, z: np.ndarray, cov: np.ndarray, heading: float | None,
+               velocities=(0.0, 0.0)) -> None:
         proj = self.path.project(z)
         self.s = proj.s
         theta = proj.theta if heading is None else heading
@@ -194,7 +206,7 @@ class PathFollower:
         p0 = np.zeros((5, 5))
         p0[:2, :2] = cov
         p0[2, 2], p0[3, 3], p0[4, 4] = th_var, 0.1, 0.1
-        self.ekf = UnicycleEKF([z[0], z[1], theta, 0.0, 0.0], p0, ProcessNoise())
+        self.ekf = UnicycleEKF([z[0], z[1], theta, *velocities], p0, ProcessNoise())
 
     def _command(self, fused: bool, dt: float) -> NavigationStep:
         x = self.ekf.x
@@ -219,7 +231,7 @@ class PathFollower:
     def get_state(self) -> dict:
         return {"ekf": None if self.ekf is None else self.ekf.to_dict(), "s": self.s,
                 "command": list(self.command), "arrived": self.arrived,
-                "last_time": self.last_time, "fixes": self.fixes}
+                "last_time": self.last_time, "fixes": self.fixes, "rejected": self.rejected}
 
     def set_state(self, state: dict) -> None:
         self.ekf = None if state["ekf"] is None else UnicycleEKF.from_dict(state["ekf"])
@@ -228,3 +240,4 @@ class PathFollower:
         self.arrived = bool(state["arrived"])
         self.last_time = state["last_time"]
         self.fixes = int(state["fixes"])
+        self.rejected = int(state.get("rejected", 0))
