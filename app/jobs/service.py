@@ -33,12 +33,15 @@ log = logging.getLogger(__name__)
 EXTRACT_SHARE = 0.5
 """Share of the progress bar that feature extraction fills."""
 
-TIE_SHARE = 0.2
+TIE_SHARE = 0.15
 """Share it fills next while the reconstruction's tie points are extracted, ..."""
 
-PAIR_SHARE = 0.15
-"""... and next while the engine's workers match them pair by pair; packing the map is the
-rest."""
+PAIR_SHARE = 0.1
+"""... next while the engine's workers match them pair by pair, ..."""
+
+BLOCK_SHARE = 0.15
+"""... and next while they adjust a large map's reconstruction block by block; packing the
+map is the rest."""
 
 PAIR_BATCH = 256
 """Pairs of map images matched per engine call: a few seconds of work, so that a call's
@@ -134,6 +137,7 @@ class BuildRunner(BackgroundRunner):
                     await asyncio.to_thread(self._set_progress, job_id,
                                             EXTRACT_SHARE + TIE_SHARE * done / len(ties))
             await self._match_pairs(job_id, url, map_id, tie_dir)
+            await self._adjust_blocks(job_id, url, map_id, tie_dir, lens_files)
             packed = await asyncio.wrap_future(self.engine.call(
                 tasks.pack_map, url, str(map_id), revision, str(folder),
                 lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir)))
@@ -162,6 +166,20 @@ class BuildRunner(BackgroundRunner):
             if done % every == 0 or done == len(batches):
                 await asyncio.to_thread(self._set_progress, job_id,
                                         start + PAIR_SHARE * done / len(batches))
+
+    async def _adjust_blocks(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
+                             tie_dir: Path, lens_files: list[str]) -> None:
+        """A large map's reconstruction, adjusted block by block by the engine's workers
+        (:mod:`vloc.workers.core.blocks`); the packing reads the results from ``tie_dir``."""
+        n = await asyncio.wrap_future(self.engine.call(
+            tasks.plan_blocks, url, str(map_id), str(tie_dir), lens_files))
+        futures = [asyncio.wrap_future(self.engine.call(tasks.adjust_block, str(tie_dir), b))
+                   for b in range(n)]
+        start = EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE
+        for done, fut in enumerate(asyncio.as_completed(futures), start=1):
+            await fut
+            await asyncio.to_thread(self._set_progress, job_id,
+                                    start + BLOCK_SHARE * done / n)
 
     # -- database steps (threads) -----------------------------------------------------------
 

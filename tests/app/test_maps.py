@@ -384,9 +384,10 @@ def test_tie_points_are_extracted_to_files_and_unreadable_images_say_so(tmp_path
 
 def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
         module_client, shots, tmp_path, monkeypatch):
-    """The build's pair phase (plan, batches on the workers) hands the packing every pair it
-    needs: packed with them, no pair is matched in the packing, and the map is the map the
-    packing builds by matching every pair itself."""
+    """The build's pair and block phases (plans, then batches on the workers) hand the
+    packing every pair and block it needs: packed with them, no pair is matched and no block
+    adjusted in the packing, and the map is the map the packing builds by doing it all
+    itself (blocks of three cameras here, so that six images make two)."""
     from sqlalchemy import select
 
     from vloc.app.jobs import tasks
@@ -417,15 +418,24 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
         tasks.match_tie_pairs(str(ties), {i: ids[i] for i in pair}, [pair], k)
     assert len(list(ties.glob(tiepairs.RESULTS_GLOB))) == len(plan["pairs"])
 
-    matched_here = []
-    real = reconstruct.match_pair
+    monkeypatch.setattr(reconstruct, "MAX_BLOCK", 3)
+    n_blocks = tasks.plan_blocks(url, map_id, str(ties), [files[i] for i in ids[:2]])
+    assert n_blocks == 2
+    assert sum(tasks.adjust_block(str(ties), b) for b in range(n_blocks)) > 0
+
+    matched_here, adjusted_here = [], []
+    real, real_block = reconstruct.match_pair, reconstruct.adjust_block
     monkeypatch.setattr(reconstruct, "match_pair",
                         lambda *a, **k: matched_here.append(a[:2]) or real(*a, **k))
+    monkeypatch.setattr(reconstruct, "adjust_block",
+                        lambda *a, **k: adjusted_here.append(1) or real_block(*a, **k))
     tasks.pack_map(url, map_id, 90, str(tmp_path / "apart"), image_files=files,
-                   tie_dir=str(ties))
-    assert matched_here == []
-    tasks.pack_map(url, map_id, 91, str(tmp_path / "here"), image_files=files)
+                   tie_dir=str(ties), lens_files=[files[i] for i in ids[:2]])
+    assert matched_here == [] and adjusted_here == []
+    tasks.pack_map(url, map_id, 91, str(tmp_path / "here"), image_files=files,
+                   lens_files=[files[i] for i in ids[:2]])
     assert sorted(matched_here) == sorted(tuple(p) for p in plan["pairs"])
+    assert len(adjusted_here) == n_blocks
     apart, here = MapData.load(tmp_path / "apart"), MapData.load(tmp_path / "here")
     assert (apart.geometry is None) == (here.geometry is None)
     if here.geometry is not None:

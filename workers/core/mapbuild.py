@@ -138,7 +138,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  ratio: float = RATIO, geometry: bool = True,
                  focal_px: float | None = None,
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
-                 known_pairs: dict | None = None,
+                 known_pairs: dict | None = None, known_blocks: dict | None = None,
                  timings: dict[str, tuple[float, float]] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
@@ -167,9 +167,10 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     seed : int
         Seeds the vocabulary training and the reconstruction's RANSAC: the same images
         give the same map.
-    known_pairs : dict, optional
+    known_pairs, known_blocks : dict, optional
         The reconstruction's tie-point pairs matched beforehand with the same ``seed``
-        (:mod:`workers.core.tiepairs`); the others are matched here.
+        (:mod:`workers.core.tiepairs`), and its blocks adjusted beforehand
+        (:mod:`workers.core.blocks`); the others are matched and adjusted here.
     timings : dict, optional
         Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
         ``"vocabularies"`` (training and describing every image), ``"packing"``,
@@ -218,7 +219,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     if geometry:
         with stage(timings, "geometry"):
             data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
-                                         known_pairs=known_pairs)
+                                         known_pairs=known_pairs,
+                                         known_blocks=known_blocks)
     return data
 
 
@@ -234,18 +236,24 @@ def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
                          before[1] + time.process_time() - cpu)
 
 
+def initial_intrinsics(focal_px: float | None) -> Intrinsics:
+    """The map camera's intrinsics the reconstruction starts from: ``focal_px`` (EXIF) or a
+    typical field of view, centred in the working resolution."""
+    width, height = WORK_SIZE
+    f = focal_px if focal_px else focal_from_fov(DEFAULT_HFOV_DEG, width)
+    return Intrinsics.centred(f, width, height)
+
+
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
                  tie_points: list[SiftFeatures | None] | None = None,
-                 known_pairs: dict | None = None):
+                 known_pairs: dict | None = None, known_blocks: dict | None = None):
     """The map's camera geometry with every stored SIFT (and ORB) keypoint on the ground,
     or None.
 
     ``tie_points`` (one per image, None where missing) tie the images together; an image
-    without them is tied by its stored SIFT. ``known_pairs`` are pairs of them matched
-    beforehand (:func:`~workers.core.geometry.build_geometry`).
+    without them is tied by its stored SIFT. ``known_pairs`` and ``known_blocks`` are pairs
+    matched and blocks adjusted beforehand (:func:`~workers.core.geometry.build_geometry`).
     """
-    width, height = WORK_SIZE
-    f = focal_px if focal_px else focal_from_fov(DEFAULT_HFOV_DEG, width)
     n = len(data)
     ties = [None] * n if tie_points is None else list(tie_points)
     if len(ties) != n:
@@ -254,8 +262,8 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     kps = [t.keypoints for t in ties]
     desc = [t.descriptors for t in ties]
     geo = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
-                         Intrinsics.centred(f, width, height), seed=seed,
-                         known_pairs=known_pairs)
+                         initial_intrinsics(focal_px), seed=seed,
+                         known_pairs=known_pairs, known_blocks=known_blocks)
     if geo is not None:
         geo.add_ground("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets))
         if data.has_orb:

@@ -95,16 +95,24 @@ def load_results(folder: str | Path, image_ids: list[int],
                                                       np.asarray(image_ids, np.int64)):
         return out
     for path in sorted(Path(folder).glob(RESULTS_GLOB)):
-        with np.load(path) as z:
-            a, b, verified, counts = z["a"], z["b"], z["verified"], z["counts"]
-            pa, pb, hs = z["pa"], z["pb"], z["homographies"]
-        ends = np.concatenate([[0], np.cumsum(counts)])
-        k = 0
-        for i, j, good in zip(a.tolist(), b.tolist(), verified.tolist(), strict=True):
-            if good:
-                out[(i, j)] = PairMatches(i, j, pa[ends[k]:ends[k + 1]],
-                                          pb[ends[k]:ends[k + 1]], hs[k])
-                k += 1
-            else:
-                out[(i, j)] = None
+        for a, b, p in read_results(path):
+            out[(a, b)] = p
+    return out
+
+
+def read_results(path: str | Path) -> list[tuple[int, int, PairMatches | None]]:
+    """The pairs one file of :func:`save_results` holds, in its order."""
+    with np.load(path) as z:
+        a, b, verified, counts = z["a"], z["b"], z["verified"], z["counts"]
+        pa, pb, hs = z["pa"], z["pb"], z["homographies"]
+    ends = np.concatenate([[0], np.cumsum(counts)])
+    out: list[tuple[int, int, PairMatches | None]] = []
+    k = 0
+    for i, j, good in zip(a.tolist(), b.tolist(), verified.tolist(), strict=True):
+        if good:
+            out.append((i, j, PairMatches(i, j, pa[ends[k]:ends[k + 1]],
+                                          pb[ends[k]:ends[k + 1]], hs[k])))
+            k += 1
+        else:
+            out.append((i, j, None))
     return out

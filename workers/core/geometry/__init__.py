@@ -19,6 +19,7 @@ from threadpoolctl import threadpool_limits
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
 from .reconstruct import (
+    BlockResult,
     PairMatches,
     candidate_pairs,
     match_pair,
@@ -68,6 +69,7 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
                    positions: np.ndarray, altitudes: np.ndarray, K0: Intrinsics, *,
                    seed: int = 0,
                    known_pairs: dict[tuple[int, int], PairMatches | None] | None = None,
+                   known_blocks: dict[str, BlockResult | None] | None = None,
                    ) -> MapGeometry | None:
     """Reconstruct the map cameras, or None when the map is not a plane seen from above.
 
@@ -86,6 +88,9 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
     known_pairs : dict, optional
         Pairs of :func:`tie_pairs` matched elsewhere with the same ``seed``
         (:func:`.reconstruct.match_pair`); the rest are matched here.
+    known_blocks : dict, optional
+        Blocks of a large map adjusted elsewhere, by their
+        :func:`.reconstruct.block_key`; the rest are adjusted here.
     """
     positions = np.asarray(positions, np.float64)
     if len(positions) < 3:
@@ -97,7 +102,8 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
     with threadpool_limits(limits=1, user_api="blas"):
         pairs = match_pairs(keypoints, descriptors, positions,
                             max_distance=tie_reach(positions), seed=seed, known=known_pairs)
-        rec = reconstruct_in_blocks(pairs, positions, np.asarray(altitudes, np.float64), K0)
+        rec = reconstruct_in_blocks(pairs, positions, np.asarray(altitudes, np.float64), K0,
+                                    known=known_blocks)
     done = rec.reconstructed
     if done.mean() < MIN_RECONSTRUCTED or not math.isfinite(rec.residual_px):
         return None
@@ -147,6 +153,6 @@ def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
     return register_frame(fp, gx, img, K, height_range=geometry.height_range())
 
 
-__all__ = ["Intrinsics", "MapGeometry", "PairMatches", "Registration", "build_geometry",
+__all__ = ["BlockResult", "Intrinsics", "MapGeometry", "PairMatches", "Registration", "build_geometry",
            "focal_from_exif", "focal_from_fov", "match_pair", "register_against", "tie_pairs",
            "tie_reach"]

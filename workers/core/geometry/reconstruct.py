@@ -387,38 +387,105 @@ def spatial_blocks(positions: np.ndarray, max_size: int) -> np.ndarray:
     return labels
 
 
+@dataclass(frozen=True)
+class BlockResult:
+    """One block's adjustment (:func:`adjust_block`): the indices of the cameras it placed,
+    their world -> camera ``rotations`` and ``centres``, and the block's focal length,
+    ground altitude, median residual and GPS RMS."""
+
+    cameras: np.ndarray  # (m,) int64
+    rotations: np.ndarray  # (m, 3, 3)
+    centres: np.ndarray  # (m, 3)
+    focal: float
+    ground_alt: float
+    residual_px: float
+    gps_rms: float
+
+
+def block_pairs(pairs: list[PairMatches], positions: np.ndarray,
+                max_block: int | None = None) -> list[list[PairMatches]]:
+    """The pairs inside each compact block of at most ``max_block`` cameras
+    (:func:`spatial_blocks`), in the order :func:`reconstruct_in_blocks` adjusts them; pairs
+    across two blocks are left out. One block of every pair for a map of at most
+    ``max_block`` images (:data:`MAX_BLOCK` by default)."""
+    max_block = MAX_BLOCK if max_block is None else max_block
+    if len(positions) <= max_block:
+        return [list(pairs)]
+    labels = spatial_blocks(positions, max_block)
+    by_block: dict[int, list[PairMatches]] = {}
+    for p in pairs:
+        if labels[p.a] == labels[p.b]:
+            by_block.setdefault(int(labels[p.a]), []).append(p)
+    return list(by_block.values())
+
+
+def block_key(pairs: list[PairMatches], positions: np.ndarray, altitudes: np.ndarray,
+              K0: Intrinsics) -> str:
+    """What a block's adjustment depends on, hashed: its tie points, its cameras' GPS
+    positions and altitudes and the initial intrinsics. Two equal keys adjust to the same
+    cameras (with :func:`adjust_block`'s default options)."""
+    import hashlib
+
+    digest = hashlib.sha1()
+    cams = np.unique([i for p in pairs for i in (p.a, p.b)]).astype(np.int64)
+    for arr in (cams, np.asarray(positions, np.float64)[cams],
+                np.asarray(altitudes, np.float64)[cams], np.array([K0.f, K0.cx, K0.cy])):
+        digest.update(np.ascontiguousarray(arr).tobytes())
+    for p in pairs:
+        digest.update(np.array([p.a, p.b], np.int64).tobytes())
+        for arr in (p.pa, p.pb, p.homography):
+            digest.update(np.ascontiguousarray(arr, np.float64).tobytes())
+    return digest.hexdigest()
+
+
+def adjust_block(pairs: list[PairMatches], positions: np.ndarray, altitudes: np.ndarray,
+                 K0: Intrinsics, **options) -> BlockResult | None:
+    """:func:`reconstruct_plane` of one block, kept to the cameras it placed; None where it
+    placed none."""
+    rec = reconstruct_plane(pairs, positions, altitudes, K0, **options)
+    done = rec.reconstructed
+    if not done.any() or not math.isfinite(rec.residual_px):
+        return None
+    return BlockResult(np.flatnonzero(done).astype(np.int64), rec.rotations[done],
+                       rec.centres[done], rec.intrinsics.f, rec.ground_alt, rec.residual_px,
+                       rec.gps_rms)
+
+
 def reconstruct_in_blocks(pairs: list[PairMatches], positions: np.ndarray,
                           altitudes: np.ndarray, K0: Intrinsics, *,
-                          max_block: int = MAX_BLOCK, **options) -> PlaneReconstruction:
+                          max_block: int | None = None,
+                          known: dict[str, BlockResult | None] | None = None,
+                          **options) -> PlaneReconstruction:
     """:func:`reconstruct_plane` over compact blocks of at most ``max_block`` cameras.
 
     Each block is adjusted on its own, with the tie points inside it; the map's focal
     length and ground altitude are the medians over the blocks (weighted by their cameras),
     the residual the median of the blocks' and the GPS RMS over every camera. A map of at
     most ``max_block`` images is adjusted whole, as :func:`reconstruct_plane` does.
+    ``known`` holds blocks adjusted elsewhere, by :func:`block_key`; the others are
+    adjusted here.
     """
     n = len(positions)
+    max_block = MAX_BLOCK if max_block is None else max_block
     if n <= max_block:
         return reconstruct_plane(pairs, positions, altitudes, K0, **options)
-    labels = spatial_blocks(positions, max_block)
-    by_block: dict[int, list[PairMatches]] = {}
-    for p in pairs:
-        if labels[p.a] == labels[p.b]:
-            by_block.setdefault(int(labels[p.a]), []).append(p)
     rotations = np.full((n, 3, 3), np.nan)
     centres = np.full((n, 3), np.nan)
     focal, ground, residual, sq_gps, weight = [], [], [], 0.0, 0
-    for block_pairs in by_block.values():
-        rec = reconstruct_plane(block_pairs, positions, altitudes, K0, **options)
-        done = rec.reconstructed
-        if not done.any() or not math.isfinite(rec.residual_px):
+    for inside in block_pairs(pairs, positions, max_block):
+        key = block_key(inside, positions, altitudes, K0) if known else None
+        if key is not None and key in known:
+            res = known[key]
+        else:
+            res = adjust_block(inside, positions, altitudes, K0, **options)
+        if res is None:
             continue
-        rotations[done], centres[done] = rec.rotations[done], rec.centres[done]
-        m = int(done.sum())
-        focal.append((rec.intrinsics.f, m))
-        ground.append((rec.ground_alt, m))
-        residual.append(rec.residual_px)
-        sq_gps += rec.gps_rms ** 2 * m
+        rotations[res.cameras], centres[res.cameras] = res.rotations, res.centres
+        m = len(res.cameras)
+        focal.append((res.focal, m))
+        ground.append((res.ground_alt, m))
+        residual.append(res.residual_px)
+        sq_gps += res.gps_rms ** 2 * m
         weight += m
     if not weight:
         return reconstruct_plane([], positions, altitudes, K0)

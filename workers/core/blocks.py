@@ -1,0 +1,93 @@
+"""The blocks of a large map's reconstruction, adjusted in parallel ahead of the packing.
+
+A map of more than :data:`~workers.core.geometry.reconstruct.MAX_BLOCK` images is adjusted
+block by block (:func:`~workers.core.geometry.reconstruct.reconstruct_in_blocks`), each on
+its own: about 70 ms an image of one core, over an hour for 50,000 images. Once the tie
+points' pairs are matched (:mod:`.tiepairs`), a build writes each block's pairs and the
+map's positions to disk (:func:`plan`), lets the engine's workers adjust the blocks
+(:func:`adjust`, one file of results per block) and hands them to the packing
+(:func:`load_results`), which adjusts only blocks whose inputs it does not find among them
+(:func:`~workers.core.geometry.reconstruct.block_key`): the map comes out the same as when
+one process adjusts every block.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from .geometry.camera import Intrinsics
+from .geometry.reconstruct import (
+    BlockResult,
+    adjust_block,
+    block_key,
+    block_pairs,
+)
+from .tiepairs import read_results, save_results
+
+PLAN_FILE = "blocks-plan.npz"
+INPUT = "block-{:05d}-pairs.npz"
+RESULT = "block-{:05d}.npz"
+RESULTS_GLOB = "block-?????.npz"
+
+
+def plan(folder: str | Path, pairs, positions: np.ndarray, altitudes: np.ndarray,
+         K0: Intrinsics) -> int:
+    """Write what each block's adjustment needs into ``folder``; returns the number of
+    blocks (0 for a map adjusted whole, which the packing does itself).
+
+    ``pairs`` are the map's verified pairs in the order the geometry matches them
+    (:func:`~workers.core.geometry.reconstruct.match_pairs`)."""
+    positions = np.asarray(positions, np.float64)
+    blocks = block_pairs(list(pairs), positions)
+    if len(blocks) < 2:
+        return 0
+    folder = Path(folder)
+    np.savez(folder / PLAN_FILE, positions=positions,
+             altitudes=np.asarray(altitudes, np.float64),
+             intrinsics=np.array([K0.f, K0.cx, K0.cy]))
+    for b, inside in enumerate(blocks):
+        save_results([(p.a, p.b, p) for p in inside], folder / INPUT.format(b))
+    return len(blocks)
+
+
+def adjust(folder: str | Path, block: int) -> int:
+    """Adjust one planned block (:func:`plan`) and write its result beside it; returns the
+    number of cameras it placed."""
+    folder = Path(folder)
+    with np.load(folder / PLAN_FILE) as z:
+        positions, altitudes = z["positions"], z["altitudes"]
+        K0 = Intrinsics(*(float(v) for v in z["intrinsics"]))
+    inside = [p for _, _, p in read_results(folder / INPUT.format(block))]
+    # one BLAS thread, as the packing adjusts with (build_geometry)
+    with threadpool_limits(limits=1, user_api="blas"):
+        res = adjust_block(inside, positions, altitudes, K0)
+    key = block_key(inside, positions, altitudes, K0)
+    out = folder / RESULT.format(block)
+    tmp = out.with_name(out.name + ".part.npz")
+    if res is None:
+        np.savez(tmp, key=np.array(key), placed=np.array(False))
+    else:
+        np.savez(tmp, key=np.array(key), placed=np.array(True), cameras=res.cameras,
+                 rotations=res.rotations, centres=res.centres,
+                 figures=np.array([res.focal, res.ground_alt, res.residual_px, res.gps_rms]))
+    tmp.replace(out)
+    return 0 if res is None else len(res.cameras)
+
+
+def load_results(folder: str | Path) -> dict[str, BlockResult | None]:
+    """Every block adjusted into ``folder`` (:func:`adjust`), by its inputs' key; None for a
+    block that placed no camera."""
+    out: dict[str, BlockResult | None] = {}
+    for path in sorted(Path(folder).glob(RESULTS_GLOB)):
+        with np.load(path) as z:
+            key = str(z["key"])
+            if not bool(z["placed"]):
+                out[key] = None
+                continue
+            f, ground, residual, gps = (float(v) for v in z["figures"])
+            out[key] = BlockResult(z["cameras"], z["rotations"], z["centres"], f, ground,
+                                   residual, gps)
+    return out
