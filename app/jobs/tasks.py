@@ -137,9 +137,9 @@ def plan_blocks(database_url: str, map_id: str, tie_dir: str,
     known = tiepairs.load_results(tie_dir, [img["id"] for img in images])
     _, xy, alt = local_frame([img["lat"] for img in images], [img["lon"] for img in images],
                              [img["alt"] for img in images])
-    pairs = [p for _, p in sorted(known.items()) if p is not None]
     K0 = initial_intrinsics(typical_focal_px(_readers(lens_files or [])))
-    return blocks.plan(tie_dir, pairs, xy, alt, K0)
+    return blocks.plan(tie_dir, [p for _, p in sorted(known.items()) if p is not None],
+                       xy, alt, K0)
 
 
 def adjust_block(tie_dir: str, block: int) -> int:

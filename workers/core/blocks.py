@@ -24,6 +24,7 @@ from .geometry.reconstruct import (
     adjust_block,
     block_key,
     block_pairs,
+    keep_some,
 )
 from .tiepairs import read_results, save_results
 
@@ -33,15 +34,19 @@ RESULT = "block-{:05d}.npz"
 RESULTS_GLOB = "block-?????.npz"
 
 
-def plan(folder: str | Path, pairs, positions: np.ndarray, altitudes: np.ndarray,
-         K0: Intrinsics) -> int:
+def plan(folder: str | Path, verified, positions: np.ndarray, altitudes: np.ndarray,
+         K0: Intrinsics, *, seed: int = 0) -> int:
     """Write what each block's adjustment needs into ``folder``; returns the number of
     blocks (0 for a map adjusted whole, which the packing does itself).
 
-    ``pairs`` are the map's verified pairs in the order the geometry matches them
-    (:func:`~workers.core.geometry.reconstruct.match_pairs`)."""
+    ``verified`` are the map's verified pairs with all their tie points, in the order the
+    geometry matches them; each keeps the tie points
+    :func:`~workers.core.geometry.reconstruct.match_pairs` would keep with ``seed``. A pair
+    missing here (an image without tie points, matched by the packing) shifts those draws:
+    the packing then finds no block's inputs among the results and adjusts them all."""
     positions = np.asarray(positions, np.float64)
-    blocks = block_pairs(list(pairs), positions)
+    pairs = keep_some(list(verified), np.random.default_rng(seed))
+    blocks = block_pairs(pairs, positions)
     if len(blocks) < 2:
         return 0
     folder = Path(folder)
@@ -66,7 +71,7 @@ def adjust(folder: str | Path, block: int) -> int:
         res = adjust_block(inside, positions, altitudes, K0)
     key = block_key(inside, positions, altitudes, K0)
     out = folder / RESULT.format(block)
-    tmp = out.with_name(out.name + ".part.npz")
+    tmp = out.with_name("." + out.name)  # outside the results' glob until whole
     if res is None:
         np.savez(tmp, key=np.array(key), placed=np.array(False))
     else:

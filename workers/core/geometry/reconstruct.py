@@ -98,14 +98,14 @@ def candidate_pairs(positions: np.ndarray, *, max_distance: float,
 
 def match_pair(a: int, b: int, keypoints_a: np.ndarray, descriptors_a: np.ndarray,
                keypoints_b: np.ndarray, descriptors_b: np.ndarray, *, ratio: float = 0.8,
-               min_inliers: int = 10, max_per_pair: int = 30, ransac_px: float = 3.0,
+               min_inliers: int = 10, ransac_px: float = 3.0,
                seed: int = 0) -> PairMatches | None:
-    """Verified tie points between map images ``a`` and ``b``: ratio-test matches that agree
-    with one RANSAC homography, at most ``max_per_pair`` of them (drawn at random); None
-    when fewer than ``min_inliers`` agree.
+    """Verified tie points between map images ``a`` and ``b``: the ratio-test matches that
+    agree with one RANSAC homography, all of them (:func:`keep_some` keeps a few); None when
+    fewer than ``min_inliers`` agree.
 
-    Everything random is seeded by ``(seed, a, b)`` alone, so a pair gives the same tie
-    points whichever process matches it and whatever it matched before.
+    OpenCV's RANSAC is seeded by ``(seed, a, b)`` alone, so a pair gives the same tie points
+    whichever process matches it and whatever it matched before.
     """
     from ..sift import ratio_matches
 
@@ -123,18 +123,31 @@ def match_pair(a: int, b: int, keypoints_a: np.ndarray, descriptors_a: np.ndarra
     sel = np.flatnonzero(mask.ravel())
     if len(sel) < min_inliers:
         return None
-    if len(sel) > max_per_pair:
-        rng = np.random.default_rng((seed, a, b))
-        sel = np.sort(rng.choice(sel, size=max_per_pair, replace=False))
     return PairMatches(a, b, pa[sel], pb[sel], H)
+
+
+def keep_some(pairs: list[PairMatches], rng: np.random.Generator,
+              max_per_pair: int = 30) -> list[PairMatches]:
+    """Each pair with at most ``max_per_pair`` of its tie points, drawn at random in the
+    order of ``pairs`` (those with fewer keep them all): the bundle adjustment's cost grows
+    with the tie points, its accuracy hardly beyond a few dozen a pair."""
+    out = []
+    for p in pairs:
+        if len(p.pa) > max_per_pair:
+            keep = np.sort(rng.choice(len(p.pa), size=max_per_pair, replace=False))
+            p = PairMatches(p.a, p.b, p.pa[keep], p.pb[keep], p.homography)
+        out.append(p)
+    return out
 
 
 def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
                 positions: np.ndarray, *, max_distance: float, neighbours: int = 8,
-                seed: int = 0, known: dict[tuple[int, int], PairMatches | None] | None = None,
+                max_per_pair: int = 30, seed: int = 0,
+                known: dict[tuple[int, int], PairMatches | None] | None = None,
                 **options) -> list[PairMatches]:
     """Verified matches between each map image and its GPS neighbours
-    (:func:`candidate_pairs`, :func:`match_pair`).
+    (:func:`candidate_pairs`, :func:`match_pair`), at most ``max_per_pair`` tie points each
+    (:func:`keep_some`, drawn by a generator seeded with ``seed``).
 
     Parameters
     ----------
@@ -148,12 +161,12 @@ def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
         Only pairs closer than this (m) are tried: further apart the footprints cannot
         overlap.
     known : dict, optional
-        Pairs already matched elsewhere (the build matches them in parallel), their
-        result None where they did not verify; the others are matched here.
+        Pairs already matched elsewhere with the same ``seed`` (the build matches them in
+        parallel), their result None where they did not verify; the others are matched here.
     options
         :func:`match_pair`'s.
     """
-    out = []
+    verified = []
     for a, b in candidate_pairs(positions, max_distance=max_distance, neighbours=neighbours):
         if known is not None and (a, b) in known:
             p = known[(a, b)]
@@ -161,8 +174,8 @@ def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
             p = match_pair(a, b, keypoints[a], descriptors[a], keypoints[b], descriptors[b],
                            seed=seed, **options)
         if p is not None:
-            out.append(p)
-    return out
+            verified.append(p)
+    return keep_some(verified, np.random.default_rng(seed), max_per_pair)
 
 
 def _initial_headings(pairs: list[PairMatches], positions: np.ndarray, K: Intrinsics,
