@@ -394,7 +394,7 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
     from vloc.app.maps.models import MapImage
     from vloc.app.maps.service import image_path
     from vloc.workers.core import tiepairs
-    from vloc.workers.core.geometry import reconstruct
+    from vloc.workers.core.geometry import pairs, reconstruct
 
     c = module_client
     ctx = c.app.state.ctx
@@ -424,8 +424,8 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
     assert sum(tasks.adjust_block(str(ties), b) for b in range(n_blocks)) > 0
 
     matched_here, adjusted_here = [], []
-    real, real_block = reconstruct.match_pair, reconstruct.adjust_block
-    monkeypatch.setattr(reconstruct, "match_pair",
+    real, real_block = pairs.match_pair, reconstruct.adjust_block
+    monkeypatch.setattr(pairs, "match_pair",
                         lambda *a, **k: matched_here.append(a[:2]) or real(*a, **k))
     monkeypatch.setattr(reconstruct, "adjust_block",
                         lambda *a, **k: adjusted_here.append(1) or real_block(*a, **k))

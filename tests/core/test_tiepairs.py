@@ -11,7 +11,7 @@ from tests.core.geometry.scene import survey
 from vloc.workers.core import tiepairs
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.geometry import build_geometry, match_pair, tie_pairs, tie_reach
-from vloc.workers.core.geometry.reconstruct import keep_some, match_pairs
+from vloc.workers.core.geometry.pairs import keep_some, match_pairs
 from vloc.workers.core.mapbuild import local_frame, save_tie_points
 from vloc.workers.core.sift import SiftFeatures
 

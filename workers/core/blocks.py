@@ -19,13 +19,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .geometry.camera import Intrinsics
-from .geometry.reconstruct import (
-    BlockResult,
-    adjust_block,
-    block_key,
-    block_pairs,
-    keep_some,
-)
+from .geometry.pairs import keep_some
+from .geometry.reconstruct import BlockResult, adjust_block, block_key, block_pairs
 from .tiepairs import read_results, save_results
 
 PLAN_FILE = "blocks-plan.npz"
@@ -41,7 +36,7 @@ def plan(folder: str | Path, verified, positions: np.ndarray, altitudes: np.ndar
 
     ``verified`` are the map's verified pairs with all their tie points, in the order the
     geometry matches them; each keeps the tie points
-    :func:`~workers.core.geometry.reconstruct.match_pairs` would keep with ``seed``. A pair
+    :func:`~workers.core.geometry.pairs.match_pairs` would keep with ``seed``. A pair
     missing here (an image without tie points, matched by the packing) shifts those draws:
     the packing then finds no block's inputs among the results and adjusts them all."""
     positions = np.asarray(positions, np.float64)

@@ -19,12 +19,12 @@ from tests.core.geometry.scene import (
     tilted_rotation,
 )
 from vloc.workers.core.geometry.camera import Intrinsics, backproject_to_ground
+from vloc.workers.core.geometry.pairs import match_pairs
 from vloc.workers.core.geometry.reconstruct import (
     _initial_headings,
     _transfer,
     _unrobust,
     ground_points,
-    match_pairs,
     reconstruct_in_blocks,
     reconstruct_plane,
     spatial_blocks,

@@ -18,14 +18,8 @@ from threadpoolctl import threadpool_limits
 
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
-from .reconstruct import (
-    BlockResult,
-    PairMatches,
-    candidate_pairs,
-    match_pair,
-    match_pairs,
-    reconstruct_in_blocks,
-)
+from .pairs import PairMatches, candidate_pairs, match_pair, match_pairs
+from .reconstruct import BlockResult, reconstruct_in_blocks
 from .register import Registration, register_frame
 
 MAX_RESIDUAL_PX: float = 4.0
@@ -87,7 +81,7 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
         Seeds the matching's RANSAC and tie-point draws, pair by pair.
     known_pairs : dict, optional
         Pairs of :func:`tie_pairs` matched elsewhere with the same ``seed``
-        (:func:`.reconstruct.match_pair`); the rest are matched here.
+        (:func:`.pairs.match_pair`); the rest are matched here.
     known_blocks : dict, optional
         Blocks of a large map adjusted elsewhere, by their
         :func:`.reconstruct.block_key`; the rest are adjusted here.
