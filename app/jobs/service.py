@@ -127,15 +127,9 @@ class BuildRunner(BackgroundRunner):
         tie_dir = folder.with_name(folder.name + ".ties")
         await asyncio.to_thread(tie_dir.mkdir, parents=True, exist_ok=True)
         try:
-            ties = [asyncio.wrap_future(self.engine.call(
+            await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
                 tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id)))
-                for image_id, path in image_files.items()]
-            every = max(1, len(ties) // 100)  # a hundred updates of the bar at most
-            for done, fut in enumerate(asyncio.as_completed(ties), start=1):
-                await fut
-                if done % every == 0 or done == len(ties):
-                    await asyncio.to_thread(self._set_progress, job_id,
-                                            EXTRACT_SHARE + TIE_SHARE * done / len(ties))
+                for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
             await self._match_pairs(job_id, url, map_id, tie_dir)
             await self._adjust_blocks(job_id, url, map_id, tie_dir, lens_files)
             packed = await asyncio.wrap_future(self.engine.call(
@@ -159,13 +153,7 @@ class BuildRunner(BackgroundRunner):
             names = {i: ids[i] for pair in batch for i in pair}
             batches.append(asyncio.wrap_future(self.engine.call(
                 tasks.match_tie_pairs, str(tie_dir), names, batch, len(batches))))
-        start = EXTRACT_SHARE + TIE_SHARE
-        every = max(1, len(batches) // 100)
-        for done, fut in enumerate(asyncio.as_completed(batches), start=1):
-            await fut
-            if done % every == 0 or done == len(batches):
-                await asyncio.to_thread(self._set_progress, job_id,
-                                        start + PAIR_SHARE * done / len(batches))
+        await self._fan_out(job_id, batches, EXTRACT_SHARE + TIE_SHARE, PAIR_SHARE)
 
     async def _adjust_blocks(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
                              tie_dir: Path, lens_files: list[str]) -> None:
@@ -173,13 +161,20 @@ class BuildRunner(BackgroundRunner):
         (:mod:`vloc.workers.core.blocks`); the packing reads the results from ``tie_dir``."""
         n = await asyncio.wrap_future(self.engine.call(
             tasks.plan_blocks, url, str(map_id), str(tie_dir), lens_files))
-        futures = [asyncio.wrap_future(self.engine.call(tasks.adjust_block, str(tie_dir), b))
-                   for b in range(n)]
-        start = EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE
+        await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
+            tasks.adjust_block, str(tie_dir), b)) for b in range(n)],
+            EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE, BLOCK_SHARE)
+
+    async def _fan_out(self, job_id: uuid.UUID, futures: list, start: float,
+                       share: float) -> None:
+        """Await the engine's calls as they finish, the job's progress moving from ``start``
+        by ``share`` (a hundred updates of the bar at most)."""
+        every = max(1, len(futures) // 100)
         for done, fut in enumerate(asyncio.as_completed(futures), start=1):
             await fut
-            await asyncio.to_thread(self._set_progress, job_id,
-                                    start + BLOCK_SHARE * done / n)
+            if done % every == 0 or done == len(futures):
+                await asyncio.to_thread(self._set_progress, job_id,
+                                        start + share * done / len(futures))
 
     # -- database steps (threads) -----------------------------------------------------------
 
