@@ -54,6 +54,22 @@ def test_converges_from_one_metre_and_twenty_degrees_off_and_arrives():
     assert [s.node for s in steps][0] == 0 and steps[-1].node == 1
 
 
+def test_the_filter_moves_by_the_command_just_driven():
+    """Between two frames the robot drives the command of the first; the filter's heading
+    at the second has turned by that command's omega, not by the velocities it had before
+    (which left the heading one sharp correction behind)."""
+    path = _path()
+    follower = PathFollower(path, [0.0])
+    for k in range(4):                       # driving straight along the path, on it
+        st = follower.step((-15 + 0.6 * k, 0.0), np.eye(2) * 0.01, heading=0.0)
+    follower.command = (0.6, 0.5)            # a sharp turn is commanded...
+    st = follower.step(None, None)           # ...and driven for a second, with no fix
+    assert st.state[4] == pytest.approx(0.5, abs=0.02)
+    assert st.state[2] == pytest.approx(0.5, abs=0.03)
+    # the position moved along the arc's chord (midpoint rule), turned left
+    assert st.state[1] == pytest.approx(0.6 * math.sin(0.25), abs=0.03)
+
+
 def test_outlier_fix_is_gated():
     path = _path()
     follower = PathFollower(path, [0.0])

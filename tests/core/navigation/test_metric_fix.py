@@ -41,13 +41,36 @@ def test_two_agreeing_views_are_fused_by_their_information(monkeypatch):
     monkeypatch.setattr(session, "metric_view", fake)
     fix = loc._metric_fix(8, feats=None)
     # each view is triangulated against the nearest taught image at least 1 m behind it
-    assert calls[:2] == [(8, 6, pytest.approx(1.2)), (7, 5, pytest.approx(1.2))]
+    assert (8, 6, pytest.approx(1.2)) in calls and (7, 5, pytest.approx(1.2)) in calls
     # information-weighted mean: weights 1 / (s^2 + floor^2) per axis
     w8, w7 = 1 / (0.2 ** 2 + 0.05 ** 2), 1 / (0.1 ** 2 + 0.05 ** 2)
     assert fix["xy"][0] == pytest.approx((w8 * 5.0 + w7 * 5.02) / (w8 + w7), abs=1e-9)
     assert fix["xy"][1] == pytest.approx(0.8, abs=1e-9)
-    assert fix["cov"][0, 0] == pytest.approx(1 / (w8 + w7))
+    # the two views share the frame's features: the fused pose is as sure as one view of
+    # their mean information, not as both together
+    assert fix["cov"][0, 0] == pytest.approx(2 / (w8 + w7))
     assert math.degrees(fix["heading"]) == pytest.approx(10.25, abs=0.01)
+
+
+def test_views_ahead_of_the_best_image_count_too(monkeypatch):
+    loc = _localiser()
+    # the robot at (5.0, 0.8): seen from taught images 9 and 10 (at 5.4 and 6.0 m), ahead
+    # of the best image 8, which has no view
+    views = {9: _view(-0.4, 0.8, 0.0), 10: _view(-1.0, 0.8, 0.0)}
+    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
+    fix = loc._metric_fix(8, feats=None)
+    assert fix["xy"] == pytest.approx([5.0, 0.8], abs=1e-9)
+
+
+def test_the_largest_set_of_agreeing_views_is_fused(monkeypatch):
+    loc = _localiser()
+    # two views agree on the path (a repeated facade), three agree 0.8 m beside it
+    views = {4: _view(0.2, 0.0, 0.0), 5: _view(-0.4, 0.0, 0.0),
+             7: _view(0.8, 0.8, 0.0), 8: _view(0.2, 0.8, 0.0), 10: _view(-1.0, 0.8, 0.0)}
+    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
+    assert loc._metric_fix(8, feats=None)["xy"] == pytest.approx([5.0, 0.8], abs=1e-9)
 
 
 def test_views_that_disagree_give_no_fix(monkeypatch):
@@ -89,13 +112,15 @@ def test_the_taught_points_are_triangulated_once(monkeypatch):
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: None)
     loc._metric_fix(8, feats=None)
     loc._metric_fix(8, feats=None)
-    assert pairs == [(8, 6), (7, 5), (6, 4), (5, 3), (4, 2)]
+    # the taught images four either side of image 8 (the path ends at 11)
+    assert pairs == [(4, 2), (5, 3), (6, 4), (7, 5), (8, 6), (9, 7), (10, 8), (11, 9)]
 
 
 def test_no_image_far_enough_behind_gives_no_view(monkeypatch):
     loc = _localiser()
     monkeypatch.setattr(session, "triangulate",
                         lambda *a: pytest.fail("needs two taught images 1 m apart"))
-    # images 0 and 1 have nothing 1 m behind them
+    # images 0 and 1 (the best image and the one either side of it) have nothing 1 m
+    # behind them
     loc.views = 1
-    assert loc._metric_fix(1, feats=None) is None
+    assert loc._metric_fix(0, feats=None) is None

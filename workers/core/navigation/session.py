@@ -65,9 +65,10 @@ those on 10-12 points were more than 1 m off beside the path one time in five, w
 stated uncertainty of a tenth of that; from 15 points on, the errors are half as large."""
 YAW_AGREEMENT = math.radians(10.0)
 VISUAL_DEFAULTS = {"visual": True, "hfov_deg": 60.0, "views": 4}
-"""``visual``: measure bearings and heading against the taught images behind the best one;
+"""``visual``: measure the robot's pose against the taught images near the best one;
 ``hfov_deg``: the robot camera's horizontal field of view; ``views``: how many taught
-images behind the best one are looked at."""
+images either side of the best one are looked at for a triangulated-point pose (behind it
+only, for bearings)."""
 
 
 def make_navigating_localiser(mode: str, map_data: MapData, params: dict | None = None, *,
@@ -255,15 +256,20 @@ class NavigatingLocaliser:
 
     def _metric_fix(self, k: int, feats) -> dict | None:
         """The robot's pose from the points taught images near ``k`` triangulate
-        (:func:`.visual.metric_view`), the best image first and then those behind it, each
-        with the nearest taught image at least :data:`TRIANGULATION_BASELINE_M` behind it.
+        (:func:`.visual.metric_view`): the ``views`` taught images on either side of ``k``,
+        each with the nearest taught image at least :data:`TRIANGULATION_BASELINE_M` behind
+        it.
 
-        Two such poses must agree (within :data:`AGREEMENT_CHI2`) before either is fused:
-        a facade's repeated windows can match along the epipolar lines at the wrong depth
-        and give one confident pose on the path when the robot is beside it.
+        A pose is fused only where at least one other agrees with it (within
+        :data:`AGREEMENT_CHI2`): a facade's repeated windows can match along the epipolar
+        lines at the wrong depth and give one confident pose on the path when the robot is
+        beside it. Of the sets of poses that agree with one of them, the largest is fused;
+        its members see the frame through the same features, so their errors are not
+        independent, and the fused covariance is one pose's (the mean of their information),
+        not the sum of their information.
         """
         poses = []
-        for j in range(k, max(k - self.views, 0) - 1, -1):
+        for j in range(max(k - self.views, 0), min(k + self.views, len(self.points) - 1) + 1):
             if self.map_index[j] < 0:
                 continue
             view = metric_view(feats, self.inner.map.sift(self.map_index[j]),
@@ -279,19 +285,27 @@ class NavigatingLocaliser:
                          th + view.yaw]
             cov = rot @ view.cov @ rot.T + np.diag([METRIC_FLOOR_M ** 2, METRIC_FLOOR_M ** 2,
                                                     METRIC_FLOOR_RAD ** 2])
-            for earlier, earlier_cov in poses:
-                d = pose - earlier
-                d[2] = math.remainder(d[2], 2 * math.pi)
-                if float(d @ np.linalg.solve(cov + earlier_cov, d)) <= AGREEMENT_CHI2:
-                    # the two agree: their information-weighted mean (the earlier heading
-                    # taken on the same turn as this one)
-                    both = np.linalg.inv(np.linalg.inv(cov) + np.linalg.inv(earlier_cov))
-                    mean = both @ (np.linalg.solve(cov, pose)
-                                   + np.linalg.solve(earlier_cov, pose - d))
-                    return {"xy": mean[:2], "cov": both[:2, :2], "heading": float(mean[2]),
-                            "heading_sigma": math.sqrt(both[2, 2])}
             poses.append((pose, cov))
-        return None
+        best: list[tuple[np.ndarray, np.ndarray]] = []
+        for pose, cov in poses:
+            agree = []
+            for other, other_cov in poses:
+                d = other - pose
+                d[2] = math.remainder(d[2], 2 * math.pi)
+                if float(d @ np.linalg.solve(cov + other_cov, d)) <= AGREEMENT_CHI2:
+                    # the other's heading taken on the same turn as this one's
+                    agree.append((pose + d, other_cov))
+            if len(agree) > len(best):
+                best = agree
+        if len(best) < 2:
+            return None
+        info = [np.linalg.inv(cov) for _, cov in best]
+        mean = np.linalg.solve(sum(info), sum(i @ p for i, (p, _) in zip(info, best,
+                                                                         strict=True)))
+        cov = np.linalg.inv(sum(info) / len(best))
+        return {"xy": mean[:2], "cov": cov[:2, :2],
+                "heading": float(math.remainder(mean[2], 2 * math.pi)),
+                "heading_sigma": math.sqrt(cov[2, 2])}
 
     def _triangulation(self, j: int) -> Triangulation | None:
         """The points taught image ``j`` shares with the taught image behind it
