@@ -124,3 +124,38 @@ def test_no_image_far_enough_behind_gives_no_view(monkeypatch):
     # behind them
     loc.views = 1
     assert loc._metric_fix(0, feats=None) is None
+
+
+def _scored(monkeypatch, loc, scores: dict[int, float], views: dict):
+    """The frame's SIFT scores against the taught images (by taught index) and the metric
+    views of the taught images, patched in."""
+    from vloc.workers.core.localisers import scoring
+
+    monkeypatch.setattr(scoring, "sift_similarity", lambda feats, m, idx, ratio, verify:
+                        np.array([scores.get(int(i), 0.0) for i in idx]))
+    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
+    return SimpleNamespace(sift=lambda: ("feats", None))
+
+
+def test_the_filter_starts_where_the_taught_points_agree(monkeypatch):
+    loc = _localiser(n=30)
+    # a repeated facade at image 5 outscores the right place, image 20, where two taught
+    # views agree on a pose
+    query = _scored(monkeypatch, loc, {5: 40.0, 20: 30.0, 25: 10.0},
+                    {19: _view(0.6, 0.8, 0.0), 21: _view(-0.6, 0.8, 0.0)})
+    assert loc._nearby_best(query) == 20
+
+
+def test_without_agreeing_taught_points_the_best_score_starts_the_filter(monkeypatch):
+    loc = _localiser(n=30)
+    query = _scored(monkeypatch, loc, {5: 40.0, 20: 30.0}, {})
+    assert loc._nearby_best(query) == 5
+
+
+def test_once_started_the_best_score_near_the_robot_is_taken(monkeypatch):
+    loc = _localiser(n=30)
+    query = _scored(monkeypatch, loc, {5: 40.0, 6: 35.0, 20: 30.0},
+                    {19: _view(0.6, 0.8, 0.0), 21: _view(-0.6, 0.8, 0.0)})
+    loc.follower.step((0.6 * 5, 0.0), np.eye(2))         # placed at image 5
+    assert loc._nearby_best(query) == 5

@@ -64,6 +64,8 @@ METRIC_MIN_INLIERS = 15
 those on 10-12 points were more than 1 m off beside the path one time in five, with a
 stated uncertainty of a tenth of that; from 15 points on, the errors are half as large."""
 YAW_AGREEMENT = math.radians(10.0)
+START_CANDIDATES = 3
+"""Best-scoring places checked for a triangulated-point pose before the filter starts."""
 VISUAL_DEFAULTS = {"visual": True, "hfov_deg": 60.0, "views": 4}
 """``visual``: measure the robot's pose against the taught images near the best one;
 ``hfov_deg``: the robot camera's horizontal field of view; ``views``: how many taught
@@ -161,6 +163,8 @@ class NavigatingLocaliser:
         self.K = camera_matrix(WORK_SIZE[0], WORK_SIZE[1], hfov)
         self.point_s = np.array(_arc_lengths(self.path, points))
         self._triangulations: dict[int, Triangulation | None] = {}
+        # this frame's triangulated-point poses by best image (one frame may ask twice)
+        self._memo_feats, self._memo = None, {}
 
     @property
     def mode(self) -> str:
@@ -213,7 +217,18 @@ class NavigatingLocaliser:
         score = sift_similarity(feats, self.inner.map, np.asarray(self.map_index)[near],
                                 ratio=0.8, verify=verify)
         best = int(np.argmax(score))
-        return int(near[best]) if score[best] > 0 else None
+        if score[best] <= 0:
+            return None
+        if self.follower.ekf is None and self.visual:
+            # The filter starts where this frame is recognised, and afterwards looks for
+            # the robot only near there: a facade repeated further along the route, seen
+            # 20 degrees askew, can outscore the right place. Of the best-scoring places,
+            # the first where the taught images' triangulated points agree on a pose is
+            # taken; where none does, the best score.
+            for i in np.argsort(-score, kind="stable")[:START_CANDIDATES]:
+                if score[i] > 0 and self._metric_fix(int(near[i]), feats) is not None:
+                    return int(near[i])
+        return int(near[best])
 
     def _estimate_fix(self, est: Estimate) -> dict:
         cov = np.array(est.cov, np.float64).reshape(2, 2) + np.eye(2) * MIN_POSITION_SIGMA ** 2
@@ -268,6 +283,15 @@ class NavigatingLocaliser:
         independent, and the fused covariance is one pose's (the mean of their information),
         not the sum of their information.
         """
+        if feats is None:
+            return self._agreeing_pose(k, feats)
+        if feats is not self._memo_feats:
+            self._memo_feats, self._memo = feats, {}
+        if k not in self._memo:
+            self._memo[k] = self._agreeing_pose(k, feats)
+        return self._memo[k]
+
+    def _agreeing_pose(self, k: int, feats) -> dict | None:
         poses = []
         for j in range(max(k - self.views, 0), min(k + self.views, len(self.points) - 1) + 1):
             if self.map_index[j] < 0:

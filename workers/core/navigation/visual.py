@@ -44,6 +44,11 @@ third of a degree) are dropped: they say nothing about the offset beside the pat
 PIXEL_SIGMA = 1.0
 """Standard deviation of a matched keypoint (pixels at the working resolution), for the
 covariance of the triangulated-point pose."""
+INLIER_CHI2 = 9.21
+"""99 % quantile of chi-square with 2 degrees of freedom: a matched point further than this
+from a pose's reprojection, in units of its own noise, is not that pose's inlier."""
+CONSENSUS_TRIES = 200
+"""Most four-point poses drawn per view (fewer once the inliers found make 99.9 % sure)."""
 BASELINE_ERROR = 0.05
 """Relative error of the distance between two taught images along the relaxed path: the
 scale of the triangulated points, and so of the offset measured against them."""
@@ -271,15 +276,11 @@ def metric_view(query: SiftFeatures, ref: SiftFeatures, tri: Triangulation | Non
     obj = points[where[m[has, 1]]]
     obj_sigma = depth_sigma[where[m[has, 1]]]
     px = pq[has]
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, px, K, None, reprojectionError=3.0,
-                                             iterationsCount=200, confidence=0.999,
-                                             flags=cv2.SOLVEPNP_EPNP)
-    if not ok or inl is None or len(inl) < MIN_INLIERS:
+    found = _consensus_pose(obj, obj_sigma, px, K)
+    if found is None:
         return None
-    inl = inl.ravel()
-    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], px[inl], K, None, rvec, tvec)
-    pose, cov_pose = _weighted_pose(obj[inl], obj_sigma[inl], px[inl], K,
-                                    np.r_[rvec.ravel(), tvec.ravel()])
+    pose, inl = found
+    pose, cov_pose = _weighted_pose(obj[inl], obj_sigma[inl], px[inl], K, pose)
     state = _camera_state(pose)
     # (forward, left, yaw) as a function of the pose, differentiated numerically
     G = np.zeros((3, 6))
@@ -293,6 +294,76 @@ def metric_view(query: SiftFeatures, ref: SiftFeatures, tri: Triangulation | Non
     cov[:2, :2] += (BASELINE_ERROR ** 2) * np.outer(state[:2], state[:2])
     return MetricView(forward=float(state[0]), left=float(state[1]), yaw=float(state[2]),
                       cov=cov, inliers=len(inl))
+
+
+def _consensus_pose(obj: np.ndarray, depth_sigma: np.ndarray, px: np.ndarray, K: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+    """RANSAC over four-point poses (AP3P), each point judged by its own noise.
+
+    A fixed pixel threshold is biased towards the taught camera: there, every triangulated
+    point reprojects onto its keypoint whatever its depth error, while a robot a metre
+    beside the path sees a point 20 m away with a depth error of a third several pixels
+    from where the wrong depth puts it. Rendered street frames 1.2 m beside the path were
+    placed 0.3-0.8 times as far out as they were. Here a point is an inlier when its
+    reprojection error is within the 99 % ellipse of a keypoint's :data:`PIXEL_SIGMA` plus
+    its depth noise seen from the pose (:func:`_mahalanobis`), the model the refinement
+    weighs by. Returns the best pose ``(rvec, tvec)`` and its inliers, re-selected once
+    under the refined pose; None for fewer than :data:`MIN_INLIERS`.
+    """
+    n = len(obj)
+    if n < max(MIN_INLIERS, 4):
+        return None
+    rays = obj / np.linalg.norm(obj, axis=1, keepdims=True)
+    rng = np.random.default_rng(n)        # the same matches give the same pose
+    best, best_key, tries, needed = None, (0, 0.0), 0, CONSENSUS_TRIES
+    while tries < needed:
+        tries += 1
+        pick = rng.choice(n, 4, replace=False)
+        ok, rvec, tvec = cv2.solvePnP(obj[pick], px[pick], K, None, flags=cv2.SOLVEPNP_AP3P)
+        if not ok:
+            continue
+        pose = np.r_[rvec.ravel(), tvec.ravel()]
+        d2 = _mahalanobis(obj, rays, depth_sigma, px, K, pose)
+        inl = d2 < INLIER_CHI2
+        key = (int(inl.sum()), -float(np.minimum(d2, INLIER_CHI2).sum()))
+        if key > best_key:
+            best, best_key = (pose, inl), key
+            # enough tries to draw four inliers once at 99.9 %
+            w = key[0] / n
+            needed = min(needed, math.ceil(math.log(1e-3) / math.log(max(1.0 - w ** 4, 1e-12))))
+    if best is None or best_key[0] < MIN_INLIERS:
+        return None
+    pose, inl = best
+    pose, _ = _weighted_pose(obj[inl], depth_sigma[inl], px[inl], K, pose)
+    inl = _mahalanobis(obj, rays, depth_sigma, px, K, pose) < INLIER_CHI2
+    if inl.sum() < MIN_INLIERS:
+        return None
+    return pose, np.flatnonzero(inl)
+
+
+def _mahalanobis(obj: np.ndarray, rays: np.ndarray, depth_sigma: np.ndarray, px: np.ndarray,
+                 K: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distance of each reprojection error under the covariance
+    ``PIXEL_SIGMA^2 I + depth_sigma^2 g g^T``, ``g`` the image motion of the point slid a
+    metre along the taught camera's ray (Sherman-Morrison, so no 2x2 inverse per point);
+    infinite behind the camera."""
+    R, _ = cv2.Rodrigues(pose[:3])
+    X = obj @ R.T + pose[3:]
+    z = X[:, 2]
+    out = np.full(len(obj), np.inf)
+    front = z > 1e-6
+    X, z = X[front], z[front]
+    fx, fy = K[0, 0], K[1, 1]
+    proj = np.c_[fx * X[:, 0] / z + K[0, 2], fy * X[:, 1] / z + K[1, 2]]
+    r = proj - px[front]
+    dX = rays[front] @ R.T                               # the ray, in the robot's camera
+    g = np.c_[fx * (dX[:, 0] - X[:, 0] / z * dX[:, 2]) / z,
+              fy * (dX[:, 1] - X[:, 1] / z * dX[:, 2]) / z]
+    s2 = depth_sigma[front] ** 2
+    p2 = PIXEL_SIGMA ** 2
+    gr = np.sum(g * r, axis=1)
+    out[front] = (np.sum(r * r, axis=1) - s2 * gr ** 2 / (p2 + s2 * np.sum(g * g, axis=1))) / p2
+    return out
 
 
 def _weighted_pose(obj: np.ndarray, depth_sigma: np.ndarray, px: np.ndarray, K: np.ndarray,
