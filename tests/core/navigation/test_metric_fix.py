@@ -153,9 +153,43 @@ def test_without_agreeing_taught_points_the_best_score_starts_the_filter(monkeyp
     assert loc._nearby_best(query) == 5
 
 
-def test_once_started_the_best_score_near_the_robot_is_taken(monkeypatch):
+def test_once_placed_the_best_score_near_the_robot_is_taken(monkeypatch):
     loc = _localiser(n=30)
     query = _scored(monkeypatch, loc, {5: 40.0, 6: 35.0, 20: 30.0},
                     {19: _view(0.6, 0.8, 0.0), 21: _view(-0.6, 0.8, 0.0)})
-    loc.follower.step((0.6 * 5, 0.0), np.eye(2))         # placed at image 5
+    loc.follower.step((0.6 * 5, 0.0), np.eye(2))         # at image 5, confirmed there
+    loc.placed = True
     assert loc._nearby_best(query) == 5
+
+
+def test_a_confirmed_place_elsewhere_starts_the_filter_again(monkeypatch):
+    loc = _localiser(n=30)
+    # the first frames placed the robot at image 5 without agreeing taught points...
+    query = _scored(monkeypatch, loc, {5: 40.0}, {})
+    assert loc._nearby_best(query) == 5
+    loc.follower.step((0.6 * 5, 0.0), np.eye(2))
+    assert not loc.placed
+    # ...then a frame whose taught points agree at image 20, outside the filter's window
+    query = _scored(monkeypatch, loc, {5: 40.0, 20: 30.0},
+                    {19: _view(0.6, 0.8, 0.0), 21: _view(-0.6, 0.8, 0.0)})
+    assert loc._nearby_best(query) == 20
+    assert loc.placed and loc.follower.ekf is None        # starts from this frame's fix
+    # confirmed inside the window, the filter is kept
+    loc = _localiser(n=30)
+    query = _scored(monkeypatch, loc, {5: 40.0, 7: 30.0},
+                    {6: _view(0.6, 0.8, 0.0), 8: _view(-0.6, 0.8, 0.0)})
+    loc.follower.step((0.6 * 5, 0.0), np.eye(2))
+    assert loc._nearby_best(query) == 5 and loc.placed and loc.follower.ekf is not None
+
+
+def test_whether_the_place_is_confirmed_is_checkpointed(monkeypatch):
+    loc = _localiser(n=30)
+    monkeypatch.setattr(loc.inner, "get_state", lambda: b"inner", raising=False)
+    monkeypatch.setattr(loc.inner, "set_state", lambda data: None, raising=False)
+    loc.follower.step((0.6 * 5, 0.0), np.eye(2))
+    loc.placed = True
+    other = _localiser(n=30)
+    other.inner.set_state = lambda data: None
+    other.set_state(loc.get_state())
+    assert other.placed
+    assert other.follower.get_state() == loc.follower.get_state()

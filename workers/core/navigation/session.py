@@ -65,7 +65,8 @@ those on 10-12 points were more than 1 m off beside the path one time in five, w
 stated uncertainty of a tenth of that; from 15 points on, the errors are half as large."""
 YAW_AGREEMENT = math.radians(10.0)
 START_CANDIDATES = 3
-"""Best-scoring places checked for a triangulated-point pose before the filter starts."""
+"""Best-scoring places checked for a triangulated-point pose until one confirms the robot's
+place on the route."""
 VISUAL_DEFAULTS = {"visual": True, "hfov_deg": 60.0, "views": 4}
 """``visual``: measure the robot's pose against the taught images near the best one;
 ``hfov_deg``: the robot camera's horizontal field of view; ``views``: how many taught
@@ -163,6 +164,8 @@ class NavigatingLocaliser:
         self.K = camera_matrix(WORK_SIZE[0], WORK_SIZE[1], hfov)
         self.point_s = np.array(_arc_lengths(self.path, points))
         self._triangulations: dict[int, Triangulation | None] = {}
+        self.placed = False
+        """Whether a triangulated-point pose has confirmed the robot's place on the route."""
         # this frame's triangulated-point poses by best image (one frame may ask twice)
         self._memo_feats, self._memo = None, {}
 
@@ -194,41 +197,58 @@ class NavigatingLocaliser:
         return NavigatedEstimate(est, out)
 
     def _nearby_best(self, query) -> int | None:
-        """The taught image near the robot's place on the route that the frame matches
-        best (any taught image before the place is known); None when nothing matches."""
-        from ..localisers.scoring import sift_similarity
+        """The taught image the frame matches best near the robot's place on the route;
+        None when nothing matches.
 
+        Until a triangulated-point pose (:meth:`_metric_fix`) has confirmed the place, every
+        taught image is scored (matches verified by a fundamental matrix): a facade repeated
+        elsewhere on the route, seen 20 degrees askew, can outscore the right place, and a
+        filter started there would look for the robot only near there. Of the best-scoring
+        places, the first where the taught points agree on a pose confirms the place; a
+        confirmed place outside the filter's window starts the filter again there. Before
+        any is confirmed, the filter starts at the best score.
+        """
         if not self.route_index:
             return None
-        if self.follower.ekf is None:
-            # not yet placed: every taught image, matches verified by a fundamental matrix
-            near, verify = np.arange(len(self.point_s)), "fundamental"
-        else:
-            s = self.follower.s
-            # as far ahead again as the robot can go in two frames
-            ahead = WINDOW_AHEAD_M + 2.0 * self.config.control.v_max * self.config.dt
-            near = np.flatnonzero((self.point_s >= s - WINDOW_BEHIND_M)
-                                  & (self.point_s <= s + ahead))
-            verify = "none"
+        feats, _ = query.sift()
+        if not self.placed:
+            near, score = self._scores(feats, np.arange(len(self.point_s)), "fundamental")
+            if self.visual:
+                for i in np.argsort(-score, kind="stable")[:START_CANDIDATES]:
+                    k = int(near[i])
+                    if score[i] > 0 and self._metric_fix(k, feats) is not None:
+                        if self.follower.ekf is not None and k not in self._window():
+                            self.follower = PathFollower(self.path, self.node_s, self.config)
+                        self.placed = True
+                        return k
+            if self.follower.ekf is None:
+                return int(near[int(np.argmax(score))]) if len(near) and score.max() > 0 \
+                    else None
+            # without triangulated points the place is never confirmed by them
+            self.placed = not self.visual
+        near, score = self._scores(feats, self._window(), "none")
+        if not len(near) or score.max() <= 0:
+            return None
+        return int(near[int(np.argmax(score))])
+
+    def _window(self) -> np.ndarray:
+        """Taught images from :data:`WINDOW_BEHIND_M` behind the filter's place on the route
+        to :data:`WINDOW_AHEAD_M` ahead (and as far again as the robot can go in two
+        frames)."""
+        s = self.follower.s
+        ahead = WINDOW_AHEAD_M + 2.0 * self.config.control.v_max * self.config.dt
+        return np.flatnonzero((self.point_s >= s - WINDOW_BEHIND_M) & (self.point_s <= s + ahead))
+
+    def _scores(self, feats, near: np.ndarray, verify: str) -> tuple[np.ndarray, np.ndarray]:
+        """The taught images among ``near`` that are in the map, and the frame's SIFT
+        similarity to each."""
+        from ..localisers.scoring import sift_similarity
+
         near = near[np.asarray(self.map_index)[near] >= 0]
         if not len(near):
-            return None
-        feats, _ = query.sift()
-        score = sift_similarity(feats, self.inner.map, np.asarray(self.map_index)[near],
-                                ratio=0.8, verify=verify)
-        best = int(np.argmax(score))
-        if score[best] <= 0:
-            return None
-        if self.follower.ekf is None and self.visual:
-            # The filter starts where this frame is recognised, and afterwards looks for
-            # the robot only near there: a facade repeated further along the route, seen
-            # 20 degrees askew, can outscore the right place. Of the best-scoring places,
-            # the first where the taught images' triangulated points agree on a pose is
-            # taken; where none does, the best score.
-            for i in np.argsort(-score, kind="stable")[:START_CANDIDATES]:
-                if score[i] > 0 and self._metric_fix(int(near[i]), feats) is not None:
-                    return int(near[i])
-        return int(near[best])
+            return near, np.zeros(0)
+        return near, sift_similarity(feats, self.inner.map, np.asarray(self.map_index)[near],
+                                     ratio=0.8, verify=verify)
 
     def _estimate_fix(self, est: Estimate) -> dict:
         cov = np.array(est.cov, np.float64).reshape(2, 2) + np.eye(2) * MIN_POSITION_SIGMA ** 2
@@ -354,18 +374,21 @@ class NavigatingLocaliser:
     def get_state(self) -> bytes:
         inner = np.frombuffer(self.inner.get_state(), np.uint8)
         return pack_state({"inner": inner},
-                          {"follower": json.loads(json.dumps(self.follower.get_state()))})
+                          {"follower": json.loads(json.dumps(self.follower.get_state())),
+                           "placed": self.placed})
 
     def set_state(self, data: bytes) -> None:
         arrays, meta = unpack_state(data)
         self.inner.set_state(arrays["inner"].tobytes())
         self.follower.set_state(meta["follower"])
+        self.placed = bool(meta.get("placed", True))
 
     def reset(self) -> None:
         """Global re-initialisation: the localiser forgets, and the follower starts again
         from the next fix."""
         self.inner.reset()
         self.follower = PathFollower(self.path, self.node_s, self.config)
+        self.placed = False
 
     def set_initial_pose(self, x: float, y: float, sigma: float = 5.0) -> None:
         self.inner.set_initial_pose(x, y, sigma)
