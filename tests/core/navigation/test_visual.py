@@ -214,3 +214,30 @@ def test_consensus_pose_with_loose_depths_and_false_matches():
     again, _ = _consensus_pose(obj, sigma, px, K)
     assert np.array_equal(again, got)
     assert _consensus_pose(obj[:9], sigma[:9], px[:9], K) is None
+
+
+def test_a_pose_with_a_point_behind_the_camera_is_not_refined():
+    """A four-point pose can put other inliers behind the camera, where their weights are
+    not defined: the refinement declines instead of failing (a service error for the
+    frame)."""
+    import cv2
+
+    from vloc.workers.core.navigation.visual import _weighted_pose
+
+    rng = np.random.default_rng(1)
+    obj = np.c_[rng.uniform(-5, 5, 10), rng.uniform(-2, 1, 10), rng.uniform(6, 30, 10)]
+    sigma = np.full(10, 0.5)
+    truth = _pose(0.4, math.radians(3.0))
+    uv, _ = cv2.projectPoints(obj, truth[:3], truth[3:], K, None)
+    px = uv.reshape(-1, 2) + rng.normal(0, 0.3, (10, 2))
+    refined = _weighted_pose(obj, sigma, px, K, np.zeros(6))
+    assert refined is not None and np.allclose(refined[0], truth, atol=0.05)
+    # a point at the camera's plane, and a pose with every point behind the camera
+    near = np.r_[obj, [[0.5, 0.2, 0.05]]]
+    assert _weighted_pose(near, np.r_[sigma, 0.5], np.r_[px, [[160.0, 120.0]]], K,
+                          np.zeros(6)) is None
+    assert _weighted_pose(obj, sigma, px, K, np.r_[0, 0, 0, 0, 0, -40.0]) is None
+    # three points matched to one pixel: the steps go astray (this raised LinAlgError, a
+    # server error for the frame); now no pose, or a finite one
+    astray = _weighted_pose(obj[:3], sigma[:3], np.full((3, 2), 160.0), K, np.zeros(6))
+    assert astray is None or np.all(np.isfinite(astray[0]))

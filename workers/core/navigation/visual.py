@@ -44,6 +44,9 @@ third of a degree) are dropped: they say nothing about the offset beside the pat
 PIXEL_SIGMA = 1.0
 """Standard deviation of a matched keypoint (pixels at the working resolution), for the
 covariance of the triangulated-point pose."""
+MIN_POINT_DEPTH = 0.1
+"""Metres: a pose that puts one of its points nearer the camera's plane than this (or behind
+it) is not refined."""
 INLIER_CHI2 = 9.21
 """99 % quantile of chi-square with 2 degrees of freedom: a matched point further than this
 from a pose's reprojection, in units of its own noise, is not that pose's inlier."""
@@ -280,7 +283,10 @@ def metric_view(query: SiftFeatures, ref: SiftFeatures, tri: Triangulation | Non
     if found is None:
         return None
     pose, inl = found
-    pose, cov_pose = _weighted_pose(obj[inl], obj_sigma[inl], px[inl], K, pose)
+    refined = _weighted_pose(obj[inl], obj_sigma[inl], px[inl], K, pose)
+    if refined is None:
+        return None
+    pose, cov_pose = refined
     state = _camera_state(pose)
     # (forward, left, yaw) as a function of the pose, differentiated numerically
     G = np.zeros((3, 6))
@@ -334,7 +340,10 @@ def _consensus_pose(obj: np.ndarray, depth_sigma: np.ndarray, px: np.ndarray, K:
     if best is None or best_key[0] < MIN_INLIERS:
         return None
     pose, inl = best
-    pose, _ = _weighted_pose(obj[inl], depth_sigma[inl], px[inl], K, pose)
+    refined = _weighted_pose(obj[inl], depth_sigma[inl], px[inl], K, pose)
+    if refined is None:
+        return None
+    pose = refined[0]
     inl = _mahalanobis(obj, rays, depth_sigma, px, K, pose) < INLIER_CHI2
     if inl.sum() < MIN_INLIERS:
         return None
@@ -367,23 +376,32 @@ def _mahalanobis(obj: np.ndarray, rays: np.ndarray, depth_sigma: np.ndarray, px:
 
 
 def _weighted_pose(obj: np.ndarray, depth_sigma: np.ndarray, px: np.ndarray, K: np.ndarray,
-                   pose: np.ndarray, iterations: int = 5) -> tuple[np.ndarray, np.ndarray]:
+                   pose: np.ndarray, iterations: int = 5
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
     """Gauss-Newton on the reprojection errors, each whitened by its own noise: a pixel of
     :data:`PIXEL_SIGMA` plus where the point's depth noise moves its image (the point slid
     along ``ref``'s ray). Returns the pose and its covariance, scaled up where the residuals
-    are larger than that noise explains."""
+    are larger than that noise explains; None where a point is not in front of the camera
+    (a pose drawn from four points can put the others behind it, and their weights are then
+    not defined)."""
     rays = obj / np.linalg.norm(obj, axis=1, keepdims=True)
     pose = pose.copy()
     for it in range(iterations + 1):
+        R, _ = cv2.Rodrigues(pose[:3])
+        depth = obj @ R[2] + pose[5]
+        if not np.all(depth > MIN_POINT_DEPTH) or not np.all(np.isfinite(pose)):
+            return None
         proj, jac = cv2.projectPoints(obj, pose[:3], pose[3:], K, None)
         r = (proj.reshape(-1, 2) - px)
         J = jac[:, :6].reshape(-1, 2, 6)
         # image motion per metre along the ray: d(projection)/d(point) = dproj/dt @ R
-        R, _ = cv2.Rodrigues(pose[:3])
         g = np.einsum("nij,jk,nk->ni", jac[:, 3:6].reshape(-1, 2, 3), R, rays)
         cov = (PIXEL_SIGMA ** 2) * np.eye(2) + (depth_sigma ** 2)[:, None, None] \
             * np.einsum("ni,nj->nij", g, g)
-        W = np.linalg.inv(np.linalg.cholesky(cov))  # whitening: W cov W^T = I
+        try:
+            W = np.linalg.inv(np.linalg.cholesky(cov))  # whitening: W cov W^T = I
+        except np.linalg.LinAlgError:       # weights not defined (a step gone astray)
+            return None
         rw = np.einsum("nij,nj->ni", W, r).ravel()
         Jw = np.einsum("nij,njk->nik", W, J).reshape(-1, 6)
         H = Jw.T @ Jw
