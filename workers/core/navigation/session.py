@@ -65,6 +65,9 @@ those on 10-12 points were more than 1 m off beside the path one time in five, w
 stated uncertainty of a tenth of that; from 15 points on, the errors are half as large."""
 YAW_AGREEMENT = math.radians(10.0)
 START_CANDIDATES = 3
+RESEARCH_VERIFIED = 12
+"""Taught images, those with the most ratio-test matches, verified by a fundamental matrix
+on each frame while the filter runs with its place unconfirmed."""
 """Best-scoring places checked for a triangulated-point pose until one confirms the robot's
 place on the route."""
 VISUAL_DEFAULTS = {"visual": True, "hfov_deg": 60.0, "views": 4}
@@ -212,7 +215,14 @@ class NavigatingLocaliser:
             return None
         feats, _ = query.sift()
         if not self.placed:
-            near, score = self._scores(feats, np.arange(len(self.point_s)), "fundamental")
+            near = np.arange(len(self.point_s))
+            if self.follower.ekf is not None:
+                # while the filter runs unconfirmed, a fundamental matrix for every taught
+                # image on every frame tripled a frame's CPU: only the images with the most
+                # ratio-test matches are verified (verifying can only lower a score)
+                near, raw = self._scores(feats, near, "none")
+                near = near[np.argsort(-raw, kind="stable")[:RESEARCH_VERIFIED]]
+            near, score = self._scores(feats, near, "fundamental")
             if self.visual:
                 for i in np.argsort(-score, kind="stable")[:START_CANDIDATES]:
                     k = int(near[i])
