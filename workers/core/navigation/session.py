@@ -214,14 +214,17 @@ class NavigatingLocaliser:
         if not self.route_index:
             return None
         feats, _ = query.sift()
+        raw = None        # ratio-test scores of every taught image, where this frame has them
         if not self.placed:
             near = np.arange(len(self.point_s))
             if self.follower.ekf is not None:
                 # while the filter runs unconfirmed, a fundamental matrix for every taught
                 # image on every frame tripled a frame's CPU: only the images with the most
                 # ratio-test matches are verified (verifying can only lower a score)
-                near, raw = self._scores(feats, near, "none")
-                near = near[np.argsort(-raw, kind="stable")[:RESEARCH_VERIFIED]]
+                near, counts = self._scores(feats, near, "none")
+                raw = np.zeros(len(self.point_s))
+                raw[near] = counts
+                near = near[np.argsort(-counts, kind="stable")[:RESEARCH_VERIFIED]]
             near, score = self._scores(feats, near, "fundamental")
             if self.visual:
                 for i in np.argsort(-score, kind="stable")[:START_CANDIDATES]:
@@ -236,7 +239,12 @@ class NavigatingLocaliser:
                     else None
             # without triangulated points the place is never confirmed by them
             self.placed = not self.visual
-        near, score = self._scores(feats, self._window(), "none")
+        if raw is None:
+            near, score = self._scores(feats, self._window(), "none")
+        else:             # the window's scores were among those just computed
+            near = self._window()
+            near = near[np.asarray(self.map_index)[near] >= 0]
+            score = raw[near]
         if not len(near) or score.max() <= 0:
             return None
         return int(near[int(np.argmax(score))])
