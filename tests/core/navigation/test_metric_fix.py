@@ -36,12 +36,14 @@ def test_two_agreeing_views_are_fused_by_their_information(monkeypatch):
         calls.append(tri)
         return views.get(ref)
 
-    monkeypatch.setattr(session, "triangulate", lambda ref, other, baseline, K:
-                        (ref, other, baseline))
+    monkeypatch.setattr(session, "triangulate_views", lambda ref, others, K:
+                        (ref, [(o, pytest.approx(b)) for o, b in others]))
     monkeypatch.setattr(session, "metric_view", fake)
     fix = loc._metric_fix(8, feats=None)
-    # each view is triangulated against the nearest taught image at least 1 m behind it
-    assert (8, 6, pytest.approx(1.2)) in calls and (7, 5, pytest.approx(1.2)) in calls
+    # each view is triangulated against the nearest taught images at least 1, 2 and 3 m
+    # behind it and ahead of it (the path ends at 6.6 m), with their distances
+    assert (8, [(6, 1.2), (4, 2.4), (3, 3.0), (10, 1.2)]) in calls
+    assert (7, [(5, 1.2), (3, 2.4), (2, 3.0), (9, 1.2), (11, 2.4)]) in calls
     # information-weighted mean: weights 1 / (s^2 + floor^2) per axis
     w8, w7 = 1 / (0.2 ** 2 + 0.05 ** 2), 1 / (0.1 ** 2 + 0.05 ** 2)
     assert fix["xy"][0] == pytest.approx((w8 * 5.0 + w7 * 5.02) / (w8 + w7), abs=1e-9)
@@ -57,7 +59,7 @@ def test_views_ahead_of_the_best_image_count_too(monkeypatch):
     # the robot at (5.0, 0.8): seen from taught images 9 and 10 (at 5.4 and 6.0 m), ahead
     # of the best image 8, which has no view
     views = {9: _view(-0.4, 0.8, 0.0), 10: _view(-1.0, 0.8, 0.0)}
-    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "triangulate_views", lambda *a: "points")
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     fix = loc._metric_fix(8, feats=None)
     assert fix["xy"] == pytest.approx([5.0, 0.8], abs=1e-9)
@@ -68,7 +70,7 @@ def test_the_largest_set_of_agreeing_views_is_fused(monkeypatch):
     # two views agree on the path (a repeated facade), three agree 0.8 m beside it
     views = {4: _view(0.2, 0.0, 0.0), 5: _view(-0.4, 0.0, 0.0),
              7: _view(0.8, 0.8, 0.0), 8: _view(0.2, 0.8, 0.0), 10: _view(-1.0, 0.8, 0.0)}
-    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "triangulate_views", lambda *a: "points")
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     assert loc._metric_fix(8, feats=None)["xy"] == pytest.approx([5.0, 0.8], abs=1e-9)
 
@@ -79,7 +81,7 @@ def test_views_that_disagree_give_no_fix(monkeypatch):
     # matched at the wrong depth look like this
     views = {8: _view(0.2, 0.0, 0.0), 7: _view(0.8, 1.0, math.radians(2.0)),
              6: _view(1.4, -1.0, 0.0)}
-    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "triangulate_views", lambda *a: "points")
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     assert loc._metric_fix(8, feats=None) is None
 
@@ -89,7 +91,7 @@ def test_a_view_on_too_few_points_is_not_used(monkeypatch):
     few = session.METRIC_MIN_INLIERS - 1
     views = {8: _view(0.2, 0.8, 0.0, inliers=few), 7: _view(0.8, 0.8, 0.0),
              6: _view(1.4, 0.8, 0.0, inliers=few)}
-    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "triangulate_views", lambda *a: "points")
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     assert loc._metric_fix(8, feats=None) is None
     views[6] = _view(1.4, 0.8, 0.0, inliers=few + 1)
@@ -99,7 +101,7 @@ def test_a_view_on_too_few_points_is_not_used(monkeypatch):
 def test_a_view_beyond_reach_is_not_used(monkeypatch):
     loc = _localiser()
     views = {8: _view(6.0, 0.0, 0.0), 7: _view(6.6, 0.0, 0.0)}
-    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "triangulate_views", lambda *a: "points")
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     assert loc._metric_fix(8, feats=None) is None
 
@@ -107,22 +109,28 @@ def test_a_view_beyond_reach_is_not_used(monkeypatch):
 def test_the_taught_points_are_triangulated_once(monkeypatch):
     loc = _localiser()
     pairs = []
-    monkeypatch.setattr(session, "triangulate",
-                        lambda ref, other, baseline, K: pairs.append((ref, other)))
+    monkeypatch.setattr(session, "triangulate_views",
+                        lambda ref, others, K: pairs.append(ref))
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: None)
     loc._metric_fix(8, feats=None)
     loc._metric_fix(8, feats=None)
-    # the taught images four either side of image 8 (the path ends at 11)
-    assert pairs == [(4, 2), (5, 3), (6, 4), (7, 5), (8, 6), (9, 7), (10, 8), (11, 9)]
+    # the taught images four either side of image 8 (the path ends at 11), once each
+    assert pairs == [4, 5, 6, 7, 8, 9, 10, 11]
 
 
-def test_no_image_far_enough_behind_gives_no_view(monkeypatch):
-    loc = _localiser()
-    monkeypatch.setattr(session, "triangulate",
+def test_the_partners_are_the_nearest_images_1_2_and_3_m_behind_then_ahead():
+    loc = _localiser(spacing=0.5)
+    assert loc._partners(8) == [6, 4, 2, 10]  # 2 m ahead is past the path's end
+    assert loc._partners(0) == [2, 4, 6]
+    # a taught point without a map image is passed over for the next one
+    loc.map_index[6] = -1
+    assert loc._partners(8) == [4, 2, 10]
+
+
+def test_a_taught_image_alone_gives_no_view(monkeypatch):
+    loc = _localiser(n=2, spacing=0.5)
+    monkeypatch.setattr(session, "triangulate_views",
                         lambda *a: pytest.fail("needs two taught images 1 m apart"))
-    # images 0 and 1 (the best image and the one either side of it) have nothing 1 m
-    # behind them
-    loc.views = 1
     assert loc._metric_fix(0, feats=None) is None
 
 
@@ -133,7 +141,7 @@ def _scored(monkeypatch, loc, scores: dict[int, float], views: dict):
 
     monkeypatch.setattr(scoring, "sift_similarity", lambda feats, m, idx, ratio, verify:
                         np.array([scores.get(int(i), 0.0) for i in idx]))
-    monkeypatch.setattr(session, "triangulate", lambda *a: "points")
+    monkeypatch.setattr(session, "triangulate_views", lambda *a: "points")
     monkeypatch.setattr(session, "metric_view", lambda f, ref, tri, K: views.get(ref))
     return SimpleNamespace(sift=lambda: ("feats", None))
 

@@ -6,12 +6,16 @@ import numpy as np
 import pytest
 
 from vloc.workers.core.navigation.visual import (
+    FUSE_AGREEMENT,
+    Triangulation,
     camera_matrix,
+    fuse,
     intersect,
     locate,
     metric_view,
     relative_view,
     triangulate,
+    triangulate_views,
 )
 from vloc.workers.core.sift import SiftFeatures
 
@@ -143,6 +147,90 @@ def test_metric_view_needs_shared_points(scene):
     assert metric_view(query, ref, triangulate(ref, lonely, 1.2, K), K) is None
     assert triangulate(ref, lonely, 1.2, K) is None
     assert triangulate(ref, ref, 0.0, K) is None
+
+
+def _tri(rows, rays, depths, sigmas) -> Triangulation:
+    rays = np.asarray(rays, np.float64)
+    rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    return Triangulation(np.asarray(rows), rays * np.asarray(depths, np.float64)[:, None],
+                         np.asarray(sigmas, np.float64))
+
+
+def test_fuse_by_hand():
+    ray = [0.0, 0.0, 1.0]
+    a = _tri([3, 5], [ray, [0.1, 0.0, 1.0]], [10.0, 8.0], [1.0, 0.5])
+    b = _tri([3, 7], [ray, ray], [12.0, 20.0], [2.0, 4.0])
+    # keypoint 5's pair in c disagrees with a's: 8 against 14, 6 m apart, 3 sigma is 1.8
+    c = _tri([5], [[0.1, 0.0, 1.0]], [14.0], [0.5])
+    rows, points, sigma = fuse([a, None, b, c])
+    assert rows.tolist() == [3, 5, 7]
+    # keypoint 3: inverse-variance mean of 10 (sigma 1) and 12 (sigma 2)
+    assert np.linalg.norm(points[0]) == pytest.approx((10 + 12 / 4) / 1.25)
+    assert sigma[0] == pytest.approx(1 / math.sqrt(1.25))
+    # keypoint 5: the sharpest (the first of equals) alone, on its ray
+    assert np.linalg.norm(points[1]) == pytest.approx(8.0)
+    assert points[1] / np.linalg.norm(points[1]) == pytest.approx(np.array([0.1, 0, 1]) / math.hypot(0.1, 1))
+    assert sigma[1] == pytest.approx(0.5)
+    # keypoint 7: one triangulation, as it was
+    assert points[2] == pytest.approx([0.0, 0.0, 20.0]) and sigma[2] == pytest.approx(4.0)
+    assert fuse([None]) is None and fuse([]) is None
+
+
+def _fuse_slowly(parts):
+    """Keypoint by keypoint: the sharpest triangulation, and the inverse-variance mean of the
+    depths within FUSE_AGREEMENT combined sigmas of it, on its ray."""
+    found = {}
+    for p in parts:
+        for r, x, s in zip(p.rows, p.points, p.depth_sigma, strict=True):
+            found.setdefault(int(r), []).append((x, s))
+    out = []
+    for r in sorted(found):
+        lead_x, lead_s = min(found[r], key=lambda e: e[1])
+        d0 = np.linalg.norm(lead_x)
+        num = den = 0.0
+        for x, s in found[r]:
+            if abs(np.linalg.norm(x) - d0) <= FUSE_AGREEMENT * math.hypot(s, lead_s):
+                num += np.linalg.norm(x) / s ** 2
+                den += 1 / s ** 2
+        out.append((r, lead_x / d0 * (num / den), 1 / math.sqrt(den)))
+    return out
+
+
+def test_fuse_against_a_slow_reference():
+    rng = np.random.default_rng(3)
+    parts = []
+    for _ in range(5):
+        rows = np.sort(rng.choice(60, size=40, replace=False))
+        rays = np.c_[rng.normal(0, 0.3, (40, 2)), np.ones(40)]
+        depths = rng.uniform(3, 30, 40) * np.where(rng.random(40) < 0.2, 2.0, 1.0)
+        parts.append(_tri(rows, rays, depths, rng.uniform(0.2, 3.0, 40)))
+    rows, points, sigma = fuse(parts)
+    slow = _fuse_slowly(parts)
+    assert rows.tolist() == [r for r, _, _ in slow]
+    assert points == pytest.approx(np.array([x for _, x, _ in slow]), rel=1e-12)
+    assert sigma == pytest.approx(np.array([s for _, _, s in slow]), rel=1e-12)
+
+
+def test_triangulate_views_fuses_the_pairs_behind_and_ahead(scene):
+    pts, desc = scene
+    ref = _view(pts, 0.0, 0.0, 0.0, desc)
+    behind = triangulate(ref, _view(pts, -1.2, 0.0, 0.0, desc), 1.2, K)
+    both = triangulate_views(ref, [(_view(pts, -1.2, 0.0, 0.0, desc), 1.2),
+                                   (_view(pts, 2.4, 0.0, 0.0, desc), 2.4)], K)
+    # points the camera behind does not see, and sharper depths for those both see (the
+    # same where only the camera behind triangulates a point)
+    assert set(behind.rows) < set(both.rows)
+    fused = both.depth_sigma[np.isin(both.rows, behind.rows)]
+    alone = behind.depth_sigma[np.isin(behind.rows, both.rows)]
+    assert np.all(fused <= alone * (1 + 1e-12)) and np.mean(fused < 0.99 * alone) > 0.8
+    world = both.points @ _rotation(0.0) + [0.0, 0.0, 1.0]
+    cam = (pts - [0.0, 0.0, 1.0]) @ _rotation(0.0).T
+    front = np.flatnonzero(cam[:, 2] > 0.5)
+    uvw = cam[front] @ K.T
+    uv = uvw[:, :2] / uvw[:, 2:]
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < 320) & (uv[:, 1] >= 0) & (uv[:, 1] < 240)
+    assert np.max(np.linalg.norm(world - pts[front[inside][both.rows]], axis=1)) < 0.05
+    assert triangulate_views(ref, [], K) is None
 
 
 def _pose(x_right: float, yaw: float = 0.0) -> np.ndarray:

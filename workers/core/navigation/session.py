@@ -26,7 +26,7 @@ from .visual import (
     camera_matrix,
     metric_view,
     relative_view,
-    triangulate,
+    triangulate_views,
 )
 
 WINDOW_BEHIND_M, WINDOW_AHEAD_M = 3.0, 6.0
@@ -53,9 +53,13 @@ the taught path's own positions are not exact."""
 AGREEMENT_CHI2 = 11.3
 """99 % quantile of chi-square with 3 degrees of freedom: two triangulated-point poses
 further apart than this disagree."""
-TRIANGULATION_BASELINE_M = 1.0
-"""Two taught images at least this far apart along the path triangulate the points a frame's
-pose is solved against."""
+TRIANGULATION_BASELINES_M = (1.0, 2.0, 3.0)
+"""A taught image's points, which a frame's pose is solved against, are triangulated with the
+nearest taught images at least these distances behind it and ahead of it along the path, and
+fused (:func:`.visual.fuse`). On 240 rendered frames 1-1.5 m beside the path and up to 25
+degrees turned, against the one taught image 1 m behind: a pose from 15 points or more on
+121 frames instead of 45, placed at 0.95 of the offset instead of 0.82 (median, at 1.5 m),
+0.10 m off beside the path instead of 0.27 (median)."""
 HEADING_SIGMA = math.radians(5.0)
 """The heading from the relative rotations to the taught images behind the best one: they
 were 2-6 degrees off on rendered street frames 20 degrees off the path."""
@@ -310,8 +314,8 @@ class NavigatingLocaliser:
     def _metric_fix(self, k: int, feats) -> dict | None:
         """The robot's pose from the points taught images near ``k`` triangulate
         (:func:`.visual.metric_view`): the ``views`` taught images on either side of ``k``,
-        each with the nearest taught image at least :data:`TRIANGULATION_BASELINE_M` behind
-        it.
+        each with its points triangulated against the taught images around it
+        (:meth:`_triangulation`).
 
         A pose is fused only where at least one other agrees with it (within
         :data:`AGREEMENT_CHI2`): a facade's repeated windows can match along the epipolar
@@ -370,24 +374,31 @@ class NavigatingLocaliser:
                 "heading_sigma": math.sqrt(cov[2, 2])}
 
     def _triangulation(self, j: int) -> Triangulation | None:
-        """The points taught image ``j`` shares with the taught image behind it
-        (:meth:`_behind`), triangulated once per localiser: they depend on the two taught
+        """The points taught image ``j`` shares with the taught images around it
+        (:meth:`_partners`), triangulated once per localiser: they depend on the taught
         images only, not on the frame."""
         if j not in self._triangulations:
-            other = self._behind(j)
-            self._triangulations[j] = None if other is None else triangulate(
-                self.inner.map.sift(self.map_index[j]),
-                self.inner.map.sift(self.map_index[other]),
-                float(np.hypot(*(self.points[j] - self.points[other]))), self.K)
+            others = [(self.inner.map.sift(self.map_index[i]),
+                       float(np.hypot(*(self.points[j] - self.points[i]))))
+                      for i in self._partners(j)]
+            self._triangulations[j] = triangulate_views(
+                self.inner.map.sift(self.map_index[j]), others, self.K) if others else None
         return self._triangulations[j]
 
-    def _behind(self, j: int) -> int | None:
-        """The nearest taught image with a map image at least
-        :data:`TRIANGULATION_BASELINE_M` behind taught image ``j`` along the path."""
-        for i in range(j - 1, -1, -1):
-            if self.point_s[j] - self.point_s[i] >= TRIANGULATION_BASELINE_M:
-                return i if self.map_index[i] >= 0 else None
-        return None
+    def _partners(self, j: int) -> list[int]:
+        """The nearest taught images at least each of :data:`TRIANGULATION_BASELINES_M`
+        behind taught image ``j`` along the path, then ahead of it, that have a map image."""
+        out: list[int] = []
+        for step in (-1, 1):
+            i = j
+            for reach in TRIANGULATION_BASELINES_M:
+                while 0 <= i < len(self.points) and abs(self.point_s[i] - self.point_s[j]) < reach:
+                    i += step
+                if not 0 <= i < len(self.points):
+                    break
+                if self.map_index[i] >= 0 and i not in out:
+                    out.append(i)
+        return out
 
     def get_state(self) -> bytes:
         inner = np.frombuffer(self.inner.get_state(), np.uint8)

@@ -52,6 +52,9 @@ INLIER_CHI2 = 9.21
 from a pose's reprojection, in units of its own noise, is not that pose's inlier."""
 CONSENSUS_TRIES = 200
 """Most four-point poses drawn per view (fewer once the inliers found make 99.9 % sure)."""
+FUSE_AGREEMENT = 3.0
+"""Standard deviations: two triangulations of one taught keypoint whose depths differ by more
+than this in their combined noise disagree (:func:`fuse`)."""
 BASELINE_ERROR = 0.05
 """Relative error of the distance between two taught images along the relaxed path: the
 scale of the triangulated points, and so of the offset measured against them."""
@@ -253,6 +256,47 @@ def triangulate(ref: SiftFeatures, other: SiftFeatures, baseline: float, K: np.n
     if sharp.sum() < MIN_INLIERS:
         return None
     return Triangulation(m[keep, 0][ok][sharp], X[sharp], depth_sigma[sharp])
+
+
+def fuse(parts: list[Triangulation | None]) -> Triangulation | None:
+    """One set of points for a taught image from its triangulations with several others
+    (:func:`triangulate`, each with that image first); None when there are none.
+
+    A triangulated point reprojects onto its keypoint in the first image, so the
+    triangulations of one keypoint differ in depth along its ray only. The fused point is on
+    the ray of the sharpest one, at the inverse-variance mean of the depths that agree with
+    it (within :data:`FUSE_AGREEMENT` of their combined noise; the others are taken for
+    false matches in one of the pairs). The depths share the first image's keypoint noise,
+    so the fused noise, computed as if they were independent, is somewhat optimistic; over
+    pairs of different baselines it is dominated by the widest one's.
+    """
+    parts = [p for p in parts if p is not None and len(p.rows)]
+    if not parts:
+        return None
+    rows = np.concatenate([p.rows for p in parts])
+    points = np.concatenate([p.points for p in parts])
+    sigma = np.concatenate([p.depth_sigma for p in parts])
+    order = np.lexsort((sigma, rows))  # by keypoint, the sharpest first
+    rows, points, sigma = rows[order], points[order], sigma[order]
+    depth = np.linalg.norm(points, axis=1)
+    first = np.r_[True, rows[1:] != rows[:-1]]
+    group = np.cumsum(first) - 1
+    lead = np.flatnonzero(first)
+    agree = (np.abs(depth - depth[lead][group])
+             <= FUSE_AGREEMENT * np.hypot(sigma, sigma[lead][group]))
+    weight = np.where(agree, 1.0 / sigma ** 2, 0.0)
+    total = np.bincount(group, weight)
+    fused = np.bincount(group, weight * depth) / total
+    rays = points[lead] / depth[lead][:, None]
+    return Triangulation(rows[lead], rays * fused[:, None], 1.0 / np.sqrt(total))
+
+
+def triangulate_views(ref: SiftFeatures, others: list[tuple[SiftFeatures, float]],
+                      K: np.ndarray) -> Triangulation | None:
+    """3-D points of taught image ``ref`` from its matches with each of ``others`` (their
+    features and their distance from ``ref`` along the path; :func:`triangulate`), fused
+    (:func:`fuse`)."""
+    return fuse([triangulate(ref, other, baseline, K) for other, baseline in others])
 
 
 def metric_view(query: SiftFeatures, ref: SiftFeatures, tri: Triangulation | None,
