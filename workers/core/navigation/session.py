@@ -69,11 +69,11 @@ those on 10-12 points were more than 1 m off beside the path one time in five, w
 stated uncertainty of a tenth of that; from 15 points on, the errors are half as large."""
 YAW_AGREEMENT = math.radians(10.0)
 START_CANDIDATES = 3
+"""Best-scoring places checked for a triangulated-point pose until one confirms the robot's
+place on the route."""
 RESEARCH_VERIFIED = 12
 """Taught images, those with the most ratio-test matches, verified by a fundamental matrix
 on each frame while the filter runs with its place unconfirmed."""
-"""Best-scoring places checked for a triangulated-point pose until one confirms the robot's
-place on the route."""
 VISUAL_DEFAULTS = {"visual": True, "hfov_deg": 60.0, "views": 4}
 """``visual``: measure the robot's pose against the taught images near the best one;
 ``hfov_deg``: the robot camera's horizontal field of view; ``views``: how many taught

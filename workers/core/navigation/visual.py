@@ -131,13 +131,10 @@ def relative_view(query: SiftFeatures, ref: SiftFeatures, K: np.ndarray, *,
         return None
     pq = np.ascontiguousarray(query.keypoints[m[:, 0], :2], dtype=np.float64)
     pr = np.ascontiguousarray(ref.keypoints[m[:, 1], :2], dtype=np.float64)
-    E, mask = cv2.findEssentialMat(pq, pr, K, method=ESSENTIAL_METHOD, prob=0.999,
-                                   threshold=1.0)
-    if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < MIN_INLIERS:
+    found = _relative_pose(pq, pr, K)
+    if found is None:
         return None
-    inliers, R, t, _ = cv2.recoverPose(E, pq, pr, K, mask=mask)
-    if inliers < MIN_INLIERS:
-        return None
+    inliers, R, t, _ = found
     forward = R @ np.array([0.0, 0.0, 1.0])
     centre = t.ravel()
     # left of forward is -x in a camera frame whose x points right
@@ -201,6 +198,18 @@ def locate(query: SiftFeatures, refs: list[tuple[SiftFeatures, np.ndarray]], K: 
     return None if best is None else (best[0], best[1])
 
 
+def _relative_pose(pa: np.ndarray, pb: np.ndarray, K: np.ndarray):
+    """``(inliers, R, t, mask)`` of two views from matched pixels ``pa`` and ``pb``
+    (essential matrix by :data:`ESSENTIAL_METHOD`, then ``recoverPose``: ``x_b = R x_a + t``,
+    ``t`` of unit length); None with fewer than :data:`MIN_INLIERS` inliers."""
+    E, mask = cv2.findEssentialMat(pa, pb, K, method=ESSENTIAL_METHOD, prob=0.999,
+                                   threshold=1.0)
+    if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < MIN_INLIERS:
+        return None
+    inliers, R, t, mask = cv2.recoverPose(E, pa, pb, K, mask=mask)
+    return None if inliers < MIN_INLIERS else (int(inliers), R, t, mask)
+
+
 def _match_points(a: SiftFeatures, b: SiftFeatures, ratio: float) -> tuple[np.ndarray, ...]:
     m = ratio_matches(np.asarray(a.descriptors, np.float32), b.descriptors, ratio=ratio)
     return (m, np.ascontiguousarray(a.keypoints[m[:, 0], :2], dtype=np.float64),
@@ -226,14 +235,11 @@ def triangulate(ref: SiftFeatures, other: SiftFeatures, baseline: float, K: np.n
     m, pa, pb = _match_points(ref, other, ratio)
     if len(m) < MIN_MATCHES:
         return None
-    E, mask = cv2.findEssentialMat(pa, pb, K, method=ESSENTIAL_METHOD, prob=0.999,
-                                   threshold=1.0)
-    if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < MIN_INLIERS:
+    found = _relative_pose(pa, pb, K)
+    if found is None:
         return None
-    n, R, t, mask = cv2.recoverPose(E, pa, pb, K, mask=mask)
+    _, R, t, mask = found
     keep = mask.ravel() > 0
-    if n < MIN_INLIERS:
-        return None
     t = t.ravel() * baseline
     P_ref = K @ np.hstack([np.eye(3), np.zeros((3, 1))])
     P_other = K @ np.hstack([R, t[:, None]])
@@ -308,9 +314,9 @@ def triangulate_views(ref: SiftFeatures, others: list[tuple[SiftFeatures, float]
 
 def metric_view(query: SiftFeatures, ref: SiftFeatures, tri: Triangulation | None,
                 K: np.ndarray, *, ratio: float = RATIO) -> MetricView | None:
-    """The robot's pose against taught image ``ref``, from the points ``ref`` and another
-    taught image triangulate (``tri``, :func:`triangulate`; it depends on the two taught
-    images only, so a caller keeps it from frame to frame).
+    """The robot's pose against taught image ``ref``, from the points ``ref`` and other
+    taught images triangulate (``tri``, :func:`triangulate` or :func:`triangulate_views`; it
+    depends on the taught images only, so a caller keeps it from frame to frame).
 
     The frame's matches to those points give its pose (EPnP in RANSAC, then Gauss-Newton
     with each point weighed by its own noise, the depth noise of its triangulation
