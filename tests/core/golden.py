@@ -5,11 +5,18 @@ estimate at full precision (positions, spreads, covariance, feature, next featur
 best image). Half way through, the localiser's state is packed and restored into a fresh
 localiser of another seed, so the checkpoint format is part of what is pinned down.
 
-The recorded answers live in ``golden_estimates.json`` beside this file. Regenerate them (only
-when a change of behaviour is intended) with::
+SIFT, resizing and the BLAS kernels differ in their last bits from one CPU to another, and a
+filter amplifies such bits, so the answers are recorded per platform: ``golden_estimates/``
+beside this file holds one ``<fingerprint>.json`` for each platform (see
+:func:`platform_fingerprint`) and ``params.json``, what parameter validation accepts and
+refuses, which is the same everywhere. Record them with::
 
-    .venv/bin/python -m tests.core.golden            # synthetic worlds
-    .venv/bin/python -m tests.core.golden --seneca   # and the seneca-uav frames
+    .venv/bin/python -m tests.core.golden --seneca                  # after a change of behaviour
+    .venv/bin/python -m tests.core.golden --seneca --add-platform   # same code, another CPU
+
+The first records this platform's answers and removes every other platform's, which the
+change has made stale; the second adds this platform's answers beside the others, and is
+only right when the code is the one they were recorded with.
 """
 
 from __future__ import annotations
@@ -29,7 +36,8 @@ from vloc.clients.world import generate_world
 from vloc.workers.core.experiment import load_experiment
 from vloc.workers.core.localisers import make_localiser
 
-GOLDEN_FILE = Path(__file__).with_name("golden_estimates.json")
+GOLDEN_DIR = Path(__file__).with_name("golden_estimates")
+PARAMS_FILE = GOLDEN_DIR / "params.json"
 
 FILTER_CASES: list[dict] = [
     {"config": "weiss2008"},
@@ -200,28 +208,52 @@ def record_all(experiments: dict, frames: dict[str, int | None]) -> dict[str, li
             for w, exp in experiments.items() for mode, p in CASES}
 
 
+def answers_file(platform: str) -> Path:
+    return GOLDEN_DIR / f"{platform}.json"
+
+
+def recorded_platforms() -> list[str]:
+    return sorted(p.stem for p in GOLDEN_DIR.glob("*.json") if p != PARAMS_FILE)
+
+
+def load_answers(platform: str) -> dict[str, list[list]] | None:
+    """The estimates recorded on ``platform``, or None where none were."""
+    path = answers_file(platform)
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+
+
 def main() -> None:
     from tests.conftest import shared_dir
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seneca", action="store_true", help="also the seneca-uav frames")
+    parser.add_argument("--add-platform", action="store_true",
+                        help="keep the other platforms' answers (only when the code is the one "
+                             "they were recorded with)")
     args = parser.parse_args()
-    stored = json.loads(GOLDEN_FILE.read_text()) if GOLDEN_FILE.is_file() else {}
-    stored["params"] = validated_params()
-    stored["platform"] = platform_fingerprint()
+    platform = platform_fingerprint()
+    stored = load_answers(platform) or {}
     with tempfile.TemporaryDirectory() as tmp, repeatable_features():
         exps = {w: synthetic_experiment(w, Path(tmp)) for w in WORLDS}
         if args.seneca:
             exps["seneca"] = seneca_experiment(shared_dir() / "datasets" / "seneca-uav")
         stored.update(record_all(exps, {"seneca": SENECA_FRAMES}))
-    write_golden(stored)
-    print(f"{len(stored)} cases written to {GOLDEN_FILE}")
+    GOLDEN_DIR.mkdir(exist_ok=True)
+    PARAMS_FILE.write_text(json.dumps(validated_params(), sort_keys=True, indent=1) + "\n",
+                           encoding="utf-8")
+    write_answers(answers_file(platform), stored)
+    print(f"{len(stored)} cases written to {answers_file(platform)}")
+    if not args.add_platform:
+        for other in recorded_platforms():
+            if other != platform:
+                answers_file(other).unlink()
+                print(f"removed the answers recorded on {other}: record them there again")
 
 
-def write_golden(stored: dict) -> None:
+def write_answers(path: Path, stored: dict) -> None:
     """One case per line, keys sorted: a changed case shows as one changed line."""
     lines = [f"{json.dumps(k)}: {json.dumps(stored[k], sort_keys=True)}" for k in sorted(stored)]
-    GOLDEN_FILE.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
+    path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
 
 
 def first_difference(want: list[list], got: list[list]) -> str:
