@@ -10,8 +10,6 @@ from vloc.workers.core.navigation.visual import (
     Triangulation,
     camera_matrix,
     fuse,
-    intersect,
-    locate,
     metric_view,
     relative_view,
     triangulate,
@@ -62,24 +60,6 @@ def test_relative_view_recovers_yaw_and_bearing(scene):
     assert v is not None and v.inliers > 100
     assert v.yaw == pytest.approx(math.radians(8.0), abs=math.radians(0.5))
     assert v.bearing == pytest.approx(math.atan2(0.4, 1.5), abs=math.radians(1.0))
-
-
-def test_intersect_by_hand():
-    xy, angle = intersect((0.0, 0.0), math.radians(45), (2.0, 0.0), math.radians(135))
-    assert xy == pytest.approx((1.0, 1.0))
-    assert angle == pytest.approx(math.pi / 2)
-    assert intersect((0.0, 0.0), 0.0, (0.0, 1.0), 0.0) is None          # parallel
-    assert intersect((0.0, 0.0), math.pi, (2.0, 0.0), 0.0) is None       # behind both
-
-
-def test_locate_from_two_taught_views(scene):
-    pts, desc = scene
-    refs = [(_view(pts, 0.0, 0.0, 0.0, desc), np.array([0.0, 0.0, 0.0])),
-            (_view(pts, 1.2, 0.0, 0.0, desc), np.array([1.2, 0.0, 0.0]))]
-    query = _view(pts, 1.8, -0.6, math.radians(-5.0), desc)
-    xy, heading = locate(query, refs, K)
-    assert xy == pytest.approx((1.8, -0.6), abs=0.1)
-    assert heading == pytest.approx(math.radians(-5.0), abs=math.radians(0.5))
 
 
 def test_too_few_matches_give_nothing(scene):

@@ -1,20 +1,20 @@
-"""Where the robot is beside the taught path, from its view of two taught images.
+"""Where the robot is beside the taught path, from its view of taught images.
 
 The localiser says which taught image the frame looks like; that places the robot along
 the path but not beside it, and says nothing of its heading. Li et al. close that gap with
 visual servoing on the key images. Here the frame's SIFT matches with a taught image give
-the essential matrix of the two views (Nister's five-point solver with RANSAC): its
-rotation is the robot's heading relative to the taught image, its translation the bearing
-at which the taught camera sees the robot. Two taught images a little apart along the path
-see the robot at two bearings; where the two rays meet is the robot's position, beside the
-path as well as along it.
+the essential matrix of the two views (:data:`ESSENTIAL_METHOD`): its rotation is the
+robot's heading relative to the taught image, its translation the bearing at which the
+taught camera sees the robot (:func:`relative_view`).
 
 Those bearings are poor: a baseline of a metre or two against a scene 10-30 m away leaves the
-direction of translation loose, and on rendered street frames it was 15-50 degrees off.
-:func:`metric_view` measures the offset itself: two taught images a known distance apart
-along the path triangulate the points they share, and the frame's pose against those points
-(perspective-n-point) places the robot in metres beside the path, with the solve's own
-uncertainty.
+direction of translation loose, and on rendered street frames it was 15-50 degrees off, so
+two taught cameras' bearings do not intersect usefully. :func:`metric_view` measures the
+offset itself: taught images known distances apart along the path triangulate the points
+they share (:func:`triangulate_views`, fused along each keypoint's ray by :func:`fuse`), and
+the frame's pose against those points (perspective-n-point) places the robot in metres beside
+the path, with the solve's own uncertainty. The session weighs the bearings in its filter
+where no such pose is found.
 """
 
 from __future__ import annotations
@@ -35,10 +35,8 @@ final fit to all inliers. Against plain RANSAC on the taught pairs of a rendered
 rotation by 0.16 instead of 0.36, in 1.9 ms instead of 17 (174 pairs with about 55 matches)."""
 MIN_MATCHES = 12
 MIN_INLIERS = 10
-MIN_RAY_ANGLE = math.radians(12.0)
-"""Rays meeting at a smaller angle than this place the robot too poorly along them."""
 MAX_REACH = 4.0
-"""Metres: a triangulated position further than this from both taught images is taken for
+"""Metres: a pose from taught points further than this from their taught image is taken for
 a wrong match."""
 MAX_DEPTH = 60.0
 """Metres: triangulated points further than this (or nearer than half a metre) from the
@@ -140,62 +138,6 @@ def relative_view(query: SiftFeatures, ref: SiftFeatures, K: np.ndarray, *,
     # left of forward is -x in a camera frame whose x points right
     return RelativeView(yaw=math.atan2(-forward[0], forward[2]),
                         bearing=math.atan2(-centre[0], centre[2]), inliers=int(inliers))
-
-
-def intersect(p1, heading1: float, p2, heading2: float) -> tuple[np.ndarray, float] | None:
-    """Where the rays from ``p1`` and ``p2`` at the given headings (radians from east) meet,
-    and the angle between them; None for rays that do not meet ahead of both."""
-    d1 = np.array([math.cos(heading1), math.sin(heading1)])
-    d2 = np.array([math.cos(heading2), math.sin(heading2)])
-    a = np.column_stack([d1, -d2])
-    det = float(np.linalg.det(a))
-    angle = abs(math.asin(max(-1.0, min(1.0, det))))
-    if angle < 1e-6:
-        return None
-    lam = np.linalg.solve(a, np.asarray(p2, np.float64) - np.asarray(p1, np.float64))
-    if lam[0] <= 0 or lam[1] <= 0:
-        return None
-    return np.asarray(p1, np.float64) + lam[0] * d1, angle
-
-
-def locate(query: SiftFeatures, refs: list[tuple[SiftFeatures, np.ndarray]], K: np.ndarray
-           ) -> tuple[np.ndarray, float] | None:
-    """The robot's position and heading from its views of taught images.
-
-    Parameters
-    ----------
-    query : SiftFeatures
-    refs : list of (SiftFeatures, (3,) pose)
-        Taught images near the robot along the path and their poses ``(x, y, theta)``.
-    K : (3, 3) ndarray
-
-    Returns
-    -------
-    xy : (2,) ndarray, heading : float
-        From the pair of views whose rays meet at the widest angle (at least
-        :data:`MIN_RAY_ANGLE`), within :data:`MAX_REACH` of the taught images; None when no
-        pair does.
-    """
-    views = []
-    for feats, pose in refs:
-        v = relative_view(query, feats, K)
-        if v is not None:
-            views.append((v, np.asarray(pose, np.float64)))
-    best = None
-    for i in range(len(views)):
-        for j in range(i + 1, len(views)):
-            (vi, pi), (vj, pj) = views[i], views[j]
-            hit = intersect(pi[:2], pi[2] + vi.bearing, pj[:2], pj[2] + vj.bearing)
-            if hit is None or hit[1] < MIN_RAY_ANGLE:
-                continue
-            xy, angle = hit
-            if min(np.hypot(*(xy - pi[:2])), np.hypot(*(xy - pj[:2]))) > MAX_REACH:
-                continue
-            if best is None or angle > best[2]:
-                heading = math.atan2(math.sin(pi[2] + vi.yaw) + math.sin(pj[2] + vj.yaw),
-                                     math.cos(pi[2] + vi.yaw) + math.cos(pj[2] + vj.yaw))
-                best = (xy, heading, angle)
-    return None if best is None else (best[0], best[1])
 
 
 def _relative_pose(pa: np.ndarray, pb: np.ndarray, K: np.ndarray):
