@@ -170,25 +170,24 @@ def main() -> None:
                   for im in query_images]
     tmp = Path(tempfile.mkdtemp(prefix="vloc-bench-"))
     print(f"server data and log in {tmp}", flush=True)
-    if True:
-        proc, base = start_server(tmp / "data", args.workers)
-        try:
-            async def run() -> list[dict]:
-                async with httpx.AsyncClient(base_url=base, timeout=600, headers={
-                        "Authorization": f"Bearer {ADMIN_KEY}"}) as http:
-                    map_id = await build_map(http, map_images)
-                rows = []
-                for n, k in zip(levels, counts, strict=True):
-                    k = min(k, len(all_frames))
-                    rows.append(await level(base, map_id, n, all_frames[:k], all_stamps[:k]))
-                    print(json.dumps({key: round(v, 2) if isinstance(v, float) else v
-                                      for key, v in rows[-1].items()}), flush=True)
-                return rows
+    proc, base = start_server(tmp / "data", args.workers)
+    try:
+        async def run() -> list[dict]:
+            async with httpx.AsyncClient(base_url=base, timeout=600, headers={
+                    "Authorization": f"Bearer {ADMIN_KEY}"}) as http:
+                map_id = await build_map(http, map_images)
+            rows = []
+            for n, k in zip(levels, counts, strict=True):
+                k = min(k, len(all_frames))
+                rows.append(await level(base, map_id, n, all_frames[:k], all_stamps[:k]))
+                print(json.dumps({key: round(v, 2) if isinstance(v, float) else v
+                                  for key, v in rows[-1].items()}), flush=True)
+            return rows
 
-            rows = asyncio.run(run())
-        finally:
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(60)
+        rows = asyncio.run(run())
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(60)
     cpu = platform.processor() or platform.machine()
     text = markdown(rows, args, len(map_images), cpu)
     args.out.parent.mkdir(parents=True, exist_ok=True)
