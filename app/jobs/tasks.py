@@ -237,8 +237,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     """
     from vloc.workers.core import blocks, tiepairs
     from vloc.workers.core.mapbuild import (
+        TiePointFiles,
         assemble_map,
-        load_tie_points,
         stage,
         typical_focal_px,
     )
@@ -253,9 +253,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
             ties = []
             for img in images:
                 stem = tie_stem(ties_at, img["id"])
-                tie = load_tie_points(stem)
+                tie = TiePointFiles.find(stem)
                 if tie is None and extract_ties((image_files or {}).get(img["id"]), stem) >= 0:
-                    tie = load_tie_points(stem)
+                    tie = TiePointFiles.find(stem)
                 ties.append(tie)
         with stage(timings, "reading tie pairs and blocks"):
             known = tiepairs.load_results(ties_at, [img["id"] for img in images])

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
+import resource
+
 import cv2
 import numpy as np
 import pytest
@@ -13,6 +18,7 @@ from vloc.workers.core.image import prepare
 from vloc.workers.core.mapbuild import (
     TIE_KEYPOINTS,
     ImageFeatures,
+    TiePointFiles,
     assemble_map,
     extract_image_features,
     extract_tie_points,
@@ -142,3 +148,45 @@ def test_tie_points_saved_and_read_back_memory_mapped(tmp_path):
         # read through the page cache, not held in the worker's memory
         assert isinstance(back.descriptors, np.memmap)
     assert load_tie_points(tmp_path / "never-written") is None
+
+
+@contextlib.contextmanager
+def _open_files_limited_to(extra: int):
+    """This process may open ``extra`` more files than it has open now, until the block ends."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (len(os.listdir("/proc/self/fd")) + extra, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+def test_tie_points_on_disk_tie_the_same_map_with_a_few_files_open(tmp_path):
+    # A map of 50,000 images failed to pack with "Too many open files": every image's tie
+    # points were mapped at once, and each mapped array holds a file descriptor.
+    s, _ = _survey_map(3)
+    ties = [SiftFeatures(k, d) for k, d in zip(s.keypoints, s.image_descriptors, strict=True)]
+    for i, t in enumerate(ties):
+        save_tie_points(t, tmp_path / str(i))
+    lat, lon = ORIGIN.to_wgs84(s.positions[:, 0], s.positions[:, 1])
+    kwargs = dict(names=[f"m{i}" for i in range(len(ties))], lats=lat, lons=lon,
+                  alts=list(s.altitudes), origin=ORIGIN, focal_px=F_TRUE)
+    few = [SiftFeatures(k[:6], d[:6]) for k, d in zip(s.keypoints, s.image_descriptors,
+                                                      strict=True)]
+    in_memory = assemble_map(**kwargs, features=[ImageFeatures({}, f, tie=t)
+                                                 for f, t in zip(few, ties, strict=True)])
+    files = [TiePointFiles.find(tmp_path / str(i)) for i in range(len(ties))]
+    assert TiePointFiles.find(tmp_path / "never-written") is None
+    assert [len(f) for f in files] == [len(t) for t in ties]
+    # two files an image: eight images mapped at once need sixteen
+    with _open_files_limited_to(8):
+        with pytest.raises(OSError) as held:
+            [load_tie_points(tmp_path / str(i)) for i in range(len(ties))]
+        assert held.value.errno == errno.EMFILE
+        on_disk = assemble_map(**kwargs, features=[ImageFeatures({}, f, tie=t)
+                                                   for f, t in zip(few, files, strict=True)])
+    want, got = in_memory.geometry, on_disk.geometry
+    assert want is not None and want.reconstructed.all()
+    np.testing.assert_array_equal(got.centres, want.centres)
+    np.testing.assert_array_equal(got.rotations, want.rotations)
+    np.testing.assert_array_equal(got.ground["sift"], want.ground["sift"])

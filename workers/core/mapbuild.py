@@ -46,15 +46,15 @@ class ImageFeatures:
         All keypoints, before the neighbour reduction.
     orb : OrbFeatures or None
         ORB keypoints for the place descriptors over ORB; None where not extracted.
-    tie : SiftFeatures or None
-        Tie points for the map's reconstruction (:func:`extract_tie_points`), used at build
-        time only; None falls back on ``sift``.
+    tie : SiftFeatures, TiePointFiles or None
+        Tie points for the map's reconstruction (:func:`extract_tie_points`), in memory or
+        on disk, used at build time only; None falls back on ``sift``.
     """
 
     global_features: dict[str, np.ndarray]
     sift: SiftFeatures
     orb: OrbFeatures | None = None
-    tie: SiftFeatures | None = None
+    tie: SiftFeatures | TiePointFiles | None = None
 
 
 def extract_image_features(frame: Frame, *,
@@ -111,12 +111,41 @@ def save_tie_points(tie: SiftFeatures, stem: str | Path) -> None:
 
 def load_tie_points(stem: str | Path) -> SiftFeatures | None:
     """Tie points written by :func:`save_tie_points`, memory-mapped; None where absent."""
-    stem = Path(stem)
-    kps = stem.with_name(stem.name + ".kp.npy")
-    if not kps.is_file():
-        return None
-    return SiftFeatures(np.load(kps, mmap_mode="r"),
-                        np.load(stem.with_name(stem.name + ".desc.npy"), mmap_mode="r"))
+    files = TiePointFiles.find(stem)
+    return None if files is None else SiftFeatures(files.keypoints, files.descriptors)
+
+
+class TiePointFiles:
+    """One map image's tie points on disk (:func:`save_tie_points`), mapped when read.
+
+    A memory-mapped array holds a file descriptor for as long as it lives (Python's ``mmap``
+    keeps a duplicate of the file's), so every image's tie points mapped at once take two
+    descriptors an image: 100,000 for a map of 50,000 images, past the usual limit of a
+    process's open files. The packing hands the reconstruction these handles instead: a pair
+    it still has to match maps its two images' files only while it matches them.
+    """
+
+    def __init__(self, stem: str | Path) -> None:
+        stem = Path(stem)
+        self._kp = stem.with_name(stem.name + ".kp.npy")
+        self._desc = stem.with_name(stem.name + ".desc.npy")
+
+    @classmethod
+    def find(cls, stem: str | Path) -> TiePointFiles | None:
+        """The tie points written beside ``stem``; None where they are not (complete)."""
+        files = cls(stem)
+        return files if files._kp.is_file() else None
+
+    @property
+    def keypoints(self) -> np.ndarray:
+        return np.load(self._kp, mmap_mode="r")
+
+    @property
+    def descriptors(self) -> np.ndarray:
+        return np.load(self._desc, mmap_mode="r")
+
+    def __len__(self) -> int:
+        return int(self.keypoints.shape[0])
 
 
 def local_frame(lats, lons, alts, origin: GeoOrigin | None = None,
@@ -245,7 +274,7 @@ def initial_intrinsics(focal_px: float | None) -> Intrinsics:
 
 
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
-                 tie_points: list[SiftFeatures | None] | None = None,
+                 tie_points: list[SiftFeatures | TiePointFiles | None] | None = None,
                  known_pairs: dict | None = None, known_blocks: dict | None = None):
     """The map's camera geometry with every stored SIFT (and ORB) keypoint on the ground,
     or None.
@@ -259,8 +288,8 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     if len(ties) != n:
         raise ValueError(f"{len(ties)} sets of tie points for {n} map images")
     ties = [data.sift(i) if t is None else t for i, t in enumerate(ties)]
-    kps = [t.keypoints for t in ties]
-    desc = [t.descriptors for t in ties]
+    # read image by image as pairs are matched: tie points on disk stay closed until then
+    kps, desc = _Field(ties, "keypoints"), _Field(ties, "descriptors")
     geo = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
                          initial_intrinsics(focal_px), seed=seed,
                          known_pairs=known_pairs, known_blocks=known_blocks)
@@ -269,6 +298,21 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
         if data.has_orb:
             geo.add_ground("orb", np.asarray(data.orb_keypoints), np.asarray(data.orb_offsets))
     return geo
+
+
+class _Field(Sequence):
+    """One attribute of each of ``items``, read when indexed."""
+
+    def __init__(self, items: list, name: str) -> None:
+        self._items, self._name = items, name
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [getattr(t, self._name) for t in self._items[i]]
+        return getattr(self._items[i], self._name)
 
 
 def typical_focal_px(files, width: int = WORK_SIZE[0], *, sample: int = 25) -> float | None:

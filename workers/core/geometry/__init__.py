@@ -11,6 +11,7 @@ localisers then fall back to a match-weighted position between the best verified
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -59,7 +60,7 @@ def tie_pairs(positions: np.ndarray) -> list[tuple[int, int]]:
     return candidate_pairs(positions, max_distance=tie_reach(positions))
 
 
-def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
+def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarray],
                    positions: np.ndarray, altitudes: np.ndarray, K0: Intrinsics, *,
                    seed: int = 0,
                    known_pairs: dict[tuple[int, int], PairMatches | None] | None = None,
@@ -69,8 +70,9 @@ def build_geometry(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
 
     Parameters
     ----------
-    keypoints, descriptors : lists, one entry per map image
-        Local features (pixels in the first two keypoint columns; SIFT descriptors).
+    keypoints, descriptors : sequences, one entry per map image
+        Local features (pixels in the first two keypoint columns; SIFT descriptors), read
+        by index as the pairs not in ``known_pairs`` are matched.
     positions : (N, 2) float ndarray
         East/north of the map images (GPS).
     altitudes : (N,) float ndarray

@@ -9,6 +9,7 @@ order (:mod:`workers.core.tiepairs` matches them on the engine's workers).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -87,7 +88,7 @@ def keep_some(pairs: list[PairMatches], rng: np.random.Generator,
     return out
 
 
-def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
+def match_pairs(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarray],
                 positions: np.ndarray, *, max_distance: float, neighbours: int = 8,
                 max_per_pair: int = 30, seed: int = 0,
                 known: dict[tuple[int, int], PairMatches | None] | None = None,
@@ -98,9 +99,9 @@ def match_pairs(keypoints: list[np.ndarray], descriptors: list[np.ndarray],
 
     Parameters
     ----------
-    keypoints : list of (K_i, >=2) float arrays
-        Pixel coordinates in the first two columns.
-    descriptors : list of (K_i, D) arrays
+    keypoints : sequence of (K_i, >=2) float arrays
+        Pixel coordinates in the first two columns; read by index, a pair at a time.
+    descriptors : sequence of (K_i, D) arrays
         SIFT (float-comparable) descriptors.
     positions : (N, 2) float ndarray
         GPS east/north of the images.
