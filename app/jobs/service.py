@@ -123,20 +123,22 @@ class BuildRunner(BackgroundRunner):
         folder = self.settings.packed_map_dir(str(map_id), revision)
         lens_files, image_files = await asyncio.to_thread(self._files, map_id)
         # The reconstruction's tie points, extracted over the images in parallel by the
-        # engine's workers into a folder beside the revision, and removed after the build.
+        # engine's workers into a folder beside the revision, their pairs matched and its
+        # blocks adjusted there, and the folder removed once the revision is packed. A build
+        # that fails leaves it: a retry packs the same revision and takes up the tie points,
+        # pairs and blocks found there (an hour of work for a map of 50,000 images) instead
+        # of computing them again.
         tie_dir = folder.with_name(folder.name + ".ties")
         await asyncio.to_thread(tie_dir.mkdir, parents=True, exist_ok=True)
-        try:
-            await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
-                tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id)))
-                for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
-            await self._match_pairs(job_id, url, map_id, tie_dir)
-            await self._adjust_blocks(job_id, url, map_id, tie_dir, lens_files)
-            packed = await asyncio.wrap_future(self.engine.call(
-                tasks.pack_map, url, str(map_id), revision, str(folder),
-                lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir)))
-        finally:
-            await asyncio.to_thread(shutil.rmtree, tie_dir, True)
+        await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
+            tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id)))
+            for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
+        await self._match_pairs(job_id, url, map_id, tie_dir)
+        await self._adjust_blocks(job_id, url, map_id, tie_dir, lens_files)
+        packed = await asyncio.wrap_future(self.engine.call(
+            tasks.pack_map, url, str(map_id), revision, str(folder),
+            lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir)))
+        await asyncio.to_thread(shutil.rmtree, tie_dir, True)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 
     async def _match_pairs(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,

@@ -83,10 +83,16 @@ def extract_ties(path: str | None, stem: str) -> int:
     """Extract one map image file's tie points and write them beside ``stem``
     (:func:`~vloc.workers.core.mapbuild.save_tie_points`), for a build's reconstruction;
     run by the engine's workers, one image per call. Returns the number of tie points, or
-    -1 where the file is missing or unreadable (the image's stored SIFT then ties it)."""
-    from vloc.workers.core.image import ImageError
-    from vloc.workers.core.mapbuild import extract_tie_points, save_tie_points
+    -1 where the file is missing or unreadable (the image's stored SIFT then ties it).
 
+    Tie points already complete beside ``stem`` (a failed build's, kept for its retry: an
+    image's file never changes) are kept as they are."""
+    from vloc.workers.core.image import ImageError
+    from vloc.workers.core.mapbuild import TiePointFiles, extract_tie_points, save_tie_points
+
+    done = TiePointFiles.find(stem)
+    if done is not None:
+        return len(done)
     if path is None or not Path(path).is_file():
         return -1
     try:

@@ -441,3 +441,76 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
     if here.geometry is not None:
         np.testing.assert_array_equal(apart.geometry.centres, here.geometry.centres)
     np.testing.assert_array_equal(apart.positions, here.positions)
+
+
+def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, tmp_path,
+                                                          monkeypatch):
+    """A build that fails keeps its tie-point folder; the retry's tie points, pair batches
+    and blocks found there complete are not computed again, and those a changed plan or
+    changed inputs have made stale are."""
+    from sqlalchemy import select
+
+    from vloc.app.jobs import tasks
+    from vloc.app.maps.models import MapImage
+    from vloc.app.maps.service import image_path
+    from vloc.workers.core import blocks, mapbuild, tiepairs
+    from vloc.workers.core.geometry import reconstruct
+
+    c = module_client
+    ctx = c.app.state.ctx
+    map_id = new_map(c)
+    assert c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][:6]),
+                  headers=ADMIN).status_code == 201
+    assert wait_job(c, c.post(f"/v1/maps/{map_id}/build",
+                              headers=ADMIN).json()["job_id"])["status"] == "done"
+    url = ctx.settings.resolved_database_url
+    with ctx.db_sessions() as db:
+        files = {img.id: str(image_path(ctx.settings, img)) for img in db.scalars(
+            select(MapImage).where(MapImage.map_id == uuid.UUID(map_id)))}
+    monkeypatch.setattr(reconstruct, "MAX_BLOCK", 3)
+    ties = tmp_path / "ties"
+    ties.mkdir()
+
+    def attempt():
+        counts = [tasks.extract_ties(path, tasks.tie_stem(ties, image_id))
+                  for image_id, path in sorted(files.items())]
+        plan = tasks.plan_tie_pairs(url, map_id, str(ties))
+        ids, pairs = plan["image_ids"], plan["pairs"]
+        batches = [pairs[k:k + 2] for k in range(0, len(pairs), 2)]
+        verified = [tasks.match_tie_pairs(str(ties), {i: ids[i] for p in b for i in p}, b, k)
+                    for k, b in enumerate(batches)]
+        n = tasks.plan_blocks(url, map_id, str(ties), list(files.values())[:2])
+        placed = [tasks.adjust_block(str(ties), b) for b in range(n)]
+        return counts, verified, placed
+
+    first = attempt()
+    assert min(first[0]) > 0 and sum(first[1]) > 0 and len(first[2]) == 2
+    kept = [*ties.glob("*.kp.npy"), *ties.glob(tiepairs.RESULTS_GLOB),
+            *ties.glob(blocks.RESULTS_GLOB)]
+    stamps = {p: p.stat().st_mtime_ns for p in kept}
+
+    calls = {"tie": 0, "pair": 0, "block": 0}
+
+    def counted(name, real):
+        def call(*a, **k):
+            calls[name] += 1
+            return real(*a, **k)
+        return call
+
+    monkeypatch.setattr(mapbuild, "extract_tie_points",
+                        counted("tie", mapbuild.extract_tie_points))
+    monkeypatch.setattr(tiepairs, "match_pair", counted("pair", tiepairs.match_pair))
+    monkeypatch.setattr(blocks, "adjust_block", counted("block", blocks.adjust_block))
+    assert attempt() == first
+    assert calls == {"tie": 0, "pair": 0, "block": 0}
+    assert {p: p.stat().st_mtime_ns for p in kept} == stamps
+
+    # a block whose inputs changed is adjusted again
+    (ties / blocks.INPUT.format(1)).write_bytes((ties / blocks.INPUT.format(0)).read_bytes())
+    assert tasks.adjust_block(str(ties), 1) == first[2][0] and calls["block"] == 1
+    # results matched under another plan index other images: they go
+    tiepairs.save_plan(ties, sorted(files)[1:])
+    assert not list(ties.glob(tiepairs.RESULTS_GLOB))
+    assert attempt() == first and calls["pair"] > 0
+    # every file was written under a temporary name and renamed: none is left half written
+    assert not list(ties.glob(".*"))

@@ -55,17 +55,23 @@ def plan(folder: str | Path, verified, positions: np.ndarray, altitudes: np.ndar
 
 def adjust(folder: str | Path, block: int) -> int:
     """Adjust one planned block (:func:`plan`) and write its result beside it; returns the
-    number of cameras it placed."""
+    number of cameras it placed. A result already there for the same inputs (a failed
+    build's, by :func:`~workers.core.geometry.reconstruct.block_key`) is kept."""
     folder = Path(folder)
     with np.load(folder / PLAN_FILE) as z:
         positions, altitudes = z["positions"], z["altitudes"]
         K0 = Intrinsics(*(float(v) for v in z["intrinsics"]))
     inside = [p for _, _, p in read_results(folder / INPUT.format(block))]
+    key = block_key(inside, positions, altitudes, K0)
+    out = folder / RESULT.format(block)
+    if out.is_file():
+        # a failed build's result for exactly these inputs, kept for its retry
+        with np.load(out) as z:
+            if str(z["key"]) == key:
+                return len(z["cameras"]) if bool(z["placed"]) else 0
     # one BLAS thread, as the packing adjusts with (build_geometry)
     with threadpool_limits(limits=1, user_api="blas"):
         res = adjust_block(inside, positions, altitudes, K0)
-    key = block_key(inside, positions, altitudes, K0)
-    out = folder / RESULT.format(block)
     tmp = out.with_name("." + out.name)  # outside the results' glob until whole
     if res is None:
         np.savez(tmp, key=np.array(key), placed=np.array(False))

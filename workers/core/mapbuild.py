@@ -100,13 +100,17 @@ def save_tie_points(tie: SiftFeatures, stem: str | Path) -> None:
     its stored features: 14 GB for 50,000 images. A build writes them to disk as they are
     extracted (in parallel, by the engine's workers) and the reconstruction reads them back
     memory-mapped (:func:`load_tie_points`), through the page cache instead of the worker's
-    own memory. The keypoints are written last: their file says the pair is complete.
+    own memory. Each file is written under a temporary name and renamed, the keypoints
+    last: their file says the pair is complete.
     """
     stem = Path(stem)
-    np.save(stem.with_name(stem.name + ".desc.npy"),
-            np.ascontiguousarray(tie.descriptors, np.uint8))
-    np.save(stem.with_name(stem.name + ".kp.npy"),
-            np.ascontiguousarray(tie.keypoints, np.float32))
+    for suffix, arr in ((".desc.npy", np.ascontiguousarray(tie.descriptors, np.uint8)),
+                        (".kp.npy", np.ascontiguousarray(tie.keypoints, np.float32))):
+        out = stem.with_name(stem.name + suffix)
+        tmp = out.with_name("." + out.name)
+        with tmp.open("wb") as f:
+            np.save(f, arr)
+        tmp.replace(out)
 
 
 def load_tie_points(stem: str | Path) -> SiftFeatures | None:

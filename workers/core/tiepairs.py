@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .geometry import PairMatches, match_pair, tie_pairs
-from .mapbuild import load_tie_points, local_frame
+from .mapbuild import TiePointFiles, load_tie_points, local_frame
 
 RESULTS_GLOB = "pairs-*.npz"
 PLAN_FILE = "pairs-plan.npy"
@@ -33,8 +33,17 @@ def plan(lats, lons, alts) -> list[tuple[int, int]]:
 
 
 def save_plan(folder: str | Path, image_ids: list[int]) -> None:
-    """Record which images the pairs matched into ``folder`` index (:func:`load_results`)."""
-    np.save(Path(folder) / PLAN_FILE, np.asarray(image_ids, np.int64))
+    """Record which images the pairs matched into ``folder`` index (:func:`load_results`).
+
+    Results a failed build left in ``folder`` stay for its retry when they index the same
+    images; under another plan their indices name other images, and they are removed."""
+    folder = Path(folder)
+    ids = np.asarray(image_ids, np.int64)
+    plan_file = folder / PLAN_FILE
+    if plan_file.is_file() and not np.array_equal(np.load(plan_file), ids):
+        for path in folder.glob(RESULTS_GLOB):
+            path.unlink()
+    np.save(plan_file, ids)
 
 
 def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | Path, *,
@@ -45,8 +54,15 @@ def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | 
     ``stems[i]`` is where image ``i``'s tie points were written
     (:func:`~workers.core.mapbuild.save_tie_points`); a pair with an image whose tie points
     are missing is left out, for the packing to match from the image's stored SIFT.
-    Returns the number of pairs that verified.
+    Returns the number of pairs that verified. Results already in ``out`` for exactly these
+    pairs (a failed build's, under the same plan: :func:`save_plan`) are kept as they are.
     """
+    out = Path(out)
+    if out.is_file():
+        present = {i: TiePointFiles.find(stem) is not None for i, stem in stems.items()}
+        kept = read_results(out)
+        if [(a, b) for a, b, _ in kept] == [(a, b) for a, b in pairs if present[a] and present[b]]:
+            return sum(p is not None for _, _, p in kept)
     cache: dict[int, object] = {}
 
     def ties(i: int):
