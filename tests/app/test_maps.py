@@ -382,31 +382,35 @@ def test_tie_points_are_extracted_to_files_and_unreadable_images_say_so(tmp_path
     assert load_tie_points(tmp_path / "2") is None and load_tie_points(tmp_path / "3") is None
 
 
-def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
-        module_client, shots, tmp_path, monkeypatch):
-    """The build's pair and block phases (plans, then batches on the workers) hand the
-    packing every pair and block it needs: packed with them, no pair is matched and no block
-    adjusted in the packing, and the map is the map the packing builds by doing it all
-    itself (blocks of three cameras here, so that six images make two)."""
-    from sqlalchemy import select
-
-    from vloc.app.jobs import tasks
+def _built_six_image_map(c, shots) -> tuple[str, str, dict[int, str]]:
+    """A map of six images built through the API: its id, the database URL and each image's
+    file by image id."""
     from vloc.app.maps.models import MapImage
     from vloc.app.maps.service import image_path
-    from vloc.workers.core import tiepairs
-    from vloc.workers.core.geometry import pairs, reconstruct
 
-    c = module_client
     ctx = c.app.state.ctx
     map_id = new_map(c)
     assert c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][:6]),
                   headers=ADMIN).status_code == 201
     assert wait_job(c, c.post(f"/v1/maps/{map_id}/build",
                               headers=ADMIN).json()["job_id"])["status"] == "done"
-    url = ctx.settings.resolved_database_url
     with ctx.db_sessions() as db:
         files = {img.id: str(image_path(ctx.settings, img)) for img in db.scalars(
             select(MapImage).where(MapImage.map_id == uuid.UUID(map_id)))}
+    return map_id, ctx.settings.resolved_database_url, files
+
+
+def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
+        module_client, shots, tmp_path, monkeypatch):
+    """The build's pair and block phases (plans, then batches on the workers) hand the
+    packing every pair and block it needs: packed with them, no pair is matched and no block
+    adjusted in the packing, and the map is the map the packing builds by doing it all
+    itself (blocks of three cameras here, so that six images make two)."""
+    from vloc.app.jobs import tasks
+    from vloc.workers.core import tiepairs
+    from vloc.workers.core.geometry import pairs, reconstruct
+
+    map_id, url, files = _built_six_image_map(module_client, shots)
     ties = tmp_path / "ties"
     ties.mkdir()
     for image_id, path in files.items():
@@ -448,25 +452,11 @@ def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, t
     """A build that fails keeps its tie-point folder; the retry's tie points, pair batches
     and blocks found there complete are not computed again, and those a changed plan or
     changed inputs have made stale are."""
-    from sqlalchemy import select
-
     from vloc.app.jobs import tasks
-    from vloc.app.maps.models import MapImage
-    from vloc.app.maps.service import image_path
     from vloc.workers.core import blocks, mapbuild, tiepairs
     from vloc.workers.core.geometry import reconstruct
 
-    c = module_client
-    ctx = c.app.state.ctx
-    map_id = new_map(c)
-    assert c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][:6]),
-                  headers=ADMIN).status_code == 201
-    assert wait_job(c, c.post(f"/v1/maps/{map_id}/build",
-                              headers=ADMIN).json()["job_id"])["status"] == "done"
-    url = ctx.settings.resolved_database_url
-    with ctx.db_sessions() as db:
-        files = {img.id: str(image_path(ctx.settings, img)) for img in db.scalars(
-            select(MapImage).where(MapImage.map_id == uuid.UUID(map_id)))}
+    map_id, url, files = _built_six_image_map(module_client, shots)
     monkeypatch.setattr(reconstruct, "MAX_BLOCK", 3)
     ties = tmp_path / "ties"
     ties.mkdir()
