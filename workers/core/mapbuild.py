@@ -313,9 +313,7 @@ class _Field(Sequence):
     def __len__(self) -> int:
         return len(self._items)
 
-    def __getitem__(self, i):
-        if isinstance(i, slice):
-            return [getattr(t, self._name) for t in self._items[i]]
+    def __getitem__(self, i: int):
         return getattr(self._items[i], self._name)
 
 

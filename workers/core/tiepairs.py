@@ -38,12 +38,17 @@ def save_plan(folder: str | Path, image_ids: list[int]) -> None:
     Results a failed build left in ``folder`` stay for its retry when they index the same
     images; under another plan their indices name other images, and they are removed."""
     folder = Path(folder)
-    ids = np.asarray(image_ids, np.int64)
-    plan_file = folder / PLAN_FILE
-    if plan_file.is_file() and not np.array_equal(np.load(plan_file), ids):
+    if (folder / PLAN_FILE).is_file() and not _planned_for(folder, image_ids):
         for path in folder.glob(RESULTS_GLOB):
             path.unlink()
-    np.save(plan_file, ids)
+    np.save(folder / PLAN_FILE, np.asarray(image_ids, np.int64))
+
+
+def _planned_for(folder: Path, image_ids: list[int]) -> bool:
+    """Whether ``folder``'s plan indexes exactly ``image_ids``."""
+    plan_file = folder / PLAN_FILE
+    return plan_file.is_file() and np.array_equal(np.load(plan_file),
+                                                  np.asarray(image_ids, np.int64))
 
 
 def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | Path, *,
@@ -107,9 +112,7 @@ def load_results(folder: str | Path, image_ids: list[int],
     None where it did not verify. Empty when the plan was made for other images than
     ``image_ids`` (the map changed in between; the packing then matches every pair)."""
     out: dict[tuple[int, int], PairMatches | None] = {}
-    plan_file = Path(folder) / PLAN_FILE
-    if not plan_file.is_file() or not np.array_equal(np.load(plan_file),
-                                                      np.asarray(image_ids, np.int64)):
+    if not _planned_for(Path(folder), image_ids):
         return out
     for path in sorted(Path(folder).glob(RESULTS_GLOB)):
         for a, b, p in read_results(path):
