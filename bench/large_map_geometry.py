@@ -71,8 +71,7 @@ def main() -> None:
         ("GPS RMS (m)", rec.gps_rms, "<=", geometry.MAX_GPS_RMS),
         ("median height (m)", float(np.median(heights)) if len(heights) else float("nan"),
          ">=", geometry.MIN_HEIGHT),
-        ("height disagreement", geometry._height_disagreement(heights, alt[done],
-                                                               rec.ground_alt),
+        ("height disagreement", geometry.height_disagreement(rec, alt),
          "<=", geometry.MAX_HEIGHT_DISAGREEMENT),
     ]
     for name, value, op, limit in checks:

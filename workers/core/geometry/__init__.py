@@ -20,7 +20,7 @@ from threadpoolctl import threadpool_limits
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
 from .pairs import PairMatches, candidate_pairs, match_pair, match_pairs
-from .reconstruct import BlockResult, reconstruct_in_blocks
+from .reconstruct import BlockResult, PlaneReconstruction, reconstruct_in_blocks
 from .register import Registration, register_frame
 
 MAX_RESIDUAL_PX: float = 4.0
@@ -106,19 +106,20 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
     heights = rec.centres[done, 2]
     if (rec.residual_px > MAX_RESIDUAL_PX or rec.gps_rms > MAX_GPS_RMS
             or np.median(heights) < MIN_HEIGHT
-            or _height_disagreement(heights, np.asarray(altitudes, np.float64)[done],
-                                    rec.ground_alt) > MAX_HEIGHT_DISAGREEMENT):
+            or height_disagreement(rec, altitudes) > MAX_HEIGHT_DISAGREEMENT):
         return None
     return MapGeometry.from_reconstruction(rec)
 
 
-def _height_disagreement(heights: np.ndarray, altitudes: np.ndarray, ground: float) -> float:
-    """Spread of the reconstructed heights about the GPS altitudes above the ground, over
-    the median height (0 where fewer than three images have an altitude)."""
-    known = np.isfinite(altitudes)
+def height_disagreement(rec: PlaneReconstruction, altitudes: np.ndarray) -> float:
+    """Spread of the reconstructed heights about the GPS altitudes above the ground each
+    camera was adjusted over (its block's), over the median height: 0 where fewer than three
+    reconstructed images have an altitude."""
+    offsets = rec.height_offsets(altitudes)
+    known = np.isfinite(offsets)
     if known.sum() < 3:
         return 0.0
-    return float(np.std(heights[known] - (altitudes[known] - ground)) / np.median(heights))
+    return float(np.std(offsets[known]) / np.median(rec.centres[rec.reconstructed, 2]))
 
 
 def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
@@ -150,5 +151,5 @@ def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
 
 
 __all__ = ["BlockResult", "Intrinsics", "MapGeometry", "PairMatches", "Registration", "build_geometry",
-           "focal_from_exif", "focal_from_fov", "match_pair", "register_against", "tie_pairs",
-           "tie_reach"]
+           "focal_from_exif", "focal_from_fov", "height_disagreement", "match_pair",
+           "register_against", "tie_pairs", "tie_reach"]

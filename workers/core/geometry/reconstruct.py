@@ -53,6 +53,9 @@ class PlaneReconstruction:
         Median reprojection (transfer) error of the tie points after adjustment.
     gps_rms : float
         RMS horizontal distance between reconstructed centres and their GPS positions (m).
+    camera_ground_alt : (N,) float64, optional
+        Altitude of the ground each camera's height is measured from: its block's, in a map
+        adjusted in blocks (:func:`reconstruct_in_blocks`). None: ``ground_alt`` for all.
     """
 
     rotations: np.ndarray
@@ -61,11 +64,18 @@ class PlaneReconstruction:
     ground_alt: float
     residual_px: float
     gps_rms: float
+    camera_ground_alt: np.ndarray | None = None
 
     @property
     def reconstructed(self) -> np.ndarray:
         """(N,) bool: which map images have a pose."""
         return np.isfinite(self.centres[:, 0])
+
+    def height_offsets(self, altitudes: np.ndarray) -> np.ndarray:
+        """(N,) each camera's reconstructed height minus its GPS altitude above the ground it
+        was adjusted over; NaN where either is unknown."""
+        ground = self.ground_alt if self.camera_ground_alt is None else self.camera_ground_alt
+        return self.centres[:, 2] - (np.asarray(altitudes, np.float64) - ground)
 
 
 def _initial_headings(pairs: list[PairMatches], positions: np.ndarray, K: Intrinsics,
@@ -361,40 +371,75 @@ def reconstruct_in_blocks(pairs: list[PairMatches], positions: np.ndarray,
                           **options) -> PlaneReconstruction:
     """:func:`reconstruct_plane` over compact blocks of at most ``max_block`` cameras.
 
-    Each block is adjusted on its own, with the tie points inside it; the map's focal
-    length and ground altitude are the medians over the blocks (weighted by their cameras),
-    the residual the median of the blocks' and the GPS RMS over every camera. A map of at
-    most ``max_block`` images is adjusted whole, as :func:`reconstruct_plane` does.
-    ``known`` holds blocks adjusted elsewhere, by :func:`block_key`; the others are
-    adjusted here.
+    Each block is adjusted on its own, with the tie points inside it, over its own ground
+    plane. Over flat ground a near-nadir camera's images fix only its height over the focal
+    length: the blocks of one survey find focal lengths up to half as large again as each
+    other's, with heights to match, and their ground altitudes follow. The map has one
+    camera, so its focal length is the median over the blocks (weighted by their cameras)
+    and each block is brought to it: heights scaled by the map's focal over the block's,
+    which keeps every nadir view's projection of the ground, and the block's ground moved to
+    where its GPS altitudes put it under the new heights. The residual is then the median
+    over the blocks of their tie points' transfer error with the map's focal length, and the
+    GPS RMS is over every camera. A map of at most ``max_block`` images is adjusted whole,
+    as :func:`reconstruct_plane` does. ``known`` holds blocks adjusted elsewhere, by
+    :func:`block_key`; the others are adjusted here.
     """
     n = len(positions)
     max_block = MAX_BLOCK if max_block is None else max_block
     if n <= max_block:
         return reconstruct_plane(pairs, positions, altitudes, K0, **options)
-    rotations = np.full((n, 3, 3), np.nan)
-    centres = np.full((n, 3), np.nan)
-    focal, ground, residual, sq_gps, weight = [], [], [], 0.0, 0
+    altitudes = np.asarray(altitudes, np.float64)
+    adjusted: list[tuple[BlockResult, list[PairMatches]]] = []
     for inside in block_pairs(pairs, positions, max_block):
         key = block_key(inside, positions, altitudes, K0) if known else None
         if key is not None and key in known:
             res = known[key]
         else:
             res = adjust_block(inside, positions, altitudes, K0, **options)
-        if res is None:
-            continue
-        rotations[res.cameras], centres[res.cameras] = res.rotations, res.centres
-        m = len(res.cameras)
-        focal.append((res.focal, m))
-        ground.append((res.ground_alt, m))
-        residual.append(res.residual_px)
+        if res is not None:
+            adjusted.append((res, inside))
+    if not adjusted:
+        return reconstruct_plane([], positions, altitudes, K0)
+    K = Intrinsics(_weighted_median([(res.focal, len(res.cameras)) for res, _ in adjusted]),
+                   K0.cx, K0.cy)
+    rotations = np.full((n, 3, 3), np.nan)
+    centres = np.full((n, 3), np.nan)
+    camera_ground = np.full(n, np.nan)
+    ground, residual, sq_gps, weight = [], [], 0.0, 0
+    for res, inside in adjusted:
+        cams, m = res.cameras, len(res.cameras)
+        C = res.centres.copy()
+        C[:, 2] *= K.f / res.focal
+        known_alt = np.isfinite(altitudes[cams])
+        g = (float(np.median(altitudes[cams][known_alt] - C[known_alt, 2])) if known_alt.any()
+             else res.ground_alt)
+        rotations[cams], centres[cams], camera_ground[cams] = res.rotations, C, g
+        ground.append((g, m))
+        residual.append(_median_transfer_px(inside, rotations, centres, K))
         sq_gps += res.gps_rms ** 2 * m
         weight += m
-    if not weight:
-        return reconstruct_plane([], positions, altitudes, K0)
-    K = Intrinsics(_weighted_median(focal), K0.cx, K0.cy)
     return PlaneReconstruction(rotations, centres, K, _weighted_median(ground),
-                               float(np.median(residual)), math.sqrt(sq_gps / weight))
+                               float(np.median(residual)), math.sqrt(sq_gps / weight),
+                               camera_ground)
+
+
+def _median_transfer_px(pairs: list[PairMatches], rotations: np.ndarray, centres: np.ndarray,
+                        K: Intrinsics) -> float:
+    """Median symmetric transfer error (px) of the tie points of ``pairs`` between placed
+    cameras; NaN where no pair joins two of them."""
+    placed = [p for p in pairs if np.isfinite(centres[p.a, 0]) and np.isfinite(centres[p.b, 0])]
+    if not placed:
+        return float("nan")
+    a = np.concatenate([np.full(len(p.pa), p.a) for p in placed])
+    b = np.concatenate([np.full(len(p.pa), p.b) for p in placed])
+    pa = np.concatenate([p.pa for p in placed])
+    pb = np.concatenate([p.pb for p in placed])
+    c = np.array([K.cx, K.cy])
+    R, C = rotations, centres
+    err = np.concatenate([
+        np.linalg.norm(_transfer(R[a], C[a], R[b], C[b], K.f, c, pa) - pb, axis=1),
+        np.linalg.norm(_transfer(R[b], C[b], R[a], C[a], K.f, c, pb) - pa, axis=1)])
+    return float(np.median(err))
 
 
 def _weighted_median(values: list[tuple[float, int]]) -> float:
