@@ -110,8 +110,10 @@ def report(args, layout, stats: dict, load: float) -> str:
         f"{ALTITUDE_M:g} m up, {SPACING_M:g} m between frames on average (30 % gusts), "
         f"lawnmower lanes {0.6 * 2 * ALTITUDE_M * np.tan(np.radians(30)):.1f} m apart; map "
         "pass sunny, with 2 m GPS noise in its EXIF; tile 0's cloudy pass is the query pass. "
-        f"{_generated(args.work, layout)} tiles generated, in a second process alongside the "
-        f"build, {gen_tile:.0f} s per tile (median wall); the map holds the first {n:,} "
+        f"{_generated(args.work, layout)} tiles generated"
+        + (f", in a second process alongside the build, {gen_tile:.0f} s per tile (median "
+           "wall)" if np.isfinite(gen_tile) else " beforehand")
+        + f"; the map holds the first {n:,} "
         f"images (tiles 1 to {-(-n // layout.tile_frames)}, filled row by row).",
         "",
         "## Per frame, one core (320x240, 300 particles, default hybrid configuration)",
