@@ -265,14 +265,23 @@ def test_spatial_blocks_are_compact_and_small_enough():
     assert (spatial_blocks(positions, 1000) == 0).all()
 
 
-def test_reconstruct_in_blocks_matches_the_whole_adjustment():
-    # 4 x 6 images cut into blocks of at most 8: every camera placed as the whole
-    # adjustment places it, the map's focal length and ground as well.
-    rng = np.random.default_rng(6)
-    s = survey(rng, rows=4, cols=6, max_tilt_deg=8.0)
+def _gridded_survey(seed, max_tilt_deg, altitude_offset=None):
+    """A 4 x 6 survey with exact tie points, GPS noise of 0.3 m and altitude noise of
+    0.2 m (plus ``altitude_offset(gps)``): (survey, pairs, gps, altitudes)."""
+    rng = np.random.default_rng(seed)
+    s = survey(rng, rows=4, cols=6, max_tilt_deg=max_tilt_deg)
     pairs = exact_pairs(s, rng)
     gps = s.positions + rng.normal(0.0, 0.3, s.positions.shape)
     alt = s.altitudes + rng.normal(0.0, 0.2, len(gps))
+    if altitude_offset is not None:
+        alt = alt + altitude_offset(gps)
+    return s, pairs, gps, alt
+
+
+def test_reconstruct_in_blocks_matches_the_whole_adjustment():
+    # 4 x 6 images cut into blocks of at most 8: every camera placed as the whole
+    # adjustment places it, the map's focal length and ground as well.
+    s, pairs, gps, alt = _gridded_survey(6, 8.0)
     K0 = Intrinsics.centred(F_TRUE, WIDTH, HEIGHT)
     blocks = reconstruct_in_blocks(pairs, gps, alt, K0, max_block=8)
     assert len(np.unique(spatial_blocks(gps, 8))) >= 3
@@ -296,11 +305,7 @@ def test_blocks_of_other_focal_lengths_are_brought_to_the_maps():
     # Over flat ground a block fixes only height over focal: one block that settled on a
     # focal length 1.4 times the others', with heights and ground to match (as blocks of a
     # large survey do), is scaled back to the map's focal length before it is merged.
-    rng = np.random.default_rng(7)
-    s = survey(rng, rows=4, cols=6, max_tilt_deg=2.0)
-    pairs = exact_pairs(s, rng)
-    gps = s.positions + rng.normal(0.0, 0.3, s.positions.shape)
-    alt = s.altitudes + rng.normal(0.0, 0.2, len(gps))
+    s, pairs, gps, alt = _gridded_survey(7, 2.0)
     K0 = Intrinsics.centred(F_TRUE, WIDTH, HEIGHT)
     blocks = _blocks_of(pairs, gps, alt, K0, 8)
     assert len(blocks) >= 3
@@ -325,12 +330,11 @@ def test_blocks_of_other_focal_lengths_are_brought_to_the_maps():
 def test_blocks_over_grounds_at_other_altitudes_keep_their_own():
     # The east half of the survey flown over ground 20 m higher (its GPS altitudes 20 m
     # up): each block's heights are measured from its own ground.
-    rng = np.random.default_rng(8)
-    s = survey(rng, rows=4, cols=6, max_tilt_deg=2.0)
-    pairs = exact_pairs(s, rng)
-    gps = s.positions + rng.normal(0.0, 0.3, s.positions.shape)
-    east = gps[:, 0] > np.median(gps[:, 0])
-    alt = s.altitudes + 20.0 * east + rng.normal(0.0, 0.2, len(gps))
+    def east_of_middle(gps):
+        return gps[:, 0] > np.median(gps[:, 0])
+
+    s, pairs, gps, alt = _gridded_survey(8, 2.0, lambda gps: 20.0 * east_of_middle(gps))
+    east = east_of_middle(gps)
     K0 = Intrinsics.centred(F_TRUE, WIDTH, HEIGHT)
     rec = reconstruct_in_blocks(pairs, gps, alt, K0, max_block=12)
     assert rec.reconstructed.all()
