@@ -138,6 +138,22 @@ def _transfer(Ra, Ca, Rb, Cb, f, c, p):
     return f * pc[:, :2] / pc[:, 2:3] + c
 
 
+def _tie_observations(pairs: list[PairMatches], index: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The tie points of ``pairs`` stacked: each match's two cameras (image indices mapped
+    through ``index``) and its pixels in each."""
+    a = np.concatenate([np.full(len(p.pa), index[p.a]) for p in pairs])
+    b = np.concatenate([np.full(len(p.pa), index[p.b]) for p in pairs])
+    return a, b, np.concatenate([p.pa for p in pairs]), np.concatenate([p.pb for p in pairs])
+
+
+def _transfer_errors(R, C, f, c, a, b, pa, pb) -> np.ndarray:
+    """(2n, 2) symmetric transfer errors of n tie points between cameras a and b (rows of
+    rotations R and centres C): a's pixels into b, then b's into a."""
+    return np.concatenate([_transfer(R[a], C[a], R[b], C[b], f, c, pa) - pb,
+                           _transfer(R[b], C[b], R[a], C[a], f, c, pb) - pa])
+
+
 def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes: np.ndarray,
                       K0: Intrinsics, *, gps_sigma: float = 1.0, alt_sigma: float = 5.0,
                       focal_sigma: float = 0.15, robust_px: float = 2.0,
@@ -180,10 +196,7 @@ def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes
     C0 = np.column_stack([positions[cams], np.where(has_alt, alt[cams] - ground0, height)])
     x0 = np.concatenate([rv0.ravel(), C0.ravel(), [math.log(K0.f), ground0]])
 
-    a = np.concatenate([np.full(len(p.pa), slot[p.a]) for p in pairs])
-    b = np.concatenate([np.full(len(p.pa), slot[p.b]) for p in pairs])
-    pa = np.concatenate([p.pa for p in pairs])
-    pb = np.concatenate([p.pb for p in pairs])
+    a, b, pa, pb = _tie_observations(pairs, slot)
     c = np.array([K0.cx, K0.cy])
     gps = positions[cams]
     n_obs = len(a)
@@ -196,13 +209,12 @@ def reconstruct_plane(pairs: list[PairMatches], positions: np.ndarray, altitudes
 
     def residuals(x):
         R, C, f, g = unpack(x)
-        ab = _transfer(R[a], C[a], R[b], C[b], f, c, pa) - pb
-        ba = _transfer(R[b], C[b], R[a], C[a], f, c, pb) - pa
+        ties = _transfer_errors(R, C, f, c, a, b, pa, pb)
         r_xy = (C[:, :2] - gps) / gps_sigma * robust_px
         r_z = np.where(has_alt, (C[:, 2] - (alt[cams] - g)) / alt_sigma * robust_px, 0.0)
         r_f = np.array([(x[i_f] - math.log(K0.f)) / focal_sigma * robust_px])
         priors = _unrobust(np.concatenate([r_xy.ravel(), r_z, r_f]), robust_px)
-        out = np.concatenate([ab.ravel(), ba.ravel(), priors])
+        out = np.concatenate([ties.ravel(), priors])
         return np.nan_to_num(out, nan=1e3, posinf=1e3, neginf=-1e3)
 
     n_res = 4 * n_obs + 3 * m + 1
@@ -430,16 +442,9 @@ def _median_transfer_px(pairs: list[PairMatches], rotations: np.ndarray, centres
     placed = [p for p in pairs if np.isfinite(centres[p.a, 0]) and np.isfinite(centres[p.b, 0])]
     if not placed:
         return float("nan")
-    a = np.concatenate([np.full(len(p.pa), p.a) for p in placed])
-    b = np.concatenate([np.full(len(p.pa), p.b) for p in placed])
-    pa = np.concatenate([p.pa for p in placed])
-    pb = np.concatenate([p.pb for p in placed])
-    c = np.array([K.cx, K.cy])
-    R, C = rotations, centres
-    err = np.concatenate([
-        np.linalg.norm(_transfer(R[a], C[a], R[b], C[b], K.f, c, pa) - pb, axis=1),
-        np.linalg.norm(_transfer(R[b], C[b], R[a], C[a], K.f, c, pb) - pa, axis=1)])
-    return float(np.median(err))
+    a, b, pa, pb = _tie_observations(placed, np.arange(len(centres)))
+    err = _transfer_errors(rotations, centres, K.f, np.array([K.cx, K.cy]), a, b, pa, pb)
+    return float(np.median(np.linalg.norm(err, axis=1)))
 
 
 def _weighted_median(values: list[tuple[float, int]]) -> float:
