@@ -90,7 +90,7 @@ def test_ctrl_c_stops_the_server(demo):
     """Interrupted once its server is up (the world is reused from the first run), the demo
     exits 130 and leaves no server process behind."""
     _, out = demo
-    proc = subprocess.Popen(demo_command(out), cwd=out, env=clean_env(),
+    proc = _interruptible(demo_command(out), cwd=out, env=clean_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         pid = None
@@ -117,7 +117,7 @@ def test_keep_leaves_the_server_up_for_the_viewer(tmp_path):
 
     cmd = [sys.executable, "-m", "vloc.clients.cli", "demo", "--frames", "10", "--out",
            str(tmp_path), "--quiet", "--keep"]
-    proc = subprocess.Popen(cmd, cwd=tmp_path, env=clean_env(), stdout=subprocess.PIPE,
+    proc = _interruptible(cmd, cwd=tmp_path, env=clean_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
         seen = []
@@ -146,6 +146,19 @@ def test_keep_leaves_the_server_up_for_the_viewer(tmp_path):
     assert not _alive(int(pid.group(1)))
     # kept: the server's data folder, with its database
     assert list(tmp_path.glob("vloc-demo-*/vloc.sqlite3"))
+
+
+def _interruptible(cmd, **kwargs) -> subprocess.Popen:
+    """Popen of a command that these tests stop with Ctrl-C (SIGINT). A test run started as a
+    background job of a non-interactive shell has SIGINT ignored, and a child inherits an
+    ignored signal (but not a handler): so the child starts with Python's own handler."""
+    previous = signal.getsignal(signal.SIGINT)
+    if previous == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen(cmd, **kwargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _alive(pid: int) -> bool:
