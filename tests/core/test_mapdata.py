@@ -113,3 +113,74 @@ def test_reduced_sift_of_one_image_copies_only_that_image(tmp_path):
     whole = n * k * (128 + 16)
     assert peak < whole / 20
     np.testing.assert_array_equal(back.sift(5).descriptors, sift[5].descriptors)
+
+
+def _timed_map(positions: np.ndarray, times: np.ndarray) -> MapData:
+    n = len(positions)
+    empty = SiftFeatures(np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8))
+    return MapData.from_parts(origin=GeoOrigin(41.03, -83.3, 280.0),
+                              names=[f"m{i}" for i in range(n)], positions=positions,
+                              altitudes=np.full(n, 300.0),
+                              global_features={"wgoh": np.zeros((n, 8))},
+                              sift=[empty] * n, captured_at=times)
+
+
+def _lawnmower(speed: float, lanes: int, per_lane: int, lane_gap: float, interval: float,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A survey's frames: lanes flown back and forth at ``speed`` with gusts, one frame
+    every ``interval`` seconds (jittered)."""
+    step = speed * interval
+    xs, ys = [], []
+    for lane in range(lanes):
+        along = step * np.arange(per_lane)
+        xs.append(along if lane % 2 == 0 else along[::-1])
+        ys.append(np.full(per_lane, lane * lane_gap))
+    xy = np.column_stack([np.concatenate(xs), np.concatenate(ys)])
+    xy += rng.normal(0.0, 0.3 * step, xy.shape)
+    times = np.cumsum(rng.uniform(0.8, 1.2, len(xy)) * interval)
+    return xy, times
+
+
+def _time_ordered_speed(*flights: tuple[np.ndarray, np.ndarray]) -> float:
+    """The obvious reference: the median speed between consecutive captures of each
+    flight, ``flights`` given apart."""
+    steps = []
+    for xy, times in flights:
+        order = np.argsort(times)
+        steps.append((np.diff(times[order]),
+                      np.linalg.norm(np.diff(xy[order], axis=0), axis=1)))
+    dt, dist = (np.concatenate(part) for part in zip(*steps, strict=True))
+    keep = dt <= 5.0 * np.median(dt)
+    return float(np.median(dist[keep] / dt[keep]))
+
+
+def test_speed_of_one_flight_is_that_between_consecutive_captures():
+    rng = np.random.default_rng(3)
+    xy, times = _lawnmower(6.0, lanes=5, per_lane=40, lane_gap=28.0, interval=1.0, rng=rng)
+    data = _timed_map(xy, times)
+    assert data.typical_speed() == pytest.approx(_time_ordered_speed((xy, times)), rel=1e-12)
+    assert data.typical_speed() == pytest.approx(6.0, rel=0.1)
+    assert data.typical_interval() == pytest.approx(np.median(np.diff(times)), rel=1e-12)
+
+
+def test_speed_of_flights_flown_at_the_same_time_is_each_flights_own():
+    # Four platforms survey four squares 600 m apart at once: the next capture in the
+    # whole map is usually another platform's, hundreds of metres away.
+    rng = np.random.default_rng(4)
+    parts = [_lawnmower(6.0, lanes=4, per_lane=30, lane_gap=28.0, interval=1.0, rng=rng)
+             for _ in range(4)]
+    xy = np.concatenate([p[0] + [600.0 * k, 0.0] for k, p in enumerate(parts)])
+    times = np.concatenate([p[1] for p in parts])
+    data = _timed_map(xy, times)
+    assert _time_ordered_speed((xy, times)) > 100.0  # consecutive captures of the whole map
+    assert data.typical_speed() == pytest.approx(_time_ordered_speed(*parts), rel=1e-12)
+    assert data.typical_speed() == pytest.approx(6.0, rel=0.15)
+    assert data.typical_interval() == pytest.approx(1.0, rel=0.1)
+
+
+def test_speed_needs_timed_captures():
+    xy = np.column_stack([np.arange(5.0), np.zeros(5)])
+    assert _timed_map(xy, np.full(5, np.nan)).typical_speed() is None
+    times = np.array([0.0, np.nan, np.nan, np.nan, 1.0])
+    assert _timed_map(xy, times).typical_speed() is None
+    assert _timed_map(xy, times).typical_interval() is None
