@@ -267,15 +267,16 @@ def _epoch(iso: str) -> float:
     return datetime.fromisoformat(iso).replace(tzinfo=UTC).timestamp()
 
 
-def time_steps(folder: str, frames) -> dict:
-    """CPU ms of each step of a hybrid session, and of the SIFT shortlist on its own."""
+def time_steps(folder: str, frames, params: dict | None = None) -> dict:
+    """CPU ms of each step of a hybrid session (the ``default`` configuration, changed by
+    ``params``), and of the SIFT shortlist on its own."""
     from vloc.workers.core.localisers import make_localiser
     from vloc.workers.core.mapdata import MapData
     from vloc.workers.core.query import QueryFrame
 
     t0 = time.perf_counter()
     data = MapData.load(folder, mmap=True)
-    loc = make_localiser("hybrid", data, {"config": "default"}, seed=0)
+    loc = make_localiser("hybrid", data, {"config": "default", **(params or {})}, seed=0)
     setup_s = time.perf_counter() - t0
     x, y = data.origin.to_local(frames[0][3], frames[0][4])
     loc.set_initial_pose(float(x), float(y), 10.0)

@@ -105,18 +105,21 @@ def generate(work: Path, layout: Layout, *, seed: int = 0, log=print) -> float:
     """Generate every unfinished tile; returns the seconds spent."""
     spent = 0.0
     for tile in range(layout.tiles):
-        folder = tile_dir(work, tile)
-        if (folder / "world.json").is_file():
+        if tile_done(work, tile):
             continue
-        passes = [MAP_PASS, QUERY_PASS] if tile == 0 else [MAP_PASS]
         t0 = time.perf_counter()
-        generate_world(folder, kind="uav", seed=seed + tile, passes=passes,
-                       frames=layout.tile_frames,
-                       route_length=layout.tile_frames * SPACING_M, altitude=ALTITUDE_M,
-                       origin=layout.origin(tile), overwrite=True)
+        generate_tile(work, layout, tile, seed=seed)
         spent += time.perf_counter() - t0
         log(f"tile {tile + 1}/{layout.tiles} generated in {time.perf_counter() - t0:.0f} s")
     return spent
+
+
+def generate_tile(work: Path, layout: Layout, tile: int, *, seed: int = 0) -> None:
+    """Generate tile ``tile`` (its world seeded ``seed + tile``), whatever is there."""
+    passes = [MAP_PASS, QUERY_PASS] if tile == 0 else [MAP_PASS]
+    generate_world(tile_dir(work, tile), kind="uav", seed=seed + tile, passes=passes,
+                   frames=layout.tile_frames, route_length=layout.tile_frames * SPACING_M,
+                   altitude=ALTITUDE_M, origin=layout.origin(tile), overwrite=True)
 
 
 def tile_done(work: Path, tile: int) -> bool:
