@@ -3,9 +3,9 @@
 ``bench_large_map.py`` builds its map through the service, and the camera geometry alone
 takes more than an hour at 50,000 images on two cores, so it is no way to try a change to
 localisation on a large map. This script takes the same world (the tiles of
-:mod:`large_map_world`'s 50,000-image layout, generated where missing), extracts each tile's map features as the build does
-(:func:`~workers.core.mapbuild.extract_image_features`, cached per tile in the work
-directory), packs the first ``--images`` of them with the core
+:mod:`large_map_world`'s 50,000-image layout, generated where missing), extracts each
+tile's map features as the build does (:func:`~workers.core.mapbuild.extract_image_features`,
+cached per tile in the work directory), packs the first ``--images`` of them with the core
 (:func:`~workers.core.mapbuild.assemble_map`, shortlist codes above 8,192 images, *no camera
 geometry*: global steps do not register with ORB and SIFT steps place the frame between
 its best images) and runs the benchmark's session over the query pass from the same

@@ -54,9 +54,8 @@ from .sift import SiftFeatures
 CAPTURE_NEIGHBOURS: int = 32
 """Nearest map images among which an image's next capture on the same flight is sought.
 Enough that a sparse flight's next frame is among them where it speeds up between frames
-(on seneca-uav's map pass the nearest 8 miss it for 7 of the 70 images, the nearest 24
-for none);
-a parallel flight's frames hundreds of metres away are not."""
+(on seneca-uav's map pass the nearest 8 miss it for 7 of the 70 images, the nearest 24 for
+none); a parallel flight's frames hundreds of metres away are not."""
 
 
 @dataclass
@@ -190,9 +189,10 @@ class MapData:
         platforms): the next capture anywhere in the map then often belongs to another
         flight, hundreds of metres away, and the speed between the two is no platform's.
         The next capture of the same flight lies close by, so it is taken as the earliest
-        later capture among the image's :data:`CAPTURE_NEIGHBOURS` nearest timed images.
-        Images with no later capture near them (a flight's last) have no step.
-        Computed once per map.
+        later capture among the image's :data:`CAPTURE_NEIGHBOURS` nearest map images
+        (found with the map's own KD-tree; untimed neighbours are no candidates). Images
+        with no later capture near them (a flight's last) have no step. Computed once per
+        map.
         """
         if self._steps is None:
             t = self.captured_at
@@ -200,11 +200,11 @@ class MapData:
             if len(timed) < 2:
                 self._steps = (np.empty(0), np.empty(0))
                 return self._steps
-            xy = np.asarray(self.positions)[timed]
-            k = min(CAPTURE_NEIGHBOURS + 1, len(timed))  # the image itself comes back too
-            dist, near = cKDTree(xy).query(xy, k=k)
-            later = t[timed][near] - t[timed][:, None]
-            later = np.where(later > 0, later, np.inf)
+            k = min(CAPTURE_NEIGHBOURS + 1, len(self))  # the image itself comes back too
+            dist, near = self.tree.query(np.asarray(self.positions)[timed], k=k)
+            with np.errstate(invalid="ignore"):  # NaN: an untimed neighbour
+                later = t[near] - t[timed][:, None]
+                later = np.where(later > 0, later, np.inf)
             nxt = np.argmin(later, axis=1)
             rows = np.arange(len(timed))
             dt, d = later[rows, nxt], dist[rows, nxt]
