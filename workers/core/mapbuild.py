@@ -27,8 +27,7 @@ from .features.orb import OrbFeatures, extract_orb
 from .features.shortlist import CODES_FROM, PlaceCodes
 from .features.vocabulary import Vocabulary
 from .geo import GeoOrigin
-from .geometry import build_geometry, focal_from_fov
-from .geometry.camera import DEFAULT_HFOV_DEG, Intrinsics
+from .geometry import build_geometry
 from .image import MAX_PIXELS, WORK_SIZE, Frame, load_frame
 from .lens import read_focal_px
 from .mapdata import MapData
@@ -64,10 +63,11 @@ def extract_image_features(frame: Frame, *,
                          extract_orb(frame.grey))
 
 
-TIE_SIZE: tuple[int, int] = (480, 360)
-"""Resolution the map's tie points are extracted at: 1.5 times the working resolution."""
+TIE_SIZE: tuple[int, int] = (640, 480)
+"""Resolution the map's tie points are extracted at: twice the working resolution
+(:data:`~workers.core.geometry.sfm.COLMAP_SCALE`)."""
 
-TIE_KEYPOINTS: int = 2000
+TIE_KEYPOINTS: int = 3000
 """Most tie points per map image."""
 
 
@@ -77,9 +77,9 @@ def extract_tie_points(data: bytes, *, max_pixels: int = MAX_PIXELS) -> SiftFeat
     The 300 SIFT keypoints a map image keeps at the working resolution are what frames are
     matched against; tying overlapping map images together needs more. Extracted at
     :data:`TIE_SIZE` (up to :data:`TIE_KEYPOINTS`) and expressed in working-resolution
-    pixels, they place 68 of the 70 seneca-uav map images instead of 58, and SIFT
-    registers 96 % of the query frames against their true nearest map image instead of
-    88 %. They are not stored: the build reads the image files again.
+    pixels, they let COLMAP place 66 of the 70 seneca-uav map images in one model, where
+    2,000 at 480x360 left it 40 in three. They are not stored: the build reads the image
+    files again.
 
     Raises ImageError for an undecodable file.
     """
@@ -96,8 +96,8 @@ def extract_tie_points(data: bytes, *, max_pixels: int = MAX_PIXELS) -> SiftFeat
 def save_tie_points(tie: SiftFeatures, stem: str | Path) -> None:
     """Write one map image's tie points beside ``stem`` (``<stem>.kp.npy``, ``.desc.npy``).
 
-    A map image's tie points (up to :data:`TIE_KEYPOINTS` SIFT) take about 290 kB, four times
-    its stored features: 14 GB for 50,000 images. A build writes them to disk as they are
+    A map image's tie points (up to :data:`TIE_KEYPOINTS` SIFT) take about 430 kB, six times
+    its stored features: 21 GB for 50,000 images. A build writes them to disk as they are
     extracted (in parallel, by the engine's workers) and the reconstruction reads them back
     memory-mapped (:func:`load_tie_points`), through the page cache instead of the worker's
     own memory. Each file is written under a temporary name and renamed, the keypoints
@@ -171,7 +171,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  ratio: float = RATIO, geometry: bool = True,
                  focal_px: float | None = None,
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
-                 known_pairs: dict | None = None, known_blocks: dict | None = None,
+                 known_pairs: dict | None = None,
                  timings: dict[str, tuple[float, float]] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
@@ -188,22 +188,22 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         Mark the keypoints matching one of the two GPS-nearest map images (Weiss III);
         all keypoints are kept, the mark lets localisers match the reduced set.
     geometry : bool
-        Reconstruct the map cameras over the ground plane (metric refinement); maps that
-        are not a plane seen from above get none, whatever this says.
+        Reconstruct the map's cameras and 3-D points (metric refinement,
+        :mod:`workers.core.geometry`); maps whose structure cannot be recovered, or does
+        not localise their own images better than the nearest image, get none.
     focal_px : float or None
         The map camera's focal length in pixels at the working resolution (from EXIF,
         :func:`workers.core.lens.read_focal_px`); None assumes a typical field of view
-        and lets the reconstruction refine it.
+        and lets the reconstruction find it.
     descriptors : tuple of str
         Place descriptors to train a vocabulary for and describe every map image with.
         Those over ORB are left out when an image comes without ORB features.
     seed : int
         Seeds the vocabulary training and the reconstruction's RANSAC: the same images
         give the same map.
-    known_pairs, known_blocks : dict, optional
+    known_pairs : dict, optional
         The reconstruction's tie-point pairs matched beforehand with the same ``seed``
-        (:mod:`workers.core.tiepairs`), and its blocks adjusted beforehand
-        (:mod:`workers.core.blocks`); the others are matched and adjusted here.
+        (:mod:`workers.core.tiepairs`); the others are matched here.
     timings : dict, optional
         Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
         ``"vocabularies"`` (training and describing every image), ``"packing"``,
@@ -252,8 +252,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     if geometry:
         with stage(timings, "geometry"):
             data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
-                                         known_pairs=known_pairs,
-                                         known_blocks=known_blocks)
+                                         known_pairs=known_pairs)
     return data
 
 
@@ -269,24 +268,19 @@ def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
                          before[1] + time.process_time() - cpu)
 
 
-def initial_intrinsics(focal_px: float | None) -> Intrinsics:
-    """The map camera's intrinsics the reconstruction starts from: ``focal_px`` (EXIF) or a
-    typical field of view, centred in the working resolution."""
-    width, height = WORK_SIZE
-    f = focal_px if focal_px else focal_from_fov(DEFAULT_HFOV_DEG, width)
-    return Intrinsics.centred(f, width, height)
-
-
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
                  tie_points: list[SiftFeatures | TiePointFiles | None] | None = None,
-                 known_pairs: dict | None = None, known_blocks: dict | None = None):
-    """The map's camera geometry with every stored SIFT (and ORB) keypoint on the ground,
+                 known_pairs: dict | None = None):
+    """The map's camera geometry with every stored SIFT (and ORB) keypoint's 3-D point,
+    checked by localising the map's own images (:func:`workers.core.selfcheck.self_check`),
     or None.
 
     ``tie_points`` (one per image, None where missing) tie the images together; an image
-    without them is tied by its stored SIFT. ``known_pairs`` and ``known_blocks`` are pairs
-    matched and blocks adjusted beforehand (:func:`~workers.core.geometry.build_geometry`).
+    without them is tied by its stored SIFT. ``known_pairs`` are pairs matched beforehand
+    (:func:`~workers.core.geometry.build_geometry`).
     """
+    from .selfcheck import self_check
+
     n = len(data)
     ties = [None] * n if tie_points is None else list(tie_points)
     if len(ties) != n:
@@ -294,14 +288,20 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     ties = [data.sift(i) if t is None else t for i, t in enumerate(ties)]
     # read image by image as pairs are matched: tie points on disk stay closed until then
     kps, desc = _Field(ties, "keypoints"), _Field(ties, "descriptors")
-    geo = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
-                         initial_intrinsics(focal_px), seed=seed,
-                         known_pairs=known_pairs, known_blocks=known_blocks)
-    if geo is not None:
-        geo.add_ground("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets))
-        if data.has_orb:
-            geo.add_ground("orb", np.asarray(data.orb_keypoints), np.asarray(data.orb_offsets))
-    return geo
+    built = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
+                           focal_px, seed=seed, known_pairs=known_pairs)
+    if built is None:
+        return None
+    geo, structure = built
+    seen = [(np.asarray(kps[i])[structure.observations[i], :2], structure.points[i])
+            if structure.placed[i] else (np.zeros((0, 2)), np.zeros((0, 3)))
+            for i in range(n)]
+    geo.add_points("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets),
+                   seen)
+    if data.has_orb:
+        geo.add_points("orb", np.asarray(data.orb_keypoints), np.asarray(data.orb_offsets),
+                       seen)
+    return self_check(data, geo, seed=seed)
 
 
 class _Field(Sequence):

@@ -1,14 +1,13 @@
 """The reconstruction's tie-point pairs, matched in parallel ahead of the packing.
 
-Matching the tie points of neighbouring map images (ratio test over two thousand SIFT each,
-then a RANSAC homography; :func:`~workers.core.geometry.match_pair`) is a third of a map's
-geometry: about 35 ms an image on one core, half an hour for 50,000 images. The pairs are
-independent, and each one's RANSAC is seeded by its indices alone (the few tie points each
-keeps are drawn afterwards, in the pairs' order, where they are used), so a build plans
-them (:func:`plan`), lets the engine's workers match batches of them from the tie points on
-disk (:func:`match_batch`, one file of results per batch) and hands the results to the
-packing (:func:`load_results`), which matches only what is missing. The map comes out the
-same as when one process matches every pair.
+Matching the tie points of neighbouring map images (ratio test over three thousand SIFT
+each, then COLMAP's two-view geometry; :func:`~workers.core.geometry.match_pair`) is much of
+a map's geometry: about 75 ms a pair on one core. The pairs are independent, and each
+one's RANSAC is seeded by its indices alone, so a build plans them (:func:`plan`), lets the
+engine's workers match batches of them from the tie points on disk (:func:`match_batch`,
+one file of results per batch) and hands the results to the packing
+(:func:`load_results`), which matches only what is missing. The map comes out the same as
+when one process matches every pair.
 """
 
 from __future__ import annotations
@@ -21,6 +20,9 @@ from .geometry import PairMatches, match_pair, tie_pairs
 from .mapbuild import TiePointFiles, load_tie_points, local_frame
 
 RESULTS_GLOB = "pairs-*.npz"
+FORMAT = 2
+"""Version of the results files: 2 holds keypoint indices and two-view configurations; a
+failed build's results of another version are matched again."""
 PLAN_FILE = "pairs-plan.npy"
 """The image ids, in map order, that the pairs' indices refer to."""
 
@@ -87,18 +89,19 @@ def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | 
 
 
 def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Path) -> None:
-    """Matched pairs as one ``.npz``: each pair tried, whether it verified, and the tie
-    points and homography of those that did. Written under a temporary name and renamed, so
-    a file under ``out`` is always whole."""
+    """Matched pairs as one ``.npz``: each pair tried, whether it verified, and the matched
+    keypoint indices and two-view configuration of those that did. Written under a
+    temporary name and renamed, so a file under ``out`` is always whole."""
     ok = [p for _, _, p in done if p is not None]
     arrays = {
+        "format": np.array(FORMAT),
         "a": np.array([a for a, _, _ in done], np.int64),
         "b": np.array([b for _, b, _ in done], np.int64),
         "verified": np.array([p is not None for _, _, p in done], bool),
-        "counts": np.array([len(p.pa) for p in ok], np.int64),
-        "pa": np.concatenate([p.pa for p in ok]) if ok else np.zeros((0, 2)),
-        "pb": np.concatenate([p.pb for p in ok]) if ok else np.zeros((0, 2)),
-        "homographies": np.stack([p.homography for p in ok]) if ok else np.zeros((0, 3, 3)),
+        "counts": np.array([len(p) for p in ok], np.int64),
+        "matches": (np.concatenate([p.matches for p in ok]) if ok
+                    else np.zeros((0, 2), np.int64)),
+        "configs": np.array([p.config for p in ok], np.int64),
     }
     out = Path(out)
     tmp = out.with_name("." + out.name)  # outside the results' glob until whole
@@ -121,17 +124,20 @@ def load_results(folder: str | Path, image_ids: list[int],
 
 
 def read_results(path: str | Path) -> list[tuple[int, int, PairMatches | None]]:
-    """The pairs one file of :func:`save_results` holds, in its order."""
+    """The pairs one file of :func:`save_results` holds, in its order; none from a file of
+    another format."""
     with np.load(path) as z:
+        if "format" not in z.files or int(z["format"]) != FORMAT:
+            return []
         a, b, verified, counts = z["a"], z["b"], z["verified"], z["counts"]
-        pa, pb, hs = z["pa"], z["pb"], z["homographies"]
+        matches, configs = z["matches"], z["configs"]
     ends = np.concatenate([[0], np.cumsum(counts)])
     out: list[tuple[int, int, PairMatches | None]] = []
     k = 0
     for i, j, good in zip(a.tolist(), b.tolist(), verified.tolist(), strict=True):
         if good:
-            out.append((i, j, PairMatches(i, j, pa[ends[k]:ends[k + 1]],
-                                          pb[ends[k]:ends[k + 1]], hs[k])))
+            out.append((i, j, PairMatches(i, j, matches[ends[k]:ends[k + 1]],
+                                          int(configs[k]))))
             k += 1
         else:
             out.append((i, j, None))

@@ -5,12 +5,17 @@ Arrays (saved as ``geometry_*.npy`` in the map folder, memory-mappable like the 
 rotations : (N, 3, 3) float64
     World -> camera rotation of each map image; NaN where not reconstructed.
 centres : (N, 3) float64
-    Camera centre (east, north, height above the ground plane); NaN where not reconstructed.
-intrinsics : (3,) float64
-    f, cx, cy in pixels at the working resolution.
-ground[kind] : (K, 2) float32
-    East/north on the ground of every keypoint of the map's local-feature set ``kind``
-    (``"sift"``, row-aligned with ``MapData.sift_keypoints``); NaN where unknown.
+    Camera centre (east, north, altitude in the frame of the GPS altitudes); NaN where not
+    reconstructed.
+intrinsics, k1
+    f, cx, cy in pixels at the working resolution, and the radial distortion (OpenCV's
+    first coefficient).
+points[kind] : (K, 3) float32
+    The 3-D point (east, north, altitude) every keypoint of the map's local-feature set
+    ``kind`` sees (``"sift"``, row-aligned with ``MapData.sift_keypoints``; ``"orb"``);
+    NaN where unknown.
+self_check : dict
+    What the map measured of itself at build time (:mod:`workers.core.selfcheck`).
 """
 
 from __future__ import annotations
@@ -20,10 +25,26 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
-from .camera import Intrinsics, backproject_to_ground
-from .reconstruct import PlaneReconstruction
+from .camera import Intrinsics
+
+DEPTH_RADIUS_PX: float = 20.0
+"""A stored keypoint takes its depth from the reconstructed tie points of its image within
+this many pixels (working resolution)."""
+
+DEPTH_NEIGHBOURS: int = 4
+"""... the median depth of at most this many of the nearest."""
+
+NADIR_SPREAD_DEG: float = 15.0
+"""Maps whose cameras all look within this of their mean direction (a survey flown with a
+fixed gimbal, nadir or oblique) get a prior on a frame's viewing direction."""
+
+FORMAT = 2
+"""Version of the saved geometry: 2 is the structure-from-motion geometry with 3-D points;
+1 (no version) was a ground plane, read as points on it."""
 
 
 @dataclass
@@ -31,30 +52,70 @@ class MapGeometry:
     rotations: np.ndarray
     centres: np.ndarray
     intrinsics: Intrinsics
-    ground_alt: float
-    residual_px: float
-    gps_rms: float
-    ground: dict[str, np.ndarray] = field(default_factory=dict)
+    k1: float = 0.0
+    residual_px: float = math.nan
+    gps_rms: float = math.nan
+    gps_rms_v: float = math.nan
+    models: int = 1
+    points: dict[str, np.ndarray] = field(default_factory=dict)
+    self_check: dict = field(default_factory=dict)
 
     @classmethod
-    def from_reconstruction(cls, rec: PlaneReconstruction) -> MapGeometry:
-        return cls(rec.rotations, rec.centres, rec.intrinsics, rec.ground_alt,
-                   rec.residual_px, rec.gps_rms)
+    def from_structure(cls, structure) -> MapGeometry:
+        """The geometry of a :class:`~.sfm.Structure` (its points added by
+        :meth:`add_points`)."""
+        return cls(structure.rotations, structure.centres, structure.intrinsics,
+                   structure.k1, structure.residual_px, structure.gps_rms_h,
+                   structure.gps_rms_v, structure.models)
 
     @property
     def reconstructed(self) -> np.ndarray:
         """(N,) bool: which map images have a camera pose."""
         return np.isfinite(np.asarray(self.centres)[:, 0])
 
-    def height_range(self) -> tuple[float, float]:
-        """Plausible heights of a frame's camera: the map cameras' range, widened."""
-        h = np.asarray(self.centres)[self.reconstructed, 2]
-        if len(h) == 0:
-            return (0.0, 0.0)
-        return float(0.5 * h.min()), float(1.6 * h.max())
+    @property
+    def base_sigma(self) -> float:
+        """Standard deviation (m) of the map's own registrations, from its self-check; 2 m
+        where it has none."""
+        sigma = self.self_check.get("sigma_m")
+        return float(sigma) if sigma is not None and math.isfinite(sigma) else 2.0
 
-    def add_ground(self, kind: str, keypoints: np.ndarray, offsets: np.ndarray) -> None:
-        """Place the keypoints of local-feature set ``kind`` on the ground.
+    @property
+    def distortion(self) -> np.ndarray:
+        """OpenCV's distortion coefficients (k1, k2, p1, p2)."""
+        return np.array([self.k1, 0.0, 0.0, 0.0])
+
+    def altitude_range(self) -> tuple[float, float]:
+        """Plausible altitudes of a frame's camera: the map cameras', widened by half their
+        span and at least 20 m either way."""
+        z = np.asarray(self.centres)[self.reconstructed, 2]
+        if len(z) == 0:
+            return (0.0, 0.0)
+        margin = max(20.0, 0.5 * float(z.max() - z.min()))
+        return float(z.min()) - margin, float(z.max()) + margin
+
+    def view_prior(self) -> tuple[np.ndarray, float] | None:
+        """The map cameras' mean viewing direction and its spread (degrees, at least 5)
+        where they all look within :data:`NADIR_SPREAD_DEG` of it; None otherwise (a
+        street-level map, a survey that turns its camera)."""
+        R = np.asarray(self.rotations)[self.reconstructed]
+        if len(R) < 3:
+            return None
+        axes = R[:, 2, :]
+        mean = axes.mean(axis=0)
+        mean /= np.linalg.norm(mean)
+        angles = np.degrees(np.arccos(np.clip(axes @ mean, -1.0, 1.0)))
+        if np.percentile(angles, 95) > NADIR_SPREAD_DEG:
+            return None
+        return mean, max(5.0, float(np.sqrt(np.mean(angles ** 2))))
+
+    def add_points(self, kind: str, keypoints: np.ndarray, offsets: np.ndarray,
+                   seen: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Give the keypoints of local-feature set ``kind`` their 3-D points.
+
+        A stored keypoint takes the median depth of the reconstructed tie points nearest it
+        in its image (:data:`DEPTH_RADIUS_PX`, :data:`DEPTH_NEIGHBOURS`) along its own ray:
+        exact where it is one of them, a local interpolation of the surface elsewhere.
 
         Parameters
         ----------
@@ -62,28 +123,51 @@ class MapGeometry:
             Pixels in the first two columns; image ``i`` owns rows
             ``offsets[i]:offsets[i + 1]``.
         offsets : (N + 1,) int ndarray
+        seen : list of ((k_i, 2) pixels, (k_i, 3) points), one per map image
+            The reconstructed tie points of each image and their 3-D points.
         """
-        out = np.full((len(keypoints), 2), np.nan, dtype=np.float32)
-        centres = np.asarray(self.centres)
+        out = np.full((len(keypoints), 3), np.nan, dtype=np.float32)
+        centres, rotations = np.asarray(self.centres), np.asarray(self.rotations)
         for i in np.flatnonzero(self.reconstructed):
             a, b = int(offsets[i]), int(offsets[i + 1])
-            if b > a:
-                out[a:b] = backproject_to_ground(
-                    np.asarray(self.rotations[i]), centres[i], self.intrinsics,
-                    np.asarray(keypoints[a:b, :2], np.float64))
-        self.ground[kind] = out
+            px, xyz = seen[i]
+            if b <= a or len(px) < 3:
+                continue
+            R, C = rotations[i], centres[i]
+            depth = (np.asarray(xyz, np.float64) - C) @ R[2]
+            dist, near = cKDTree(px).query(np.asarray(keypoints[a:b, :2], np.float64),
+                                           k=min(DEPTH_NEIGHBOURS, len(px)),
+                                           distance_upper_bound=DEPTH_RADIUS_PX)
+            dist, near = dist.reshape(b - a, -1), near.reshape(b - a, -1)
+            found = np.isfinite(dist)
+            d = np.where(found, depth[np.minimum(near, len(px) - 1)], np.nan)
+            ok = found.any(axis=1)
+            if not ok.any():
+                continue
+            z = np.nanmedian(d[ok], axis=1)
+            rays = self.rays(np.asarray(keypoints[a:b][ok, :2], np.float64))
+            out[a:b][ok] = (C + (z[:, None] * rays) @ R).astype(np.float32)
+        self.points[kind] = out
+
+    def rays(self, pixels: np.ndarray) -> np.ndarray:
+        """Pixels (n, 2) -> undistorted camera rays ``(x, y, 1)`` (n, 3)."""
+        K = self.intrinsics.matrix
+        norm = cv2.undistortPoints(np.asarray(pixels, np.float64).reshape(-1, 1, 2), K,
+                                   self.distortion).reshape(-1, 2)
+        return np.column_stack([norm, np.ones(len(norm))])
 
     # -- persistence ----------------------------------------------------------------------
 
     def save(self, folder: Path) -> None:
         np.save(folder / "geometry_rotations.npy", np.asarray(self.rotations, np.float64))
         np.save(folder / "geometry_centres.npy", np.asarray(self.centres, np.float64))
-        for kind, arr in self.ground.items():
-            np.save(folder / f"geometry_ground_{kind}.npy", np.asarray(arr, np.float32))
+        for kind, arr in self.points.items():
+            np.save(folder / f"geometry_points_{kind}.npy", np.asarray(arr, np.float32))
         k = self.intrinsics
-        meta = {"f": k.f, "cx": k.cx, "cy": k.cy, "ground_alt": _num(self.ground_alt),
+        meta = {"format": FORMAT, "f": k.f, "cx": k.cx, "cy": k.cy, "k1": self.k1,
                 "residual_px": _num(self.residual_px), "gps_rms": _num(self.gps_rms),
-                "ground": sorted(self.ground)}
+                "gps_rms_v": _num(self.gps_rms_v), "models": self.models,
+                "points": sorted(self.points), "self_check": self.self_check}
         (folder / "geometry.json").write_text(json.dumps(meta))
 
     @classmethod
@@ -94,13 +178,34 @@ class MapGeometry:
             return None
         meta = json.loads(path.read_text())
         mode = "r" if mmap else None
-        ground = {kind: np.load(folder / f"geometry_ground_{kind}.npy", mmap_mode=mode)
-                  for kind in meta["ground"]}
-        return cls(np.load(folder / "geometry_rotations.npy", mmap_mode=mode),
-                   np.load(folder / "geometry_centres.npy", mmap_mode=mode),
-                   Intrinsics(meta["f"], meta["cx"], meta["cy"]),
-                   _float(meta["ground_alt"]), _float(meta["residual_px"]),
-                   _float(meta["gps_rms"]), ground)
+        rotations = np.load(folder / "geometry_rotations.npy", mmap_mode=mode)
+        centres = np.load(folder / "geometry_centres.npy", mmap_mode=mode)
+        K = Intrinsics(meta["f"], meta["cx"], meta["cy"])
+        if meta.get("format", 1) < 2:
+            return cls._from_plane(folder, meta, rotations, centres, K)
+        points = {kind: np.load(folder / f"geometry_points_{kind}.npy", mmap_mode=mode)
+                  for kind in meta["points"]}
+        return cls(rotations, centres, K, float(meta.get("k1", 0.0)),
+                   _float(meta["residual_px"]), _float(meta["gps_rms"]),
+                   _float(meta.get("gps_rms_v")), int(meta.get("models", 1)), points,
+                   dict(meta.get("self_check") or {}))
+
+    @classmethod
+    def _from_plane(cls, folder: Path, meta: dict, rotations: np.ndarray,
+                    centres: np.ndarray, K: Intrinsics) -> MapGeometry:
+        """A map packed with the ground-plane geometry: its ground points at the plane's
+        altitude, its camera heights as altitudes."""
+        ground_alt = _float(meta.get("ground_alt"))
+        ground_alt = 0.0 if not math.isfinite(ground_alt) else ground_alt
+        points = {}
+        for kind in meta.get("ground", []):
+            xy = np.load(folder / f"geometry_ground_{kind}.npy")
+            points[kind] = np.column_stack(
+                [xy, np.full(len(xy), ground_alt, np.float32)]).astype(np.float32)
+        centres = np.array(centres, np.float64)
+        centres[:, 2] += ground_alt
+        return cls(np.asarray(rotations), centres, K, 0.0, _float(meta.get("residual_px")),
+                   _float(meta.get("gps_rms")), points=points)
 
 
 def _num(x: float) -> float | None:

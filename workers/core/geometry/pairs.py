@@ -1,10 +1,13 @@
 """Tie points between map images: which pairs to match, and their verified matches.
 
-Two overlapping aerial images of nearly flat ground are related by a homography: a pair's
-tie points are the SIFT ratio-test matches that agree with one (RANSAC), and the bundle
-adjustment (:mod:`.reconstruct`) keeps a few dozen of them a pair. Pairs are independent and
-each one's RANSAC is seeded by its indices alone, so they can be matched anywhere, in any
-order (:mod:`workers.core.tiepairs` matches them on the engine's workers).
+A pair's tie points are the SIFT ratio-test matches between two GPS-neighbouring map images
+that agree with their two-view geometry, estimated by COLMAP (:func:`pycolmap.estimate_two_view_geometry`):
+a fundamental matrix where the scene has depth, a homography where the pair sees a plane
+or turns on the spot. Nothing here assumes a ground plane, so nadir, oblique and
+street-level maps are matched alike. Pairs are independent and each one's RANSAC is seeded by
+its indices alone, so they can be matched anywhere, in any order
+(:mod:`workers.core.tiepairs` matches them on the engine's workers); the reconstruction
+(:mod:`.sfm`) reads the keypoint indices of every verified match.
 """
 
 from __future__ import annotations
@@ -12,24 +15,36 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
 class PairMatches:
-    """Verified tie points between map images ``a`` and ``b`` (pixels in each)."""
+    """Verified tie points between map images ``a`` and ``b``.
+
+    Attributes
+    ----------
+    a, b : int
+        Map images, ``a < b``.
+    matches : (n, 2) int64 ndarray
+        Rows of (keypoint of ``a``, keypoint of ``b``): indices into each image's tie points.
+    config : int
+        COLMAP's two-view configuration (:class:`pycolmap.TwoViewGeometryConfiguration`):
+        calibrated, uncalibrated, planar, panoramic...
+    """
 
     a: int
     b: int
-    pa: np.ndarray  # (n, 2) float64
-    pb: np.ndarray  # (n, 2) float64
-    homography: np.ndarray  # (3, 3), pixels of a -> pixels of b
+    matches: np.ndarray
+    config: int
+
+    def __len__(self) -> int:
+        return len(self.matches)
 
 
 def candidate_pairs(positions: np.ndarray, *, max_distance: float,
-                    neighbours: int = 8) -> list[tuple[int, int]]:
+                    neighbours: int = 12) -> list[tuple[int, int]]:
     """Pairs ``(a, b)``, ``a < b``, of map images worth matching, ascending: each image with
     those of its ``neighbours`` GPS-nearest that lie closer than ``max_distance`` (m)."""
     n = len(positions)
@@ -46,56 +61,43 @@ def candidate_pairs(positions: np.ndarray, *, max_distance: float,
 
 def match_pair(a: int, b: int, keypoints_a: np.ndarray, descriptors_a: np.ndarray,
                keypoints_b: np.ndarray, descriptors_b: np.ndarray, *, ratio: float = 0.8,
-               min_inliers: int = 10, ransac_px: float = 3.0,
-               seed: int = 0) -> PairMatches | None:
+               min_inliers: int = 15, seed: int = 0) -> PairMatches | None:
     """Verified tie points between map images ``a`` and ``b``: the ratio-test matches that
-    agree with one RANSAC homography, all of them (:func:`keep_some` keeps a few); None when
-    fewer than ``min_inliers`` agree.
+    agree with their two-view geometry; None when fewer than ``min_inliers`` agree.
 
-    OpenCV's RANSAC is seeded by ``(seed, a, b)`` alone, so a pair gives the same tie points
+    Keypoints are pixels at the working resolution (first two columns). The geometry is
+    estimated uncalibrated: the map camera's focal length is what the reconstruction finds.
+    COLMAP's RANSAC is seeded by ``(seed, a, b)`` alone, so a pair gives the same tie points
     whichever process matches it and whatever it matched before.
     """
+    import pycolmap
+
     from ..sift import ratio_matches
+    from .sfm import colmap_camera, to_colmap_pixels
 
     m = ratio_matches(descriptors_a, descriptors_b, ratio=ratio)
     if len(m) < min_inliers:
         return None
-    pa = np.asarray(keypoints_a[m[:, 0], :2], np.float64)
-    pb = np.asarray(keypoints_b[m[:, 1], :2], np.float64)
-    # OpenCV's RANSAC draws from a per-thread generator whose state depends on what the
-    # process did before: seed it per pair
-    cv2.setRNGSeed((seed * 1_000_003 + a * 100_003 + b) % 2 ** 31)
-    H, mask = cv2.findHomography(pa, pb, cv2.RANSAC, ransac_px)
-    if H is None:
+    options = pycolmap.TwoViewGeometryOptions()
+    options.min_num_inliers = min_inliers
+    options.ransac.random_seed = (seed * 1_000_003 + a * 100_003 + b) % 2 ** 31
+    camera = colmap_camera(None)
+    geometry = pycolmap.estimate_two_view_geometry(
+        camera, to_colmap_pixels(keypoints_a), camera, to_colmap_pixels(keypoints_b),
+        m.astype(np.uint32), options)
+    inliers = np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)
+    if len(inliers) < min_inliers:
         return None
-    sel = np.flatnonzero(mask.ravel())
-    if len(sel) < min_inliers:
-        return None
-    return PairMatches(a, b, pa[sel], pb[sel], H)
-
-
-def keep_some(pairs: list[PairMatches], rng: np.random.Generator,
-              max_per_pair: int = 30) -> list[PairMatches]:
-    """Each pair with at most ``max_per_pair`` of its tie points, drawn at random in the
-    order of ``pairs`` (those with fewer keep them all): the bundle adjustment's cost grows
-    with the tie points, its accuracy hardly beyond a few dozen a pair."""
-    out = []
-    for p in pairs:
-        if len(p.pa) > max_per_pair:
-            keep = np.sort(rng.choice(len(p.pa), size=max_per_pair, replace=False))
-            p = PairMatches(p.a, p.b, p.pa[keep], p.pb[keep], p.homography)
-        out.append(p)
-    return out
+    return PairMatches(a, b, inliers, int(geometry.config))
 
 
 def match_pairs(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarray],
-                positions: np.ndarray, *, max_distance: float, neighbours: int = 8,
-                max_per_pair: int = 30, seed: int = 0,
+                positions: np.ndarray, *, max_distance: float, neighbours: int = 12,
+                seed: int = 0,
                 known: dict[tuple[int, int], PairMatches | None] | None = None,
                 **options) -> list[PairMatches]:
     """Verified matches between each map image and its GPS neighbours
-    (:func:`candidate_pairs`, :func:`match_pair`), at most ``max_per_pair`` tie points each
-    (:func:`keep_some`, drawn by a generator seeded with ``seed``).
+    (:func:`candidate_pairs`, :func:`match_pair`).
 
     Parameters
     ----------
@@ -106,8 +108,7 @@ def match_pairs(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarra
     positions : (N, 2) float ndarray
         GPS east/north of the images.
     max_distance : float
-        Only pairs closer than this (m) are tried: further apart the footprints cannot
-        overlap.
+        Only pairs closer than this (m) are tried: further apart the views cannot overlap.
     known : dict, optional
         Pairs already matched elsewhere with the same ``seed`` (the build matches them in
         parallel), their result None where they did not verify; the others are matched here.
@@ -123,4 +124,4 @@ def match_pairs(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarra
                            seed=seed, **options)
         if p is not None:
             verified.append(p)
-    return keep_some(verified, np.random.default_rng(seed), max_per_pair)
+    return verified

@@ -85,7 +85,7 @@ class FilterLocaliser(Localiser):
         # frame by frame and the running trust in the global features is not needed.
         self.registers_globally = (cfg.refine.enabled and cfg.refine.on_global
                                    and map_data.has_orb and map_data.geometry is not None
-                                   and "orb" in map_data.geometry.ground)
+                                   and "orb" in map_data.geometry.points)
         if self.registers_globally:
             self.config = cfg = replace(cfg, switching=replace(cfg.switching, global_trust=0))
         self.switch = SwitchState(switching.start(self.pinned))
@@ -177,7 +177,7 @@ class FilterLocaliser(Localiser):
 
         SIFT steps register with SIFT against the best SIFT-scored images (or interpolate
         between them on maps without geometry). Global steps, under ``refine_global`` on a
-        map with ORB ground points, register with ORB against the particles' images the
+        map with ORB 3-D points, register with ORB against the particles' images the
         global features rank best; such a fix is used only where it lies within the gate
         of the predicted cloud and has enough inliers, and the switching rule hears of it.
         Under ``refine_sift_fallback`` (hybrid only) a global step whose ORB finds no fix

@@ -1,12 +1,12 @@
 """Metric refinement: a frame's position from camera geometry, beyond the nearest map image.
 
-Where the map has camera geometry (a nadir map reconstructed over its ground plane, see
+Where the map has camera geometry (its structure from motion, see
 :mod:`workers.core.geometry`), the frame's keypoints are matched to those of the few best
-map images, each matched map keypoint has a place on the ground, and a perspective-n-point
-solve gives the frame's camera pose: a position in metres with its uncertainty, and the
+map images, each matched map keypoint sees a 3-D point, and a perspective-n-point solve
+gives the frame's camera pose: a position in metres with its uncertainty, and the
 camera's heading.
 
-Where it has none (street-level robots and phones), the best verified map images vote for
+Where it has none (a map whose structure could not be recovered), the best verified map images vote for
 the position with their match counts: a position between them rather than on one of them.
 """
 
@@ -108,7 +108,7 @@ def refine_sift(query: SiftFeatures, map_data: MapData, ranked: np.ndarray,
 def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
                scores: np.ndarray, *, frame_shape: tuple[int, int],
                max_images: int = 2, min_inliers: int = MIN_MATCHES) -> Refinement | None:
-    """Refine with ORB: register against the best-ranked map images' ground points.
+    """Refine with ORB: register against the 3-D points of the best-ranked map images.
 
     The cheap counterpart of :func:`refine_sift` for global steps: binary descriptors
     matched by Hamming distance, the same pose solver. Only a registration counts: without
@@ -120,7 +120,7 @@ def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
     Parameters are those of :func:`refine_sift`, with the frame's ORB features.
     """
     geometry = map_data.geometry
-    if geometry is None or "orb" not in geometry.ground or not map_data.has_orb:
+    if geometry is None or "orb" not in geometry.points or not map_data.has_orb:
         return None
     ranked, _ = _best(ranked, scores, max_images)
     if len(query) == 0 or len(ranked) == 0:

@@ -1,0 +1,325 @@
+"""The map's structure from motion: COLMAP's incremental mapper over the map's own tie points.
+
+The map's tie points (:func:`workers.core.mapbuild.extract_tie_points`) and the verified
+matches between GPS-neighbouring images (:mod:`.pairs`) go into a COLMAP database, the way
+hloc feeds its features and matches, and COLMAP's incremental mapper
+(:func:`pycolmap.incremental_mapping`) recovers the cameras and the 3-D points they see, in
+one or several models. Each model is then brought onto the images' GPS by a robust
+similarity weighted per axis (:func:`.align.align_to_gps`: altitudes looser than positions,
+cameras level), and cameras it leaves far from their GPS are dropped. Nothing assumes a
+ground plane: nadir, oblique and street-level maps take the same path.
+
+One camera model serves the map: SIMPLE_RADIAL (a focal length and one radial term; the
+principal point at the image centre), started from the EXIF focal length. Over flat ground
+a nadir survey cannot tell the focal length from the height (seneca-uav's mapper, free to
+refine it, settles at 349 px for the EXIF's 222 and places the cameras 73 m from their GPS),
+while an oblique survey over buildings needs it refined (lewis-uav: 233 px for the EXIF's
+224). So the mapper runs with the intrinsics refined, and where the focal length it finds
+strays from the EXIF's by more than :data:`MAX_FOCAL_CHANGE` or fewer than
+:data:`GOOD_SHARE` of the images end up consistent with their GPS, it runs again with them
+held, and the run that places more cameras consistently wins.
+
+Coordinates: the project's pixels are at the working resolution with 0 at the centre of the
+first pixel (OpenCV's convention); COLMAP's put 0.5 there. The database holds pixels scaled
+by :data:`COLMAP_SCALE` (the tie points' own resolution), so that COLMAP's thresholds in
+pixels mean what its defaults intend.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..image import WORK_SIZE
+from .align import align_to_gps
+from .camera import DEFAULT_HFOV_DEG, Intrinsics, focal_from_fov
+from .pairs import PairMatches
+
+COLMAP_SCALE: float = 2.0
+"""COLMAP's pixels per working-resolution pixel: tie points are extracted at twice the
+working resolution."""
+
+MAX_FOCAL_CHANGE: float = 0.15
+"""A refined focal length further than this (relative) from the EXIF's is distrusted."""
+
+GOOD_SHARE: float = 0.6
+"""A run that places fewer than this share of the images consistently with their GPS is
+tried again with the intrinsics held."""
+
+GPS_SIGMA_H: float = 5.0
+"""Horizontal standard deviation of a map image's GPS position (m)."""
+
+GPS_SIGMA_V: float = 15.0
+"""Vertical standard deviation of its GPS altitude (m): consumer GPS altitudes are several
+times worse than positions, and drift."""
+
+
+@dataclass(frozen=True)
+class Structure:
+    """The map's reconstruction in its local east-north-up frame.
+
+    Attributes
+    ----------
+    rotations : (N, 3, 3) float64
+        World -> camera rotation of each map image; NaN where not placed.
+    centres : (N, 3) float64
+        Camera centre (east, north, altitude in the GPS altitudes' frame); NaN where not
+        placed.
+    intrinsics : Intrinsics
+        Focal length and principal point at the working resolution (OpenCV's pixels).
+    k1 : float
+        Radial distortion (OpenCV's first coefficient, on normalised coordinates).
+    observations : list of (K_i,) int64 ndarray
+        Per image, the tie points (indices) that see a 3-D point.
+    points : list of (K_i, 3) float64 ndarray
+        Their 3-D points.
+    residual_px : float
+        Mean reprojection error of the 3-D points (working-resolution pixels).
+    gps_rms_h, gps_rms_v : float
+        RMS distance of the placed cameras from their GPS tags, horizontally and vertically.
+    models : int
+        How many of COLMAP's models the map's cameras come from.
+    """
+
+    rotations: np.ndarray
+    centres: np.ndarray
+    intrinsics: Intrinsics
+    k1: float
+    observations: list[np.ndarray]
+    points: list[np.ndarray]
+    residual_px: float
+    gps_rms_h: float
+    gps_rms_v: float
+    models: int
+
+    @property
+    def placed(self) -> np.ndarray:
+        """(N,) bool: which map images have a camera."""
+        return np.isfinite(self.centres[:, 0])
+
+
+def to_colmap_pixels(keypoints: np.ndarray) -> np.ndarray:
+    """Working-resolution pixels (first two columns) -> COLMAP's (n, 2) float64."""
+    return (np.asarray(keypoints[:, :2], np.float64) + 0.5) * COLMAP_SCALE
+
+
+def colmap_camera(focal_px: float | None):
+    """The map's camera for COLMAP: SIMPLE_RADIAL at the tie points' resolution, from
+    ``focal_px`` (working resolution; None assumes a typical field of view, unknown)."""
+    import pycolmap
+
+    width, height = WORK_SIZE
+    f = focal_px if focal_px else focal_from_fov(DEFAULT_HFOV_DEG, width)
+    camera = pycolmap.Camera.create_from_model_name(
+        1, "SIMPLE_RADIAL", f * COLMAP_SCALE, int(width * COLMAP_SCALE),
+        int(height * COLMAP_SCALE))
+    camera.has_prior_focal_length = focal_px is not None
+    return camera
+
+
+def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
+                positions: np.ndarray, altitudes: np.ndarray, focal_px: float | None, *,
+                seed: int = 0) -> Structure | None:
+    """The map's cameras and 3-D points from its tie points and verified pairs.
+
+    Parameters
+    ----------
+    keypoints : sequence of (K_i, >=2) float arrays, one per map image
+        Tie points, pixels at the working resolution in the first two columns.
+    pairs : list of PairMatches
+        Verified matches, indices into ``keypoints``.
+    positions : (N, 2) float ndarray
+        GPS east/north of the images.
+    altitudes : (N,) float ndarray
+        GPS altitudes, NaN where unknown.
+    focal_px : float or None
+        EXIF focal length at the working resolution; None where unknown.
+    seed : int
+        Seeds COLMAP and the alignment's RANSAC: the same inputs give the same map.
+
+    Returns
+    -------
+    Structure or None
+        None where fewer than three cameras are placed consistently with their GPS.
+    """
+    positions = np.asarray(positions, np.float64)
+    gps = np.column_stack([positions, np.asarray(altitudes, np.float64)])
+    if len(pairs) == 0 or len(positions) < 3:
+        return None
+    with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
+        database = Path(tmp) / "database.db"
+        _write_database(database, keypoints, pairs, focal_px)
+        best = _run(database, Path(tmp), gps, refine=True, seed=seed)
+        if focal_px is not None and not _good(best, focal_px, len(positions)):
+            held = _run(database, Path(tmp), gps, refine=False, seed=seed)
+            if _count(held) > _count(best):
+                best = held
+    if best is None:
+        return None
+    return _structure(best, len(positions), gps)
+
+
+@dataclass
+class _Model:
+    """One of COLMAP's models, aligned to GPS: per placed image (map index) its pose,
+    observed tie points and their 3-D points."""
+
+    images: np.ndarray
+    rotations: np.ndarray
+    centres: np.ndarray
+    observations: list[np.ndarray]
+    points: list[np.ndarray]
+    camera: np.ndarray  # COLMAP's f, cx, cy, k
+    residual_px: float
+
+
+def _write_database(path: Path, keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
+                    focal_px: float | None) -> None:
+    import pycolmap
+
+    db = pycolmap.Database.open(str(path))
+    try:
+        camera = colmap_camera(focal_px)
+        camera.camera_id = db.write_camera(camera)
+        rig = pycolmap.Rig()
+        rig.add_ref_sensor(camera.sensor_id)
+        rig_id = db.write_rig(rig)
+        used = sorted({p.a for p in pairs} | {p.b for p in pairs})
+        for i in used:
+            image_id = db.write_image(pycolmap.Image(name=str(i), camera_id=camera.camera_id))
+            frame = pycolmap.Frame()
+            frame.rig_id = rig_id
+            frame.add_data_id(db.read_image(image_id).data_id)
+            db.write_frame(frame)
+            db.write_keypoints(image_id, to_colmap_pixels(np.asarray(keypoints[i]))
+                               .astype(np.float32))
+        ids = {i: k + 1 for k, i in enumerate(used)}
+        for p in pairs:
+            matches = np.ascontiguousarray(p.matches, np.uint32)
+            geometry = pycolmap.TwoViewGeometry()
+            geometry.config = pycolmap.TwoViewGeometryConfiguration(p.config)
+            geometry.inlier_matches = matches
+            db.write_matches(ids[p.a], ids[p.b], matches)
+            db.write_two_view_geometry(ids[p.a], ids[p.b], geometry)
+    finally:
+        db.close()
+
+
+def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool,
+         seed: int) -> list[_Model] | None:
+    """COLMAP's incremental mapper over ``database``, each model aligned to ``gps``."""
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = 1  # the engine's workers run one thread each; and deterministic
+    options.random_seed = seed
+    options.extract_colors = False
+    options.min_model_size = 3
+    options.ba_refine_focal_length = refine
+    options.ba_refine_extra_params = refine
+    options.mapper.abs_pose_refine_focal_length = refine
+    options.mapper.abs_pose_refine_extra_params = refine
+    out = folder / ("refined" if refine else "held")
+    out.mkdir(exist_ok=True)
+    pycolmap.set_random_seed(seed)
+    models = pycolmap.incremental_mapping(str(database), str(folder), str(out), options)
+    rng = np.random.default_rng(seed)
+    aligned = [m for m in (_aligned(rec, gps, rng) for _, rec in sorted(models.items()))
+               if m is not None]
+    return aligned or None
+
+
+def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> _Model | None:
+    """A COLMAP model on the map's GPS, without the cameras the alignment refuses."""
+    images, rotations, centres, observations, points = [], [], [], [], []
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        pose = image.cam_from_world()
+        R = np.asarray(pose.rotation.matrix(), np.float64)
+        t = np.asarray(pose.translation, np.float64)
+        idx, xyz = [], []
+        for k, p2 in enumerate(image.points2D):
+            if p2.has_point3D():
+                idx.append(k)
+                xyz.append(rec.points3D[p2.point3D_id].xyz)
+        images.append(int(image.name))
+        rotations.append(R)
+        centres.append(-R.T @ t)
+        observations.append(np.asarray(idx, np.int64))
+        points.append(np.asarray(xyz, np.float64).reshape(-1, 3))
+    if len(images) < 3:
+        return None
+    images_a = np.asarray(images, np.int64)
+    rotations_a, centres_a = np.asarray(rotations), np.asarray(centres)
+    found = align_to_gps(centres_a, rotations_a[:, 0, :], gps[images_a],
+                         sigma_h=GPS_SIGMA_H, sigma_v=GPS_SIGMA_V, rng=rng)
+    if found is None:
+        return None
+    sim, inliers = found
+    if inliers.sum() < 3:
+        return None
+    keep = np.flatnonzero(inliers)
+    camera = np.asarray(next(iter(rec.cameras.values())).params, np.float64)
+    return _Model(images_a[keep], sim.apply_to_rotations(rotations_a[keep]),
+                  sim.apply(centres_a[keep]),
+                  [observations[k] for k in keep],
+                  [sim.apply(points[k]) if len(points[k]) else points[k] for k in keep],
+                  camera, float(rec.compute_mean_reprojection_error()) / COLMAP_SCALE)
+
+
+def _count(models: list[_Model] | None) -> int:
+    """Distinct images the models place."""
+    if not models:
+        return 0
+    return len(set(np.concatenate([m.images for m in models]).tolist()))
+
+
+def _good(models: list[_Model] | None, focal_px: float, n: int) -> bool:
+    """Whether a run with refined intrinsics can stand: enough images placed, and the
+    largest model's focal length near the EXIF's."""
+    if not models or _count(models) < GOOD_SHARE * n:
+        return False
+    largest = max(models, key=lambda m: len(m.images))
+    f = largest.camera[0] / COLMAP_SCALE
+    return abs(f / focal_px - 1.0) <= MAX_FOCAL_CHANGE
+
+
+def _structure(models: list[_Model], n: int, gps: np.ndarray) -> Structure | None:
+    """One set of cameras from the aligned models: an image placed by several models takes
+    the largest's pose; the intrinsics are the largest model's."""
+    models = sorted(models, key=lambda m: -len(m.images))
+    rotations = np.full((n, 3, 3), np.nan)
+    centres = np.full((n, 3), np.nan)
+    observations = [np.zeros(0, np.int64) for _ in range(n)]
+    points = [np.zeros((0, 3)) for _ in range(n)]
+    used = 0
+    for m in models:
+        took = False
+        for k, i in enumerate(m.images.tolist()):
+            if np.isfinite(centres[i, 0]):
+                continue
+            rotations[i], centres[i] = m.rotations[k], m.centres[k]
+            observations[i], points[i] = m.observations[k], m.points[k]
+            took = True
+        used += took
+    placed = np.isfinite(centres[:, 0])
+    if placed.sum() < 3:
+        return None
+    f, cx, cy, k = models[0].camera
+    d = centres[placed] - gps[placed]
+    has_alt = np.isfinite(d[:, 2])
+    return Structure(
+        rotations, centres,
+        Intrinsics(f / COLMAP_SCALE, cx / COLMAP_SCALE - 0.5, cy / COLMAP_SCALE - 0.5),
+        float(k), observations, points,
+        residual_px=float(np.average([m.residual_px for m in models],
+                                     weights=[len(m.images) for m in models])),
+        gps_rms_h=float(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, axis=1)))),
+        gps_rms_v=float(np.sqrt(np.mean(d[has_alt, 2] ** 2))) if has_alt.any() else math.nan,
+        models=used)
