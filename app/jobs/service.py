@@ -213,7 +213,7 @@ class BuildRunner(BackgroundRunner):
             m = db.get(Map, map_id)
             lat, lon, alt = packed["origin"]
             m.revision, m.origin_lat, m.origin_lon, m.origin_alt = revision, lat, lon, alt
-            m.built_at = utcnow()
+            m.built_at, m.geometry = utcnow(), packed.get("geometry")
             # one statement executed for every image (executemany), not one round trip each
             table = MapImage.__table__
             db.execute(update(table).where(table.c.id == bindparam("image_id")).values(

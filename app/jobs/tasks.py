@@ -213,7 +213,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     -------
     dict
         ``origin`` (lat, lon, alt), ``image_ids`` (in map order) and their ``east`` and
-        ``north`` in the new local frame.
+        ``north`` in the new local frame, and ``geometry``: what became of the map's camera
+        geometry (:func:`vloc.workers.core.mapbuild.geometry_report`).
     """
     from vloc.workers.core import tiepairs
     from vloc.workers.core.mapbuild import (
@@ -224,6 +225,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     )
 
     timings: dict[str, tuple[float, float]] = {}
+    report: dict = {}
     images = _read_images(database_url, map_id)
     own = tie_dir is None
     ties_at = Path(folder).with_name(Path(folder).name + ".ties") if own else Path(tie_dir)
@@ -250,7 +252,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                             captured_at=[img["captured_at"] for img in images],
                             map_id=map_id, revision=revision, known_pairs=known,
                             focal_px=typical_focal_px(_readers(lens_files or [])),
-                            timings=timings)
+                            timings=timings, report=report)
     finally:
         if own:
             shutil.rmtree(ties_at, ignore_errors=True)
@@ -271,5 +273,6 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         indent=1))
     o = data.origin
     return {"origin": (o.lat, o.lon, o.alt), "image_ids": [img["id"] for img in images],
+            "geometry": report or None,
             "east": np.asarray(data.positions)[:, 0].tolist(),
             "north": np.asarray(data.positions)[:, 1].tolist()}

@@ -11,6 +11,7 @@ import uuid
 from datetime import datetime
 
 from sqlalchemy import (
+    JSON,
     BigInteger,
     Boolean,
     Float,
@@ -47,6 +48,10 @@ class Map(Base):
     """Reference point of the local east-north frame of the current revision."""
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     built_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    geometry: Mapped[dict | None] = mapped_column(JSON)
+    """The current revision's camera geometry: what its reconstruction placed and what the
+    map measured of itself (:func:`vloc.workers.core.mapbuild.geometry_report`); NULL
+    before the first build."""
 
     images: Mapped[list[MapImage]] = relationship(
         back_populates="map", cascade="all, delete-orphan", passive_deletes=True)

@@ -38,6 +38,44 @@ class Origin(BaseModel):
     alt: float
 
 
+class MapSelfCheck(BaseModel):
+    """The map's own images localised against the rest of it at build time, compared with
+    their GPS: how well frames can expect to be placed."""
+
+    images: int = Field(description="Map images localised by the check")
+    registered: float = Field(description="Share of them the geometry placed at all")
+    mean_m: float | None = Field(None, description="Mean distance of those placed from "
+                                                   "their GPS (m)")
+    median_m: float | None = Field(None, description="Median distance (m): the map "
+                                                     "localises to about this")
+    within_5m: float | None = Field(None, description="Share placed within 5 m")
+    floor_median_m: float = Field(description="Median distance of the checked images from "
+                                              "their nearest other map image (m): the best "
+                                              "a position from the map's images alone does")
+    trusted: bool = Field(description="Whether frames' fixes use the geometry: it beats "
+                                      "the nearest-image floor")
+
+
+class MapGeometryRead(BaseModel):
+    """The current revision's camera geometry (structure from motion, COLMAP)."""
+
+    status: Literal["accepted", "refused", "none"] = Field(
+        description="accepted (frames get metric fixes from it), refused (reconstructed, "
+                    "but its self-check did no better than the nearest image) or none (no "
+                    "structure could be recovered)")
+    reason: str | None = Field(None, description="Why the map has no geometry")
+    images: int
+    placed: int | None = Field(None, description="Map images whose camera was placed")
+    models: int | None = Field(None, description="Separate reconstructions they come from")
+    focal_px: float | None = Field(None, description="Focal length at 320x240 (px)")
+    residual_px: float | None = Field(None, description="Mean reprojection error (px at "
+                                                        "320x240)")
+    gps_rms_m: float | None = Field(None, description="RMS horizontal distance of the placed "
+                                                      "cameras from their GPS (m)")
+    gps_rms_vertical_m: float | None = None
+    self_check: MapSelfCheck | None = None
+
+
 class MapRead(BaseModel):
     id: uuid.UUID
     name: str
@@ -54,6 +92,9 @@ class MapRead(BaseModel):
     created_at: datetime
     built_at: datetime | None
     last_job_id: uuid.UUID | None
+    geometry: MapGeometryRead | None = Field(
+        None, description="The current revision's camera geometry; null before the first "
+                          "build (or for a map built before maps reported it)")
 
 
 class MapImageRead(BaseModel):

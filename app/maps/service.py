@@ -98,7 +98,7 @@ def read_map(db: Session, *, map_: Map) -> MapRead:
         local_extent=LocalExtent(min_east=e0, min_north=n0, max_east=e1, max_north=n1)
         if e0 is not None else None,
         origin=origin, created_at=map_.created_at, built_at=map_.built_at,
-        last_job_id=last_job)
+        last_job_id=last_job, geometry=map_.geometry)
 
 
 def delete_map(db: Session, *, map_: Map, settings: Settings) -> None:

@@ -42,10 +42,16 @@ def _passes(value: str) -> list[str]:
 @click.option("--pitch", type=click.FloatRange(-90.0, 0.0), default=None,
               help="UAV camera pitch in degrees: -90 looks down (survey), 0 ahead (loop) "
                    "[default: -90].")
+@click.option("--relief", type=click.FloatRange(0.0, 200.0), default=0.0,
+              help="UAV only: hills this high (m, valley to hilltop) [default: 0, flat].")
+@click.option("--altitude-drift", type=click.FloatRange(-1000.0, 1000.0), default=0.0,
+              help="EXIF altitudes drift from the truth by this much (m) over each pass, "
+                   "as a consumer GPS's does [default: 0].")
 @click.option("--overwrite", is_flag=True, help="Replace the images of an earlier world in OUT.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def world_cmd(out: Path, kind: str, seed: int, passes_text: str, frames, route_length,
-              gps_noise, quality: int, altitude, pitch, overwrite: bool, quiet: bool) -> None:
+              gps_noise, quality: int, altitude, pitch, relief: float, altitude_drift: float,
+              overwrite: bool, quiet: bool) -> None:
     """Generate a synthetic world: a route rendered under several illuminations.
 
     Writes OUT/images/*.jpg (320x240, EXIF GPS and capture time), OUT/ground_truth.csv
@@ -56,8 +62,8 @@ def world_cmd(out: Path, kind: str, seed: int, passes_text: str, frames, route_l
     from vloc.clients.world import generate_world
 
     passes = _passes(passes_text)
-    if kind == "robot" and (altitude is not None or pitch is not None):
-        raise click.BadParameter("--altitude and --pitch apply to --kind uav only")
+    if kind == "robot" and (altitude is not None or pitch is not None or relief):
+        raise click.BadParameter("--altitude, --pitch and --relief apply to --kind uav only")
     bar = None
     if not quiet:
         from tqdm import tqdm
@@ -74,6 +80,7 @@ def world_cmd(out: Path, kind: str, seed: int, passes_text: str, frames, route_l
         info = generate_world(out, kind=kind, seed=seed, passes=passes, frames=frames,
                               route_length=route_length, gps_noise_m=gps_noise,
                               quality=quality, altitude=altitude, pitch_deg=pitch,
+                              relief_m=relief, altitude_drift_m=altitude_drift,
                               overwrite=overwrite, progress=progress)
     except (ValueError, FileExistsError) as exc:
         raise click.ClickException(str(exc)) from None

@@ -46,8 +46,35 @@ class Origin(_Model):
     alt: float = 0.0
 
 
+class MapSelfCheck(_Model):
+    """The map's own images localised against the rest of it at build time."""
+
+    images: int
+    registered: float
+    mean_m: float | None = None
+    median_m: float | None = Field(None, description="the map localises to about this (m)")
+    within_5m: float | None = None
+    floor_median_m: float
+    trusted: bool
+
+
+class MapGeometry(_Model):
+    """The current revision's camera geometry and what the map measured of itself."""
+
+    status: str = Field(description="accepted, refused or none")
+    reason: str | None = None
+    images: int
+    placed: int | None = None
+    models: int | None = None
+    focal_px: float | None = None
+    residual_px: float | None = None
+    gps_rms_m: float | None = None
+    gps_rms_vertical_m: float | None = None
+    self_check: MapSelfCheck | None = None
+
+
 class Map(_Model):
-    """A map: its images, build state and local frame."""
+    """A map: its images, build state, local frame and camera geometry."""
 
     id: str
     name: str
@@ -61,6 +88,7 @@ class Map(_Model):
     created_at: datetime | None = None
     built_at: datetime | None = None
     last_job_id: str | None = None
+    geometry: MapGeometry | None = None
 
     _ids = field_validator("id", "last_job_id", mode="before")(_str_id)
 

@@ -7,11 +7,16 @@ flies a loop instead, as Flyphone's phone did round its courtyard at 5 to 10 m. 
 are further apart than the robot's and unevenly so ("the distances between images vary
 because of gusts of wind"), each pass flies a few metres off the others at a slightly
 different altitude, and the camera's yaw differs between passes.
+
+With ``relief_m`` the land is not flat: the ground rises and falls in hills (a smooth
+random profile across the survey, built of strips each tilted about the north axis, as the
+renderer draws planes), and every building, car and tree stands on the ground beneath it.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -64,9 +69,18 @@ def survey_route(route_length: float, altitude: float, pitch_deg: float) -> Rout
     return Route(route.points - centre, closed=False)
 
 
+HILL_WAVELENGTH = 160.0
+"""Metres between hilltops of a world with relief."""
+
+STRIP = 12.0
+"""Width (m) of the tilted strips a world with relief draws its ground with."""
+
+
 def terrain_world(rng: np.random.Generator, route_length: float,
-                  altitude: float, pitch_deg: float = PITCH_DEG) -> tuple[Scene, Route]:
-    """Build the terrain scene and the survey route over it."""
+                  altitude: float, pitch_deg: float = PITCH_DEG,
+                  relief_m: float = 0.0) -> tuple[Scene, Route]:
+    """Build the terrain scene and the survey route over it; ``relief_m`` is the height
+    from valley to hilltop (0: flat land)."""
     route = survey_route(route_length, altitude, pitch_deg)
     lo, hi = route.points.min(axis=0), route.points.max(axis=0)
     # What the camera can see beyond the route: half a footprint diagonal (nadir), or
@@ -82,7 +96,67 @@ def terrain_world(rng: np.random.Generator, route_length: float,
     _trees(scene, rng, land, extent, roads, obj_texel)
     ground = terrain_ground(rng, land, extent, texel, roads)
     scene.planes.insert(0, ground_plane(ground, extent, texel))
+    if relief_m > 0:
+        add_relief(scene, hill_profile(rng, extent, relief_m))
     return scene, route
+
+
+def hill_profile(rng: np.random.Generator, extent: np.ndarray,
+                 relief_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ground heights (x, z) every :data:`STRIP` metres across ``extent``: two sinusoids
+    with random phases, scaled so that valley to hilltop is ``relief_m``."""
+    x = np.arange(extent[0], extent[2] + STRIP, STRIP)
+    phase = rng.uniform(0.0, 2 * math.pi, 2)
+    z = (np.sin(2 * math.pi * x / HILL_WAVELENGTH + phase[0])
+         + 0.4 * np.sin(2 * math.pi * x / (0.45 * HILL_WAVELENGTH) + phase[1]))
+    z = (z - z.min()) / max(np.ptp(z), 1e-9) * relief_m
+    return x, z
+
+
+def ground_height(profile: tuple[np.ndarray, np.ndarray], x) -> np.ndarray:
+    """Height of the ground at east ``x`` (flat beyond the profile's ends)."""
+    return np.interp(x, *profile)
+
+
+def add_relief(scene: Scene, profile: tuple[np.ndarray, np.ndarray]) -> None:
+    """Replace the flat ground (the scene's first quad) by strips that follow ``profile``,
+    and stand every object on the ground beneath its centre."""
+    flat = scene.planes[0]
+    xs, zs = profile
+    texel = float(flat.u[0])
+    c0, r0, c1, r1 = flat.span
+    x0 = float(flat.origin[0])  # east of texel column 0
+
+    def column(x: float) -> float:
+        return (x - x0) / texel
+
+    strips = []
+    edges = [(c0, column(xs[0]), 0.0, zs[0], xs[0])]
+    edges += [(column(a), column(b), (zb - za) / (b - a), za, a)
+              for a, b, za, zb in zip(xs[:-1], xs[1:], zs[:-1], zs[1:], strict=True)]
+    edges.append((column(xs[-1]), c1, 0.0, zs[-1], xs[-1]))
+    width = flat.size[0]
+    for ca, cb, slope, z_start, x_start in edges:
+        # each strip its own columns of the texture: the pass shades every quad's texture
+        i0 = int(np.clip(math.floor(ca + 0.5), 0, width - 1))
+        i1 = int(np.clip(math.ceil(cb + 0.5), i0 + 1, width))
+        origin = flat.origin + np.array([i0 * texel, 0.0, 0.0])
+        origin[2] = z_start + slope * (origin[0] - x_start)
+        strips.append(replace(flat, origin=origin, u=np.array([texel, 0.0, texel * slope]),
+                              albedo=np.ascontiguousarray(flat.albedo[:, i0:i1]),
+                              span=(ca - i0, r0, cb - i0, r1)))
+    heights = {}
+    for plane in scene.planes[1:]:
+        heights.setdefault(plane.owner, []).append(plane.corners()[:, :2])
+    for solid in scene.solids:
+        heights.setdefault(solid.owner, []).append(solid.points[:, :2])
+    lift = {owner: float(ground_height(profile, np.concatenate(pts)[:, 0].mean()))
+            for owner, pts in heights.items()}
+    for plane in scene.planes[1:]:
+        plane.origin = plane.origin + np.array([0.0, 0.0, lift[plane.owner]])
+    for solid in scene.solids:
+        solid.faces = [f + np.array([0.0, 0.0, lift[solid.owner]]) for f in solid.faces]
+    scene.planes[0:1] = strips
 
 
 def _roads(rng, extent) -> list[tuple[np.ndarray, np.ndarray, float]]:
@@ -158,8 +232,12 @@ def _inside(extent, p, pad) -> bool:
 
 
 def uav_poses(route: Route, rng: np.random.Generator, *, frames: int, spacing: float,
-              altitude: float, pitch_deg: float) -> list[Pose]:
+              altitude: float, pitch_deg: float, relief_m: float = 0.0) -> list[Pose]:
     """Camera poses of one flight along the route.
+
+    Over hills (``relief_m``) the UAV holds its altitude above its take-off point, as a
+    survey flown on barometric altitude does: ``altitude`` over the hilltops, up to
+    ``altitude + relief_m`` over the valleys.
 
     Gusts make the spacing uneven (30 %) and push the UAV up to a few metres off the
     route; the altitude differs between passes by up to 10 % and wanders by half a metre;
@@ -169,7 +247,7 @@ def uav_poses(route: Route, rng: np.random.Generator, *, frames: int, spacing: f
     traj = follow(route, rng, frames=frames, spacing=spacing, lateral_m=3.0,
                   lateral_wavelength=40.0, speed_jitter=0.3, yaw_jitter_deg=5.0)
     yaw_offset = math.radians(rng.uniform(-45.0, 45.0)) if pitch_deg <= -45 else 0.0
-    z = altitude * rng.uniform(0.9, 1.1) + smooth_noise(rng, traj.s, 30.0, 0.5)
+    z = altitude * rng.uniform(0.9, 1.1) + smooth_noise(rng, traj.s, 30.0, 0.5) + relief_m
     pitch = math.radians(pitch_deg) + np.radians(smooth_noise(rng, traj.s, 20.0, 3.0))
     roll = np.radians(smooth_noise(rng, traj.s, 20.0, 3.0))
     return [Pose(np.array([x, y, h]), float(yaw + yaw_offset), float(p), float(r))

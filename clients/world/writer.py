@@ -97,6 +97,7 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
                    gps_noise_m: float | None = None, quality: int = 90,
                    origin: GeoOrigin = DEFAULT_ORIGIN, supersample: int = 2,
                    altitude: float | None = None, pitch_deg: float | None = None,
+                   relief_m: float = 0.0, altitude_drift_m: float = 0.0,
                    overwrite: bool = False, progress=None) -> WorldInfo:
     """Generate a world from a seed and render a route through it once per pass.
 
@@ -127,6 +128,12 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
     altitude, pitch_deg : float, optional
         UAV only: mean flight altitude above ground (default 25 m, 5 to 100) and camera
         pitch (default -90, straight down; 0 looks ahead).
+    relief_m : float
+        UAV only: hills, this high from valley to hilltop (0: flat land).
+    altitude_drift_m : float
+        Every pass's EXIF altitudes drift from the truth by this much, growing evenly from
+        its first frame to its last, as a consumer GPS's altitude wanders in flight; the
+        ground truth keeps the true altitudes.
     overwrite : bool
         Replace the images of an earlier world in ``out_dir``; otherwise refuse.
     progress : callable, optional
@@ -138,6 +145,11 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
     """
     passes = tuple(passes)
     _check(kind, passes, frames, route_length, gps_noise_m, quality, supersample, altitude)
+    if relief_m and kind != "uav":
+        raise ValueError("relief_m applies to the UAV world only")
+    if not (0.0 <= float(relief_m) <= 200.0 and abs(float(altitude_drift_m)) <= 1000.0):
+        raise ValueError(f"relief_m must be within 0..200 m and altitude_drift_m within "
+                         f"+-1000 m, got {relief_m} and {altitude_drift_m}")
     out_dir = Path(out_dir)
     image_dir = out_dir / "images"
     _prepare_folder(image_dir, overwrite)
@@ -154,7 +166,7 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
         options = {"altitude": uav.ALTITUDE if altitude is None else float(altitude),
                    "pitch_deg": uav.PITCH_DEG if pitch_deg is None else float(pitch_deg)}
         scene, route = uav.terrain_world(scene_rng, length, options["altitude"],
-                                         options["pitch_deg"])
+                                         options["pitch_deg"], relief_m=float(relief_m))
     timings["scene"] = time.perf_counter() - t
     camera = Camera()
     gps_noise = gps_rng.normal(0.0, gps_sigma, (frames, 2)) if gps_sigma > 0 else np.zeros((frames, 2))
@@ -166,7 +178,8 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
         if kind == "robot":
             poses = robot.robot_poses(route, rng, frames=frames, spacing=spacing)
         else:
-            poses = uav.uav_poses(route, rng, frames=frames, spacing=spacing, **options)
+            poses = uav.uav_poses(route, rng, frames=frames, spacing=spacing,
+                                  relief_m=float(relief_m), **options)
         t = time.perf_counter()
         renderer, absent = prepare_pass(scene, illum, camera, rng, supersample=supersample)
         timings["shading"] += time.perf_counter() - t
@@ -183,11 +196,13 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
             lat, lon = (float(v) for v in origin.to_wgs84(e, n))
             tag_lat, tag_lon = (float(v) for v in origin.to_wgs84(e + noise[k, 0], n + noise[k, 1]))
             alt = origin.alt + up
+            tag_alt = alt + altitude_drift_m * k / max(frames - 1, 1)
             data = encode_jpeg_with_gps(image, quality=quality, lat=tag_lat, lon=tag_lon,
-                                        alt=alt, captured_at=captured)
+                                        alt=tag_alt, captured_at=captured)
             (image_dir / filename).write_bytes(data)
             truth_rows.append([filename, index + 1, _iso(captured), f"{lat:.9f}", f"{lon:.9f}", f"{alt:.3f}"])
-            exif_rows.append([filename, index + 1, f"{tag_lat:.9f}", f"{tag_lon:.9f}", f"{alt:.3f}"])
+            exif_rows.append([filename, index + 1, f"{tag_lat:.9f}", f"{tag_lon:.9f}",
+                              f"{tag_alt:.3f}"])
             pose_rows.append([filename, index + 1, f"{e:.4f}", f"{n:.4f}", f"{up:.4f}",
                               f"{pose.heading_deg:.3f}", f"{np.degrees(pose.pitch):.3f}",
                               f"{np.degrees(pose.roll):.3f}"])
@@ -225,6 +240,9 @@ def generate_world(out_dir: str | Path, *, kind: str = "robot", seed: int = 0,
                       "exif_positions": "exif_gps.csv",
                       "note": "pass 1 (map) EXIF = truth + noise; other passes' EXIF = truth; "
                               "ground_truth.csv = truth"},
+        "terrain": {"relief_m": float(relief_m),
+                    "altitude_drift_m": float(altitude_drift_m),
+                    "note": "EXIF altitudes drift from the truth evenly over each pass"},
         "passes": pass_meta,
     }
     (out_dir / "world.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")

@@ -172,7 +172,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  focal_px: float | None = None,
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
                  known_pairs: dict | None = None,
-                 timings: dict[str, tuple[float, float]] | None = None) -> MapData:
+                 timings: dict[str, tuple[float, float]] | None = None,
+                 report: dict | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
     Parameters
@@ -208,6 +209,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
         ``"vocabularies"`` (training and describing every image), ``"packing"``,
         ``"shortlist codes"`` (maps of more than ``CODES_FROM`` images) and ``"geometry"``.
+    report : dict, optional
+        Filled with what became of the geometry (:func:`geometry_report`).
 
     Returns
     -------
@@ -252,7 +255,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     if geometry:
         with stage(timings, "geometry"):
             data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
-                                         known_pairs=known_pairs)
+                                         known_pairs=known_pairs, report=report)
     return data
 
 
@@ -270,14 +273,15 @@ def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
 
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
                  tie_points: list[SiftFeatures | TiePointFiles | None] | None = None,
-                 known_pairs: dict | None = None):
+                 known_pairs: dict | None = None, report: dict | None = None):
     """The map's camera geometry with every stored SIFT (and ORB) keypoint's 3-D point,
     checked by localising the map's own images (:func:`workers.core.selfcheck.self_check`),
     or None.
 
     ``tie_points`` (one per image, None where missing) tie the images together; an image
     without them is tied by its stored SIFT. ``known_pairs`` are pairs matched beforehand
-    (:func:`~workers.core.geometry.build_geometry`).
+    (:func:`~workers.core.geometry.build_geometry`). ``report`` is filled with what became
+    of the geometry (:func:`geometry_report`).
     """
     from .selfcheck import self_check
 
@@ -288,9 +292,13 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     ties = [data.sift(i) if t is None else t for i, t in enumerate(ties)]
     # read image by image as pairs are matched: tie points on disk stay closed until then
     kps, desc = _Field(ties, "keypoints"), _Field(ties, "descriptors")
+    report = {} if report is None else report
     built = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
                            focal_px, seed=seed, known_pairs=known_pairs)
     if built is None:
+        report.update(status="none", images=n,
+                      reason="structure from motion placed too few cameras consistently "
+                             "with their GPS")
         return None
     geo, structure = built
     seen = [(np.asarray(kps[i])[structure.observations[i], :2], structure.points[i])

@@ -59,8 +59,8 @@ def self_check(data: MapData, geometry: MapGeometry, *, seed: int = 0) -> MapGeo
     previous, data.geometry = data.geometry, geometry
     try:
         errors, floors = [], []
-        dist, near = data.tree.query(positions[sample], k=NEIGHBOURS + 1)
-        for i, d, nb in zip(sample.tolist(), dist, near, strict=True):
+        _, near = data.tree.query(positions[sample], k=NEIGHBOURS + 1)
+        for i, nb in zip(sample.tolist(), near, strict=True):
             others = np.array([j for j in nb.tolist() if j != i][:NEIGHBOURS])
             floors.append(float(np.min([np.hypot(*(positions[j] - positions[i]))
                                         for j in others])))

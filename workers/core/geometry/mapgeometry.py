@@ -38,6 +38,11 @@ this many pixels (working resolution)."""
 DEPTH_NEIGHBOURS: int = 4
 """... the median depth of at most this many of the nearest."""
 
+FLAT_VIEW: float = 0.05
+"""A keypoint with no reconstructed tie point near it meets the plane fitted through its
+image's 3-D points, where they lie within this share of their depth from that plane (a
+survey's view of open ground); elsewhere (streets, buildings) it gets no point."""
+
 NADIR_SPREAD_DEG: float = 15.0
 """Maps whose cameras all look within this of their mean direction (a survey flown with a
 fixed gimbal, nadir or oblique) get a prior on a frame's viewing direction."""
@@ -115,7 +120,9 @@ class MapGeometry:
 
         A stored keypoint takes the median depth of the reconstructed tie points nearest it
         in its image (:data:`DEPTH_RADIUS_PX`, :data:`DEPTH_NEIGHBOURS`) along its own ray:
-        exact where it is one of them, a local interpolation of the surface elsewhere.
+        exact where it is one of them, a local interpolation of the surface elsewhere. One
+        with none near it meets the plane of its image's points where the image sees one
+        (:data:`FLAT_VIEW`).
 
         Parameters
         ----------
@@ -142,11 +149,13 @@ class MapGeometry:
             found = np.isfinite(dist)
             d = np.where(found, depth[np.minimum(near, len(px) - 1)], np.nan)
             ok = found.any(axis=1)
-            if not ok.any():
-                continue
-            z = np.nanmedian(d[ok], axis=1)
-            rays = self.rays(np.asarray(keypoints[a:b][ok, :2], np.float64))
-            out[a:b][ok] = (C + (z[:, None] * rays) @ R).astype(np.float32)
+            z = np.full(b - a, np.nan)
+            z[ok] = np.nanmedian(d[ok], axis=1)
+            rays = self.rays(np.asarray(keypoints[a:b, :2], np.float64))
+            if not ok.all():
+                z[~ok] = _plane_depths(np.asarray(xyz, np.float64), R, C, rays[~ok], depth)
+            done = np.isfinite(z)
+            out[a:b][done] = (C + (z[done, None] * rays[done]) @ R).astype(np.float32)
         self.points[kind] = out
 
     def rays(self, pixels: np.ndarray) -> np.ndarray:
@@ -206,6 +215,27 @@ class MapGeometry:
         centres[:, 2] += ground_alt
         return cls(np.asarray(rotations), centres, K, 0.0, _float(meta.get("residual_px")),
                    _float(meta.get("gps_rms")), points=points)
+
+
+def _plane_depths(xyz: np.ndarray, R: np.ndarray, C: np.ndarray, rays: np.ndarray,
+                  depth: np.ndarray) -> np.ndarray:
+    """Depths along camera ``rays`` (n, 3) to the plane through ``xyz`` (its image's 3-D
+    points, at ``depth``), NaN where the points are no plane (:data:`FLAT_VIEW`) or a ray
+    misses it."""
+    out = np.full(len(rays), np.nan)
+    if len(xyz) < 10:
+        return out
+    centre = xyz.mean(axis=0)
+    _, sv, vt = np.linalg.svd(xyz - centre, full_matrices=False)
+    normal = vt[2]
+    if sv[2] / np.sqrt(len(xyz)) > FLAT_VIEW * float(np.median(depth)):
+        return out
+    dirs = rays @ R  # camera rays in the world (R.T @ ray per row)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((centre - C) @ normal) / (dirs @ normal)
+    t[~(t > 0)] = np.nan
+    # t scales the world direction of (x, y, 1): that is the depth along the optical axis
+    return t
 
 
 def _num(x: float) -> float | None:

@@ -51,6 +51,9 @@ GOOD_SHARE: float = 0.6
 """A run that places fewer than this share of the images consistently with their GPS is
 tried again with the intrinsics held."""
 
+MIN_POSE_INLIERS: int = 15
+"""Fewest 2D-3D inliers with which the mapper registers an image (COLMAP's default: 30)."""
+
 GPS_SIGMA_H: float = 5.0
 """Horizontal standard deviation of a map image's GPS position (m)."""
 
@@ -224,6 +227,9 @@ def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool,
     options.ba_refine_extra_params = refine
     options.mapper.abs_pose_refine_focal_length = refine
     options.mapper.abs_pose_refine_extra_params = refine
+    # A map's images are a few hundred keypoints apart in scale from COLMAP's usual
+    # thousands: register an image from fewer inliers than COLMAP's default 30.
+    options.mapper.abs_pose_min_num_inliers = MIN_POSE_INLIERS
     out = folder / ("refined" if refine else "held")
     out.mkdir(exist_ok=True)
     pycolmap.set_random_seed(seed)
