@@ -309,7 +309,28 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     if data.has_orb:
         geo.add_points("orb", np.asarray(data.orb_keypoints), np.asarray(data.orb_offsets),
                        seen)
-    return self_check(data, geo, seed=seed)
+    checked = self_check(data, geo, seed=seed)
+    report.update(geometry_report(geo, n))
+    if checked is None:
+        report["reason"] = ("the map localises its own images no better than their nearest "
+                            "map image")
+    return checked
+
+
+def geometry_report(geo, n: int) -> dict:
+    """What a map's geometry placed and measured of itself, as plain numbers (JSON): the
+    figures the service shows for a revision."""
+    check = geo.self_check
+    return {"status": "accepted" if check.get("trusted") else "refused", "images": n,
+            "placed": int(geo.reconstructed.sum()), "models": int(geo.models),
+            "focal_px": float(geo.intrinsics.f), "residual_px": _finite(geo.residual_px),
+            "gps_rms_m": _finite(geo.gps_rms), "gps_rms_vertical_m": _finite(geo.gps_rms_v),
+            "self_check": {k: (_finite(v) if isinstance(v, float) else v)
+                           for k, v in check.items()}}
+
+
+def _finite(x: float | None) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
 
 
 class _Field(Sequence):

@@ -38,6 +38,14 @@ PIXEL_SIGMA: float = 1.5
 the weight of the reprojection errors against the tilt prior, and the floor of the noise the
 pose covariance assumes."""
 
+SAMPLE_SLACK: float = 2.0
+"""The consensus of a survey camera's similarity start counts correspondences within this
+many times the pose's reprojection threshold: a camera tilted by a few degrees, and relief,
+bend the similarity by a few pixels at the frame's edges."""
+
+CLEAR_CONSENSUS: float = 0.5
+"""A start whose pose explains this share of the correspondences needs no other."""
+
 _GN_ITERATIONS = 10
 _GN_TOLERANCE = 1e-6  # radians and metres: far below the pose's own noise
 
@@ -119,19 +127,31 @@ def register_frame(frame_px: np.ndarray, points: np.ndarray, image_of: np.ndarra
     # Centre the object points: the solvers are better conditioned near the origin.
     centre = obj.mean(axis=0)
     obj_c = obj - centre
-    cv2.setRNGSeed(rng_seed)
-    found, rvec, tvec, inl = cv2.solvePnPRansac(
-        obj_c, img_pts, K.matrix, dist, iterationsCount=iterations,
-        reprojectionError=reproj_px, confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
-    if not found or inl is None or len(inl) < MIN_INLIERS:
+    # A survey's frame starts from its similarity, a RANSAC of two points; three-point
+    # poses are tried where it finds no clear consensus, and always elsewhere.
+    starts = [lambda: _p3p_start(obj_c, img_pts, K, dist, reproj_px, iterations, rng_seed)]
+    if view_prior is not None:
+        starts.insert(0, lambda: _similarity_start(obj_c, img_pts, K, dist, view_prior[0],
+                                                   reproj_px, iterations, rng_seed))
+    best = None
+    for make in starts:
+        if best is not None and len(best[2]) >= CLEAR_CONSENSUS * len(img_pts):
+            break
+        start = make()
+        if start is None:
+            continue
+        rvec, tvec, inl = start
+        rvec, tvec = cv2.solvePnPRefineLM(obj_c[inl], img_pts[inl], K.matrix, dist, rvec,
+                                          tvec)
+        # every correspondence is judged again under the refined pose
+        proj, _ = cv2.projectPoints(obj_c, rvec, tvec, K.matrix, dist)
+        inl = np.flatnonzero(np.linalg.norm(proj.reshape(-1, 2) - img_pts, axis=1)
+                             <= reproj_px)
+        if best is None or len(inl) > len(best[2]):
+            best = (rvec, tvec, inl)
+    if best is None or len(best[2]) < MIN_INLIERS:
         return None
-    inl = inl.ravel()
-    rvec, tvec = cv2.solvePnPRefineLM(obj_c[inl], img_pts[inl], K.matrix, dist, rvec, tvec)
-    # every correspondence is judged again under the refined pose
-    proj, _ = cv2.projectPoints(obj_c, rvec, tvec, K.matrix, dist)
-    inl = np.flatnonzero(np.linalg.norm(proj.reshape(-1, 2) - img_pts, axis=1) <= reproj_px)
-    if len(inl) < MIN_INLIERS:
-        return None
+    rvec, tvec, inl = best
     pose = np.concatenate([rvec.ravel(), tvec.ravel()]).astype(np.float64)
     pose, cov = _map_pose(obj_c[inl], img_pts[inl], K.matrix, dist, pose, view_prior)
     R, _ = cv2.Rodrigues(pose[:3])
@@ -158,6 +178,51 @@ def register_frame(frame_px: np.ndarray, points: np.ndarray, image_of: np.ndarra
                         heading_deg=compass_heading_deg(R), tilt_deg=tilt, inliers=n,
                         sigma=float(sigma), heading_sigma_deg=float(heading_sigma),
                         images=images)
+
+
+def _p3p_start(obj: np.ndarray, px: np.ndarray, K: Intrinsics, dist: np.ndarray,
+               reproj_px: float, iterations: int, seed: int):
+    """A RANSAC over minimal three-point poses (AP3P): ``(rvec, tvec, inliers)`` or None."""
+    cv2.setRNGSeed(seed)
+    found, rvec, tvec, inl = cv2.solvePnPRansac(
+        obj, px, K.matrix, dist, iterationsCount=iterations, reprojectionError=reproj_px,
+        confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+    if not found or inl is None or len(inl) < MIN_INLIERS:
+        return None
+    return rvec, tvec, inl.ravel()
+
+
+def _similarity_start(obj: np.ndarray, px: np.ndarray, K: Intrinsics, dist: np.ndarray,
+                      direction: np.ndarray, reproj_px: float, iterations: int, seed: int):
+    """A start for a camera looking along ``direction``, as a survey's cameras do.
+
+    Seen along its viewing direction, a scene of modest relief maps to the image by nearly a
+    similarity (rotation, scale, shift) of its coordinates across that direction: a
+    two-point model, whose RANSAC needs about 1/w^2 samples at an inlier share w where
+    three-point poses need 1/w^3, and whose consensus is not fooled by a false tilt. The
+    consensus (judged at twice the pose's threshold, for the relief and tilt it leaves out)
+    then gives a pose (SQPnP). Returns ``(rvec, tvec, inliers)`` or None.
+    """
+    d = np.asarray(direction, np.float64)
+    e1 = np.cross(d, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)  # e1 x e2 = d: image x, y and the viewing direction, right-handed
+    across = np.column_stack([obj @ e1, obj @ e2])
+    undistorted = cv2.undistortPoints(px.reshape(-1, 1, 2), K.matrix, dist,
+                                      P=K.matrix).reshape(-1, 2)
+    cv2.setRNGSeed(seed)
+    S, mask = cv2.estimateAffinePartial2D(across, undistorted, method=cv2.RANSAC,
+                                          ransacReprojThreshold=SAMPLE_SLACK * reproj_px,
+                                          maxIters=iterations, confidence=0.999,
+                                          refineIters=0)
+    if S is None or mask is None or int(mask.sum()) < MIN_INLIERS:
+        return None
+    inl = np.flatnonzero(mask.ravel())
+    found, rvec, tvec = cv2.solvePnP(obj[inl], px[inl], K.matrix, dist,
+                                     flags=cv2.SOLVEPNP_SQPNP)
+    if not found:
+        return None
+    return rvec, tvec, inl
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:

@@ -54,6 +54,14 @@ tried again with the intrinsics held."""
 MIN_POSE_INLIERS: int = 15
 """Fewest 2D-3D inliers with which the mapper registers an image (COLMAP's default: 30)."""
 
+MAX_TILE: int = 400
+"""A map of more images is reconstructed in overlapping spatial tiles of at most this many
+(:func:`spatial_tiles`), each on its own GPS: an incremental reconstruction's time grows
+faster than its images."""
+
+TILE_MARGIN: float = 3.0
+"""Tiles overlap by this many median image spacings on each side."""
+
 GPS_SIGMA_H: float = 5.0
 """Horizontal standard deviation of a map image's GPS position (m)."""
 
@@ -130,6 +138,10 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                 seed: int = 0) -> Structure | None:
     """The map's cameras and 3-D points from its tie points and verified pairs.
 
+    A map of more than :data:`MAX_TILE` images is reconstructed tile by tile
+    (:func:`spatial_tiles`), each tile's models aligned to their own GPS, and each image
+    takes its pose from the tile whose centre it is nearest.
+
     Parameters
     ----------
     keypoints : sequence of (K_i, >=2) float arrays, one per map image
@@ -154,17 +166,105 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     gps = np.column_stack([positions, np.asarray(altitudes, np.float64)])
     if len(pairs) == 0 or len(positions) < 3:
         return None
+    tiles = spatial_tiles(positions, MAX_TILE)
+    if len(tiles) == 1:
+        models = _reconstruct_tile(keypoints, pairs, gps, focal_px, seed)
+        return None if models is None else _structure(models, len(positions), gps)
+    found: list[tuple[np.ndarray, _Model]] = []
+    for inside in tiles:
+        index = np.full(len(positions), -1)
+        index[inside] = np.arange(len(inside))
+        sub = [PairMatches(int(index[p.a]), int(index[p.b]), p.matches, p.config)
+               for p in pairs if index[p.a] >= 0 and index[p.b] >= 0]
+        models = _reconstruct_tile(_Subset(keypoints, inside), sub, gps[inside], focal_px,
+                                   seed) if sub else None
+        for m in models or []:
+            m.images = inside[m.images]
+            found.append((inside, m))
+    if not found:
+        return None
+    return _structure(_by_centrality(found, positions), len(positions), gps)
+
+
+def spatial_tiles(positions: np.ndarray, max_size: int) -> list[np.ndarray]:
+    """Overlapping tiles of at most about ``max_size`` map images each (indices, ascending):
+    the images halved along the longer side of their extent until each part is small
+    enough, each part then widened by :data:`TILE_MARGIN` median spacings."""
+    positions = np.asarray(positions, np.float64)
+    parts, done = [np.arange(len(positions))], []
+    while parts:
+        part = parts.pop()
+        if len(part) <= max_size:
+            done.append(part)
+            continue
+        xy = positions[part]
+        axis = int(np.argmax(np.ptp(xy, axis=0)))
+        order = part[np.argsort(xy[:, axis], kind="stable")]
+        parts += [order[:len(order) // 2], order[len(order) // 2:]]
+    if len(done) == 1:
+        return [np.sort(done[0])]
+    from scipy.spatial import cKDTree
+
+    spacing, _ = cKDTree(positions).query(positions, k=2)
+    margin = TILE_MARGIN * float(np.median(spacing[:, 1]))
+    tiles = []
+    for part in done:
+        lo, hi = positions[part].min(axis=0) - margin, positions[part].max(axis=0) + margin
+        inside = np.all((positions >= lo) & (positions <= hi), axis=1)
+        tiles.append(np.flatnonzero(inside))
+    return tiles
+
+
+class _Subset(Sequence):
+    """``items[index[k]]`` as item ``k``: a tile's view of the map's tie points."""
+
+    def __init__(self, items: Sequence, index: np.ndarray) -> None:
+        self._items, self._index = items, index
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+    def __getitem__(self, k: int):
+        return self._items[int(self._index[k])]
+
+
+def _by_centrality(found: list[tuple[np.ndarray, _Model]],
+                   positions: np.ndarray) -> list[_Model]:
+    """The tiles' models with each image kept only in the tile whose centre it is nearest
+    (the tile reconstructed most of what surrounds it)."""
+    best: dict[int, tuple[float, int]] = {}
+    for k, (inside, m) in enumerate(found):
+        centre = positions[inside].mean(axis=0)
+        for i in m.images.tolist():
+            d = float(np.hypot(*(positions[i] - centre)))
+            if i not in best or d < best[i][0]:
+                best[i] = (d, k)
+    out = []
+    for k, (_, m) in enumerate(found):
+        keep = np.array([best[i][1] == k for i in m.images.tolist()], bool)
+        if keep.sum() == 0:
+            continue
+        out.append(_Model(m.images[keep], m.rotations[keep], m.centres[keep],
+                          [o for o, y in zip(m.observations, keep, strict=True) if y],
+                          [p for p, y in zip(m.points, keep, strict=True) if y],
+                          m.camera, m.residual_px))
+    return out
+
+
+def _reconstruct_tile(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
+                      gps: np.ndarray, focal_px: float | None,
+                      seed: int) -> list[_Model] | None:
+    """COLMAP's models of one set of images (indices of ``keypoints``), aligned to ``gps``;
+    run again with the intrinsics held where refining them went astray."""
     with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
         database = Path(tmp) / "database.db"
         _write_database(database, keypoints, pairs, focal_px)
         best = _run(database, Path(tmp), gps, refine=True, seed=seed)
-        if focal_px is not None and not _good(best, focal_px, len(positions)):
+        if focal_px is not None and not _good(best, focal_px, len(gps)):
             held = _run(database, Path(tmp), gps, refine=False, seed=seed)
             if _count(held) > _count(best):
                 best = held
-    if best is None:
-        return None
-    return _structure(best, len(positions), gps)
+    return best
 
 
 @dataclass
