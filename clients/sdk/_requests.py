@@ -380,12 +380,20 @@ def image_content_type(data: bytes, name: str = "") -> str:
     return guessed or "application/octet-stream"
 
 
+def image_bytes(image: ImageSource) -> bytes:
+    """The bytes of an image given as a path, bytes or ``(name, bytes)``."""
+    return _read_source(image, 0)[1]
+
+
 def _read_source(image: ImageSource, index: int) -> tuple[str, bytes]:
     if isinstance(image, bytes | bytearray | memoryview):
         return f"image-{index}", bytes(image)
     if isinstance(image, tuple):
         name, data = image
         return str(name), bytes(data)
+    if not isinstance(image, str | PathLike):
+        raise TypeError("an image is a path, bytes or (name, bytes), not "
+                        f"{type(image).__name__}")
     path = Path(image)
     return path.name, path.read_bytes()
 

@@ -21,7 +21,7 @@ from typing import Any, Protocol
 
 from ._exceptions import APIError, StreamError, WaitTimeout, error_class
 from ._models import FrameError, Pose, parse_message
-from ._requests import captured_at_param, metadata_params
+from ._requests import ImageSource, captured_at_param, image_bytes, metadata_params
 
 NORMAL_CLOSURE = (1000, 1001)
 
@@ -186,15 +186,17 @@ class PoseStream:
         while (msg := self.receive()) is not None:
             yield msg
 
-    def send_frame(self, image: bytes, *, seq: int | None = None,
+    def send_frame(self, image: ImageSource, *, seq: int | None = None,
                    captured_at: datetime | float | str | None = None,
                    metadata: Mapping[str, float | None] | None = None) -> None:
-        """Send a JPEG/PNG frame on the socket; its estimate arrives on this stream.
-        ``captured_at`` and ``metadata`` as for :meth:`Client.send_frame`."""
+        """Send a JPEG/PNG frame on the socket (a path, bytes or ``(name, bytes)``); its
+        estimate arrives on this stream. ``captured_at`` and ``metadata`` as for
+        :meth:`Client.send_frame`."""
+        data = image_bytes(image)
         meta = frame_meta(seq, captured_at, metadata)
         if meta is not None:
             self._conn.send(meta)
-        self._conn.send(bytes(image))
+        self._conn.send(data)
 
     def ping(self) -> None:
         """Ask for a ``pong`` (skipped by the iterator; keeps idle proxies from closing)."""
@@ -270,13 +272,14 @@ class AsyncPoseStream:
         while (msg := await self.receive()) is not None:
             yield msg
 
-    async def send_frame(self, image: bytes, *, seq: int | None = None,
+    async def send_frame(self, image: ImageSource, *, seq: int | None = None,
                          captured_at: datetime | float | str | None = None,
                          metadata: Mapping[str, float | None] | None = None) -> None:
+        data = image_bytes(image)
         meta = frame_meta(seq, captured_at, metadata)
         if meta is not None:
             await self._conn.send(meta)
-        await self._conn.send(bytes(image))
+        await self._conn.send(data)
 
     async def ping(self) -> None:
         await self._conn.send('{"type": "ping"}')
