@@ -202,10 +202,13 @@ def list_routes(map_id: str) -> Call:
 # -- sessions ---------------------------------------------------------------------------------
 
 def create_session(map_id: str, *, mode: str, params: dict[str, Any] | None,
-                   seed: int | None, navigation: dict[str, Any] | None = None) -> Call:
+                   seed: int | None, navigation: dict[str, Any] | None = None,
+                   ttl_s: int | None = None) -> Call:
     body: dict[str, Any] = {"map_id": str(map_id), "mode": mode, "params": dict(params or {})}
     if seed is not None:
         body["seed"] = seed
+    if ttl_s is not None:
+        body["ttl_s"] = int(ttl_s)
     if navigation is not None:
         body["navigation"] = navigation
     return Call("POST", "/v1/sessions", _model(Session), json=body)

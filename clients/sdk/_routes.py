@@ -100,14 +100,17 @@ class Routes(ABC):
     def create_session(self, map_id: str, *, mode: str = "hybrid",
                        params: dict[str, Any] | None = None,
                        seed: int | None = None,
-                       navigation: dict[str, Any] | None = None) -> Session:
+                       navigation: dict[str, Any] | None = None,
+                       ttl_s: int | None = None) -> Session:
         """Open a session on a built map; the returned Session carries its token.
 
         ``navigation`` (``route_id``, optionally ``from_node``, ``to_node`` and ``params``)
         makes the session follow a ready route: each pose then carries the path following.
+        ``ttl_s``: seconds without a frame or keep-alive after which it expires (the
+        server's default when None).
         """
         return self._call(rq.create_session(map_id, mode=mode, params=params, seed=seed,
-                                            navigation=navigation))
+                                            navigation=navigation, ttl_s=ttl_s))
 
     def create_route(self, map_id: str, odometry: bytes, *, name: str = "route",
                      params: dict[str, Any] | None = None,

@@ -16,7 +16,7 @@ const TRACK_LIMIT = 5000;       // points kept per track; older ones are dropped
 const THUMB_INTERVAL_MS = 1000; // at most one last-frame fetch per session per second
 const STEP_CELLS = 60;          // frames shown in a card's strip of step kinds
 const RECONNECT_MS = [500, 1000, 2000, 5000, 10000];  // waits before each new attempt
-const FINAL_CLOSE = new Set([4401, 4403, 4404]);    // refused: trying again will not help
+const FINAL_CLOSE = new Set([4401, 4403, 4404, 4410]);    // refused: trying again will not help
 
 export async function refreshSessions() {
   const sessions = await listAll("/v1/sessions");
@@ -224,7 +224,8 @@ class Watcher {
       this.field("status").textContent = `frame ${msg.seq}: ${msg.kind}`;
     } else if (msg.type === "closed") {
       this.deleted = true;
-      this.field("status").textContent = "session deleted";
+      this.field("status").textContent = msg.kind === "session-expired"
+        ? "session expired" : "session deleted";
     }
   }
 
