@@ -19,7 +19,8 @@ $(RUNTIME): pyproject.toml docker/requirements.lock
 	@echo "setting up $(VENV): the runtime dependencies (first run only, a few minutes)"
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	@$(PIP) install --upgrade pip
-	@$(PIP) install -c docker/requirements.lock -e .
+	@# no bytecode for all of SciPy and OpenCV up front: Python writes it for what it imports
+	@$(PIP) install --no-compile -c docker/requirements.lock -e .
 	@touch $@
 
 $(DEV): $(RUNTIME)
