@@ -11,23 +11,11 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from tests.app.conftest import ADMIN_KEY, service_settings
-from tests.e2e.browser import PageLog, launch_browser, serve_in_thread
+from tests.app.conftest import ADMIN_KEY
+from tests.e2e.browser import PageLog
 
 TIMEOUT_MS = 20_000
 METHODS = ("get", "put", "post", "delete", "patch")
-
-
-@pytest.fixture(scope="module")
-def browser():
-    yield from launch_browser()
-
-
-@pytest.fixture(scope="module")
-def live(tmp_path_factory):
-    data = tmp_path_factory.mktemp("docs-page")
-    yield from serve_in_thread(service_settings(data / "data",
-                                                f"sqlite:///{data / 'vloc.sqlite3'}"))
 
 
 @pytest.fixture
