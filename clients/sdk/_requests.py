@@ -166,12 +166,13 @@ def upload_images(map_id: str, images: Sequence[ImageSource], *, lat: float | No
                 data=form or None)
 
 
-def build_map(map_id: str) -> Call:
+def build_map(map_id: str, *, force: bool = False) -> Call:
     def parse(r: httpx.Response) -> Job:
         body = r.json()
         return Job(id=str(body["job_id"]), map_id=str(map_id), status=body.get("status", ""))
 
-    return Call("POST", f"/v1/maps/{map_id}/build", parse)
+    return Call("POST", f"/v1/maps/{map_id}/build", parse,
+                params={"force": "true"} if force else None)
 
 
 def get_job(job_id: str) -> Call:

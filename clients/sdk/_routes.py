@@ -90,9 +90,11 @@ class Routes(ABC):
         return self._call(rq.upload_images(map_id, images, lat=lat, lon=lon, alt=alt,
                                            captured_at=captured_at))
 
-    def build_map(self, map_id: str) -> Job:
-        """Start a build of the images added since the last one; returns the queued job."""
-        return self._call(rq.build_map(map_id))
+    def build_map(self, map_id: str, *, force: bool = False) -> Job:
+        """Start a build of the images added since the last one; returns the queued job.
+        ``force`` packs a new revision even when there is nothing new (else 409
+        ``map-up-to-date``)."""
+        return self._call(rq.build_map(map_id, force=force))
 
     def get_job(self, job_id: str) -> Job:
         return self._call(rq.get_job(job_id))
