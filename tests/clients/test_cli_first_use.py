@@ -93,3 +93,31 @@ def test_help_says_where_the_key_is_and_that_it_is_never_printed():
     assert "/ui/" in text and "/docs" in text
     key_help = " ".join(CliRunner().invoke(cli, ["map", "list", "--help"]).output.split())
     assert "./data/admin_key of the current folder" in key_help
+
+
+def test_eval_pins_the_threads_and_reports_cpu_beside_wall_time(dataset_dir, monkeypatch):
+    """The timings of ``vloc eval`` come from one thread of OpenCV and of the BLAS (the
+    service workers' setting), and the run's CPU time is reported beside its wall time."""
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    import vloc.workers.core.evaluate as evaluate_module
+
+    seen = {}
+    real = evaluate_module.evaluate
+
+    def watched(*args, **kwargs):
+        seen["cv2"] = cv2.getNumThreads()
+        seen["blas"] = {p["num_threads"] for p in threadpool_info()
+                        if p["user_api"] == "blas"}
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(evaluate_module, "evaluate", watched)
+    args = ["eval", str(dataset_dir), "--starts", "1", "--modes", "global", "--skip", "2"]
+    result = CliRunner().invoke(cli, [*args, "--json"])
+    assert result.exit_code == 0, result.output
+    timing = json.loads(result.stdout)["timing"]
+    assert seen["cv2"] == 1 and seen["blas"] <= {1}
+    assert timing["threads"] == 1 and timing["wall_s"] > 0 and timing["cpu_s"] > 0
+    table = CliRunner().invoke(cli, args).output
+    assert "s wall clock" in table and "s CPU, 1 thread" in table
