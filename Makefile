@@ -4,45 +4,57 @@
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed-stamp
+PIP    := $(BIN)/python -m pip --quiet --quiet --disable-pip-version-check
+# Two stamps: the runtime (what `make demo` needs) and, on top of it, the dev extra (pytest,
+# Playwright, Schemathesis, Ray: what the tests and benchmarks need). Either order works:
+# `make test` after `make demo` adds the dev extra; `make demo` after `make test` has all.
+RUNTIME := $(VENV)/.runtime-stamp
+DEV     := $(VENV)/.dev-stamp
 
 .PHONY: demo test bench bench-large fuzz eval-seneca lint clean
 
 # The server's runtime dependencies install at the versions docker/requirements.lock pins (the
 # image's), so a fresh checkout tests what the image runs, whatever PyPI released since.
-$(STAMP): pyproject.toml docker/requirements.lock
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c docker/requirements.lock -e '.[dev]'
-	touch $(STAMP)
+$(RUNTIME): pyproject.toml docker/requirements.lock
+	@echo "setting up $(VENV): the runtime dependencies (first run only, a few minutes)"
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	@$(PIP) install --upgrade pip
+	@# no bytecode for all of SciPy and OpenCV up front: Python writes it for what it imports
+	@$(PIP) install --no-compile -c docker/requirements.lock -e .
+	@touch $@
+
+$(DEV): $(RUNTIME)
+	@echo "setting up $(VENV): the test tools (the dev extra; first run only)"
+	@$(PIP) install -c docker/requirements.lock -e '.[dev]'
+	@touch $@
 
 ## demo: synthetic world -> server on embedded defaults -> map over HTTP -> replay -> table
-demo: $(STAMP)
-	$(BIN)/vloc demo
+demo: $(RUNTIME)
+	@$(BIN)/vloc demo
 
 ## test: the whole test suite (PostgreSQL/Redis tests skip when those are absent)
-test: $(STAMP)
+test: $(DEV)
 	$(BIN)/python -m pytest -q
 
 ## bench: stage timings and the paper experiments (long; writes bench/results/)
-bench: $(STAMP)
+bench: $(DEV)
 	$(BIN)/python bench/run_all.py
 
 ## bench-large: a 50,000-image UAV map built through the service: build throughput, step
 ## times, worker memory, database size (hours on two cores; resumable; writes
 ## bench/results/large_map.md, work files under bench/.cache/large-map/)
-bench-large: $(STAMP)
+bench-large: $(DEV)
 	$(BIN)/python bench/bench_large_map.py
 
 ## fuzz: Schemathesis with every check against a real server (writes bench/results/fuzz.txt)
-fuzz: $(STAMP)
+fuzz: $(DEV)
 	$(BIN)/python bench/fuzz.py --max-examples 200 --out bench/results/fuzz.txt
 
 ## eval-seneca: the real-data evaluation (needs ../shared/datasets/seneca-uav)
-eval-seneca: $(STAMP)
+eval-seneca: $(DEV)
 	$(BIN)/python bench/eval_seneca.py
 
-lint: $(STAMP)
+lint: $(DEV)
 	$(BIN)/ruff check .
 
 clean:

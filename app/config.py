@@ -92,7 +92,9 @@ class Settings(BaseSettings):
 
     auto_migrate: bool = Field(True, description="Run Alembic migrations at start-up.")
     log_level: str = "INFO"
-    log_json: bool = True
+    log_json: bool | None = Field(
+        None, description="Logs as JSON lines (true) or plain text (false); unset, JSON unless "
+                          "stderr is a terminal.")
 
     @property
     def embedded_database(self) -> bool:

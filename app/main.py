@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -40,7 +41,9 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     """Build the application; the engine and the database start with its lifespan."""
     settings = settings or Settings()
     if configure_logging:
-        logs.configure(settings.log_level, json_lines=settings.log_json)
+        json_lines = settings.log_json if settings.log_json is not None \
+            else not sys.stderr.isatty()
+        logs.configure(settings.log_level, json_lines=json_lines)
     logs.redact_uvicorn()
     private_dir(settings.data_dir)
     db_engine = make_engine(settings.resolved_database_url)

@@ -115,14 +115,18 @@ DOCS_ASSETS = "/docs/assets"
 
 
 def serve_docs(app: FastAPI) -> None:
-    """``/docs``: Swagger UI from the assets of the ``swagger-ui-bundle`` distribution,
-    served by this app, so that the page works with no access to a CDN."""
+    """``/docs``: Swagger UI 5 (which reads OpenAPI 3.1, the version FastAPI publishes) from
+    the assets of the ``fastapi-offline`` distribution, served by this app, so that the page
+    works with no access to a CDN."""
+    from pathlib import Path
+
+    import fastapi_offline
     from fastapi.openapi.docs import get_swagger_ui_html
     from fastapi.responses import HTMLResponse
     from fastapi.staticfiles import StaticFiles
-    from swagger_ui_bundle import swagger_ui_path
 
-    app.mount(DOCS_ASSETS, StaticFiles(directory=swagger_ui_path), name="docs-assets")
+    assets = Path(fastapi_offline.__file__).parent / "static"
+    app.mount(DOCS_ASSETS, StaticFiles(directory=assets), name="docs-assets")
 
     @app.get("/docs", include_in_schema=False)
     def docs() -> HTMLResponse:
@@ -130,4 +134,6 @@ def serve_docs(app: FastAPI) -> None:
             openapi_url=app.openapi_url, title=f"{app.title} API",
             swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
             swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
-            swagger_favicon_url=f"{DOCS_ASSETS}/favicon-32x32.png")
+            swagger_favicon_url=f"{DOCS_ASSETS}/favicon.png",
+            # no badge that asks validator.swagger.io about the description
+            swagger_ui_parameters={"validatorUrl": None, "persistAuthorization": False})

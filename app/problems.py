@@ -16,6 +16,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from vloc.app import validation_errors
+
 PROBLEM_JSON = "application/problem+json"
 TYPE_PREFIX = "urn:vloc:problem:"
 
@@ -116,10 +118,21 @@ def install(app: FastAPI) -> None:
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
         errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""),
                    "type": e.get("type", "")} for e in exc.errors()]
+        route = request.scope.get("route")
+        body_field = getattr(route, "body_field", None)
+        errors = validation_errors.readable(
+            errors, getattr(exc, "body", None),
+            [body_field.field_info.annotation] if body_field is not None else [])
         first = errors[0] if errors else {"loc": [], "msg": "invalid request"}
+        if first.get("type") == "missing" and tuple(first["loc"]) in validation_errors.MISSING:
+            detail, kind = validation_errors.MISSING[tuple(first["loc"])]
+            return problem_response(Problem(422, detail, kind=kind, errors=errors),
+                                    request.url.path)
         where = ".".join(str(p) for p in first["loc"])
-        problem = Problem(422, f"{where}: {first['msg']}" if where else first["msg"],
-                          kind="validation", errors=errors)
+        detail = f"{where}: {first['msg']}" if where else first["msg"]
+        if "suggestion" in first:
+            detail += f"; did you mean {first['suggestion']}?"
+        problem = Problem(422, detail, kind="validation", errors=errors)
         return problem_response(problem, request.url.path)
 
     @app.exception_handler(Exception)

@@ -19,9 +19,16 @@ import uvicorn
 class DrainingServer(uvicorn.Server):
     """``uvicorn.Server`` that awaits ``drain()`` before closing the connections."""
 
-    def __init__(self, config: uvicorn.Config, *, drain: Callable[[], Awaitable[None]]) -> None:
+    def __init__(self, config: uvicorn.Config, *, drain: Callable[[], Awaitable[None]],
+                 on_ready: Callable[[str], None] | None = None) -> None:
         super().__init__(config)
         self._drain = drain
+        self._on_ready = on_ready
+
+    async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+        await super().startup(sockets)
+        if self._on_ready is not None and self.started and self.servers:
+            self._on_ready(browser_url(*self.servers[0].sockets[0].getsockname()[:2]))
 
     async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
         for server in self.servers:
@@ -31,3 +38,10 @@ class DrainingServer(uvicorn.Server):
         if not self.force_exit:  # a second Ctrl-C skips the drain
             await self._drain()
         await super().shutdown(sockets)
+
+
+def browser_url(host: str, port: int) -> str:
+    """The address a browser on this machine opens for a server bound to ``host:port``."""
+    if host in ("0.0.0.0", "::", ""):
+        host = "127.0.0.1"
+    return f"http://{f'[{host}]' if ':' in host else host}:{port}"

@@ -17,7 +17,8 @@ _SDK_NAMES = frozenset({
     "FRAME_METADATA", "GeoExtent", "GeoPose", "Gone", "ImageRejection", "ImageSource", "Job",
     "JobFailed", "LocalExtent", "Map", "MapImage", "Message", "NotFound", "Origin",
     "PayloadTooLarge", "Pose", "PoseStream", "Route",
-    "RetryPolicy", "ServerError", "Session", "SessionRef", "SessionStats", "StreamError",
+    "RetryPolicy", "ServerError", "ServerShutdown", "Session", "SessionDeleted",
+    "SessionExpired", "SessionRef", "SessionStats", "StreamError",
     "TooManyRequests", "TransportError", "Unauthorized", "UnsupportedMediaType",
     "UploadResult", "UnprocessableEntity", "VlocError", "WaitTimeout",
 })

@@ -102,7 +102,7 @@ def replay_table(data: dict) -> str:
 
 
 def plot_replay(path, map_xy: np.ndarray, runs: list[DeviceRun], frames, origin, *,
-                title: str = ""):
+                title: str = "", skip: int = 10, config: str = "default"):
     """PNG of the map images, the true track and device 0's estimated track per mode
     (:func:`workers.core.report.plot_tracks`).
 
@@ -115,25 +115,26 @@ def plot_replay(path, map_xy: np.ndarray, runs: list[DeviceRun], frames, origin,
     from vloc.workers.core.report import plot_tracks
 
     truth = truth_in_map_frame(frames, origin)
-    modes = {r.mode: ModeSummary(r.mode, "replay", [as_eval_run(r, truth)], 0)
+    modes = {r.mode: ModeSummary(r.mode, config, [as_eval_run(r, truth)], skip)
              for r in runs if r.device == 0 and r.poses}
     if not modes:
         raise ValueError("no estimates to plot")
     return plot_tracks(path, np.asarray(map_xy, dtype=np.float64).reshape(-1, 2),
-                       {"replay": modes}, title=title or "true and estimated tracks")
+                       {config: modes}, title=title or "true and estimated tracks")
 
 
-def replay_tracks(map_xy: np.ndarray, runs: list[DeviceRun], frames, origin) -> dict:
+def replay_tracks(map_xy: np.ndarray, runs: list[DeviceRun], frames, origin, *,
+                  config: str = "default") -> dict:
     """Device 0's track per mode against the truth, for the web viewer
-    (:func:`workers.core.report.tracks_dict`; config ``"replay"``)."""
+    (:func:`workers.core.report.tracks_dict`), under the sessions' filter ``config``."""
     from vloc.workers.core.evaluate import ModeSummary
     from vloc.workers.core.report import tracks_dict
 
     truth = truth_in_map_frame(frames, origin)
-    modes = {r.mode: ModeSummary(r.mode, "replay", [as_eval_run(r, truth)], 0)
+    modes = {r.mode: ModeSummary(r.mode, config, [as_eval_run(r, truth)], 0)
              for r in runs if r.device == 0 and r.poses}
     return tracks_dict(np.asarray(map_xy, dtype=np.float64).reshape(-1, 2),
-                       {"replay": modes})
+                       {config: modes})
 
 
 def mode_table(data: dict) -> str:

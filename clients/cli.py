@@ -18,6 +18,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "world": ("vloc.clients.commands.world", "world_cmd", "Generate a synthetic world: a route rendered under several illuminations, as a dataset folder."),
     "map": ("vloc.clients.commands.map", "map_group",
             "Maps: create, list, show, delete, import a folder of images, build."),
+    "localize": ("vloc.clients.commands.localize", "localize_cmd",
+                 "Where was each image taken? One answer per image, nothing stored."),
     "session": ("vloc.clients.commands.session", "session_group",
                 "Sessions: create, show, delete, reset, initial pose, send frames, watch poses."),
     "replay": ("vloc.clients.commands.replay", "replay_cmd",

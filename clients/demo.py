@@ -248,6 +248,7 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
     origin = GeoOrigin(m.origin.lat, m.origin.lon, m.origin.alt)
     say(f"map: {m.image_count} images built in {t_build:.1f} s; replaying "
         f"{len(data.frames)} frames ({opts.query_light}) per localiser")
+    say(config_note(opts.config))
 
     with tqdm(total=len(data.frames) * len(DEMO_MODES), unit="frame", desc="replay",
               disable=opts.quiet or not sys.stderr.isatty()) as bar:
@@ -266,17 +267,26 @@ def _against_server(url: str, admin_key: str, world: Path, opts: DemoOptions,
     results = summarise(runs, data.frames, origin, skip=skip)
     plot = plot_replay(opts.out / "tracks.png", map_xy, runs, data.frames, origin,
                        title=f"demo: sunny map, {opts.query_light} query "
-                             f"({len(data.frames)} frames)")
+                             f"({len(data.frames)} frames, {opts.config})",
+                       skip=skip, config=opts.config)
     say("")
     say(mode_table(results))
     say("")
     say(verdict(results))
     say(f"tracks: {plot}")
-    results.update(replay_tracks(map_xy, runs, data.frames, origin))
+    results.update(replay_tracks(map_xy, runs, data.frames, origin, config=opts.config))
     results.update(map_id=m.id, frames=len(data.frames), skip=skip,
                    query_light=opts.query_light, config=opts.config, plot=str(plot),
                    timings_s={"build": t_build, "replay": t_replay})
     return results
+
+
+def config_note(config: str) -> str:
+    """Which filter configuration the sessions run, beside the service's own default."""
+    if config == "default":
+        return "sessions: filter configuration default (the service's default)"
+    return (f"sessions: filter configuration {config}; the service's default is `default` "
+            "(vloc demo --config default to compare)")
 
 
 def verdict(results: dict) -> str:

@@ -93,8 +93,9 @@ def import_images(client: Client, map_id: str, images: Sequence[DatasetImage], *
 
 
 def build_and_wait(client: Client, map_id: str, *, timeout: float = 1800.0,
-                   on_progress: Callable[[Job], None] | None = None) -> Job:
+                   on_progress: Callable[[Job], None] | None = None,
+                   force: bool = False) -> Job:
     """Start a build of the map and wait for it (raises JobFailed / WaitTimeout)."""
-    job = client.build_map(map_id)
+    job = client.build_map(map_id, force=force)
     return client.wait_for_job(job.id, timeout=timeout, on_progress=on_progress,
                                poll_interval=0.25)

@@ -5,6 +5,7 @@ nothing under the generic names themselves."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -34,7 +35,7 @@ def test_every_package_folder_is_listed_under_vloc():
 
 
 @pytest.fixture(scope="module")
-def wheel(tmp_path_factory) -> Path:
+def built(tmp_path_factory) -> tuple[Path, str]:
     """A wheel built from a copy of what the distribution is made of (setuptools leaves a
     build folder beside the sources it builds, which is not the repository's to keep)."""
     src, out = tmp_path_factory.mktemp("src"), tmp_path_factory.mktemp("wheel")
@@ -43,10 +44,23 @@ def wheel(tmp_path_factory) -> Path:
     for folder in FOLDERS:
         shutil.copytree(REPO_ROOT / folder, src / folder,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps",
-                    "--wheel-dir", str(out), str(src)], check=True, timeout=300)
+    done = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps",
+                           "--wheel-dir", str(out), str(src)], check=True, timeout=300,
+                          capture_output=True, text=True)
     (path,) = out.glob("vloc-*.whl")
-    return path
+    return path, done.stdout + done.stderr
+
+
+@pytest.fixture(scope="module")
+def wheel(built) -> Path:
+    return built[0]
+
+
+def test_the_build_prints_no_warning(built):
+    """What ``make demo`` shows before its first line: setuptools' deprecations (a license
+    table) and data folders it does not know how to treat."""
+    _, output = built
+    assert re.findall(r"\w*Warning: .*", output) == []
 
 
 def test_the_wheel_holds_one_top_level_package_with_its_data(wheel):

@@ -50,7 +50,7 @@ from vloc.app.sessions.outcomes import Outcomes
 from vloc.app.sessions.schemas import MAX_SEQ, FrameError
 from vloc.app.sessions.store import FrameRecord, FrameStore
 from vloc.app.sessions.writer import Accepted, Barrier, Writer
-from vloc.app.stream.hub import LocalHub
+from vloc.app.stream.hub import CLOSED, EXPIRED, LocalHub
 
 log = logging.getLogger(__name__)
 
@@ -207,14 +207,15 @@ class SessionRuntime:
             return (row, store.last_recorded_seq(db, session_id=session_id),
                     store.converged_since_start(db, session_id=session_id))
 
-    def forget(self, session_id: uuid.UUID) -> None:
-        """Drop a deleted session: close it in the engine and end its streams."""
+    def forget(self, session_id: uuid.UUID, ending: dict = CLOSED) -> None:
+        """Drop a deleted (or, with ``ending=EXPIRED``, expired) session: close it in the
+        engine and end its streams with that message."""
         key = str(session_id)
         with self._lock:
             self._live.pop(key, None)
         self.metrics.live_sessions.set(len(self._live))
         self.engine.close_session(key)
-        self.loop.call_soon_threadsafe(self.hub.close_session, key)
+        self.loop.call_soon_threadsafe(self.hub.close_session, key, ending)
 
     def restart_convergence(self, live: LiveSession) -> None:
         """After a reset or an initial pose: the next estimates are initialising until one
@@ -229,7 +230,7 @@ class SessionRuntime:
         streams close. Its record and poses stay readable."""
         session_id = uuid.UUID(live.id)
         await asyncio.to_thread(self._write, store.expire, session_id)
-        self.forget(session_id)
+        self.forget(session_id, EXPIRED)
         log.info("session %s expired after %d s without activity", live.id, live.ttl_s)
 
     async def keep_alive_stored(self, live: LiveSession) -> None:

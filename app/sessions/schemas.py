@@ -61,8 +61,7 @@ class Quaternion(BaseModel):
 class GeoPosePosition(BaseModel):
     lat: float
     lon: float
-    h: float | None = Field(description="Height in metres (``altitude_m``); null when "
-                                        "unknown")
+    h: float = Field(description="Height in metres (``altitude_m``)")
 
 
 class GeoPose(BaseModel):
@@ -76,6 +75,26 @@ class GeoPose(BaseModel):
 
     position: GeoPosePosition
     quaternion: Quaternion | None
+
+
+# The definitions of the fields that say how a pose was found: docs/api.md's table gives
+# these same words (tests/app/test_pose_definition.py holds them together).
+FEATURE = ("The image feature the step matched: sift when it extracted SIFT (to weigh the "
+           "particles, or to register the camera when the global features' registration "
+           "failed), global when it used global features only; the feature's name for "
+           "retrieval")
+NEXT_FEATURE = "What the filter will use for the next frame: sift or global"
+MEASUREMENT = ("What weighed the estimate, joined by +: sift or global (the image similarity "
+               "that weighed the particles), registered (a camera pose solved against the "
+               "map), interpolated (between the best map images); empty when not known. "
+               "global+registered with feature sift is a global step whose camera pose was "
+               "solved with SIFT")
+GEOPOSE = ("The pose as an OGC GeoPose 1.0 Basic-Quaternion: position (lat, lon, h = "
+           "altitude_m) and quaternion (x, y, z, w), the rotation of the local "
+           "East-North-Up frame about Up by the heading (yaw = 90 deg - heading_deg); the "
+           "localiser estimates no pitch or roll, so none is applied. quaternion is null "
+           "when the heading is unknown; geopose is null when the altitude is, since "
+           "GeoPose Basic needs a height and none is made up")
 
 
 class PoseFields(BaseModel):
@@ -117,13 +136,9 @@ class PoseFields(BaseModel):
     sigma_y: float = Field(description="Standard deviation north, metres")
     cov: list[float] = Field(min_length=4, max_length=4,
                              description="Row-major 2x2 position covariance, m^2")
-    feature: str = Field(max_length=32, description="Feature type this step used")
-    next_feature: str = Field(max_length=32,
-                              description="Feature type the next step will use")
-    measurement: str = Field(
-        "", max_length=64, description="What weighed the estimate: sift, global, registered "
-                                   "(a camera pose solved against the map) or interpolated, "
-                                   "joined by +; empty when not known")
+    feature: str = Field(max_length=32, description=FEATURE)
+    next_feature: str = Field(max_length=32, description=NEXT_FEATURE)
+    measurement: str = Field("", max_length=64, description=MEASUREMENT)
     metadata_used: str = Field(
         "", max_length=64, description="Which of the frame's metadata the step used (heading, "
                                    "gps, altitude, velocity, joined by +); empty for none")
@@ -143,9 +158,11 @@ class PoseFields(BaseModel):
         description="On the stream only (not stored): a sample of up to 64 particles, "
                     "[[x, y], ...] in metres, drawn in proportion to their weights")
 
-    @computed_field(description="The pose as an OGC GeoPose (Basic-Quaternion)")
+    @computed_field(description=GEOPOSE)
     @property
-    def geopose(self) -> GeoPose:
+    def geopose(self) -> GeoPose | None:
+        if self.altitude_m is None:  # GeoPose Basic needs a height; none is made up
+            return None
         return GeoPose(position=GeoPosePosition(lat=self.lat, lon=self.lon,
                                                 h=self.altitude_m),
                        quaternion=None if self.heading_deg is None

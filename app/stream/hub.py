@@ -13,7 +13,12 @@ from collections import defaultdict
 
 SUBSCRIBER_QUEUE = 1024
 
-CLOSED = {"type": "closed", "reason": "the session was deleted"}
+CLOSED = {"type": "closed", "kind": "session-deleted", "reason": "the session was deleted"}
+EXPIRED = {"type": "closed", "kind": "session-expired",
+           "reason": "the session expired after its time to live without a frame or "
+                     "keep-alive; create a new session"}
+"""The last message of a session's streams: ``kind`` says why they end (the close code
+follows from it, see :mod:`app.stream.router`)."""
 OVERFLOW = {"type": "overflow"}
 GOING_AWAY = {"type": "going_away"}
 """Not sent: tells a stream to close with 1001 after the messages before it."""
@@ -118,7 +123,7 @@ class LocalHub:
     async def stop(self) -> None:
         for subs in list(self._subs.values()):
             for sub in list(subs):
-                sub.put(CLOSED)
+                sub.put(GOING_AWAY)
 
     def subscribe(self, session_id: str, *, after_seq: int | None = None) -> Subscription:
         """A new stream's subscription (``after_seq``: see :class:`Subscription`)."""
@@ -159,5 +164,6 @@ class LocalHub:
         for sub in list(self._subs.get(session_id, ())):
             sub.put(message)
 
-    def close_session(self, session_id: str) -> None:
-        self.publish(session_id, CLOSED)
+    def close_session(self, session_id: str, ending: dict = CLOSED) -> None:
+        """End the session's streams with ``ending`` (:data:`CLOSED` or :data:`EXPIRED`)."""
+        self.publish(session_id, ending)

@@ -19,9 +19,18 @@ for old clients, as ``?token=`` (redacted from the logs).
 Offering the subprotocol ``vloc.geojson`` (the server answers with it) asks for every
 ``pose`` as a GeoJSON ``Feature`` (:mod:`app.stream.geojson`); other messages are the same.
 
-Close codes: 4401 no token, 4403 wrong token, 4404 unknown session, 1011 the session
-could not be restored, 1013 the client read too slowly, 1001 the server shuts down (after
-the messages of every frame it had accepted).
+Close codes (docs/api.md, "Close codes"; a ``44xx`` code is the HTTP status the session's
+routes answer with, plus 4000), each with a reason that starts with its slug:
+
+- 4401 ``unauthorized``: no token; 4403 ``forbidden``: a token that does not open it;
+- 4404 ``not-found``: no such session; ``session-deleted``: deleted while the stream was
+  open (after a ``closed`` message);
+- 4410 ``session-expired``: it expired after its time to live (at the handshake, or while
+  open after a ``closed`` message);
+- 1001 ``server-shutdown``: the server is stopping (after the messages of every frame it
+  had accepted);
+- 1011 ``session-unavailable``: the session could not be restored;
+- 1013 ``too-slow``: the client read too slowly.
 """
 
 from __future__ import annotations
@@ -42,12 +51,28 @@ from vloc.app.limits import too_large
 from vloc.app.problems import Problem
 from vloc.app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
 from vloc.app.sessions.live import LiveSession
+from vloc.app.sessions.runtime import expired_problem
 from vloc.app.sessions.schemas import Seq
 from vloc.app.stream.geojson import GEOJSON_SUBPROTOCOL, as_feature
 from vloc.app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
 from vloc.app.validation import check_captured_at, check_metadata
 
 router = APIRouter(tags=["stream"])
+
+MAX_REASON_BYTES = 123
+"""The longest close reason a WebSocket close frame carries (RFC 6455, 5.5)."""
+
+ENDINGS = {"session-deleted": 4404, "session-expired": 4410}
+"""The close code after a ``closed`` message, by its ``kind``."""
+
+
+def close_reason(slug: str, text: str) -> str:
+    """``"<slug>: <text>"`` cut at a word to fit a close frame."""
+    reason = f"{slug}: {text}"
+    if len(reason.encode()) <= MAX_REASON_BYTES:
+        return reason
+    cut = reason.encode()[:MAX_REASON_BYTES - 3].decode("utf-8", "ignore")
+    return cut.rsplit(" ", 1)[0].rstrip(",;:") + "..."
 
 
 class FrameMeta(BaseModel):
@@ -94,20 +119,31 @@ async def stream(websocket: WebSocket, session_id: str) -> None:
 async def _authorise(websocket: WebSocket, ctx: AppContext, session_id: str,
                      secret: str | None) -> LiveSession | None:
     if secret is None:
-        await websocket.close(4401, "a session token is required (Authorization: Bearer)")
+        await websocket.close(4401, close_reason(
+            "unauthorized", "a session token is required (Authorization: Bearer)"))
         return None
     try:
         live = await ctx.runtime.get(uuid.UUID(session_id))
     except ValueError:
         live = None
     except Problem as p:
-        await websocket.close(1011, p.detail[:120])
+        if p.status == 410:
+            await websocket.close(4410, close_reason("session-expired", p.detail))
+        else:
+            await websocket.close(1011, close_reason("session-unavailable", p.detail))
         return None
     if live is None:
-        await websocket.close(4404, f"session {session_id} does not exist")
+        await websocket.close(4404, close_reason("not-found",
+                                                 f"session {session_id} does not exist"))
         return None
     if not (matches(secret, live.token_hash) or matches(secret, ctx.admin_key_hash)):
-        await websocket.close(4403, "this token does not open this session")
+        await websocket.close(4403, close_reason(
+            "forbidden", "this token does not open this session"))
+        return None
+    if live.expired() and not live.arrivals:  # as its HTTP routes would answer 410
+        await ctx.runtime.expire(live)
+        await websocket.close(4410, close_reason("session-expired",
+                                                 expired_problem(session_id).detail))
         return None
     return live
 
@@ -118,14 +154,16 @@ async def _send_loop(websocket: WebSocket, sub: Subscription, encode=None) -> No
     while True:
         msg = await sub.get()
         if msg is OVERFLOW:
-            await websocket.close(1013, "the client reads too slowly")
+            await websocket.close(1013, close_reason("too-slow", "the client reads too slowly"))
             return
         if msg is GOING_AWAY:
-            await websocket.close(1001, "the server is shutting down")
+            await websocket.close(1001, close_reason(
+                "server-shutdown", "the server is stopping; reconnect once it is back"))
             return
         await websocket.send_text(json.dumps(encode(msg) if encode else msg))
         if msg.get("type") == CLOSED["type"]:
-            await websocket.close(1000, "session deleted")
+            kind = msg.get("kind", CLOSED["kind"])
+            await websocket.close(ENDINGS[kind], close_reason(kind, msg["reason"]))
             return
 
 

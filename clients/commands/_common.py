@@ -15,12 +15,16 @@ import click
 DEFAULT_URL = "http://127.0.0.1:8000"
 
 
+def admin_key_file() -> Path:
+    """Where ``vloc serve`` on the embedded defaults stores the key it generated:
+    ``$VLOC_DATA_DIR/admin_key``, ``./data/admin_key`` (of the current folder) by default."""
+    return (Path(os.environ.get("VLOC_DATA_DIR") or "data") / "admin_key").absolute()
+
+
 def stored_admin_key() -> str | None:
-    """The key ``vloc serve`` generated on the embedded defaults, when it is readable here:
-    ``$VLOC_DATA_DIR/admin_key`` (``./data/admin_key`` by default)."""
-    path = Path(os.environ.get("VLOC_DATA_DIR") or "data") / "admin_key"
+    """The key in :func:`admin_key_file`, when it is readable here."""
     try:
-        return path.read_text().strip() or None
+        return admin_key_file().read_text().strip() or None
     except OSError:
         return None
 
@@ -28,8 +32,9 @@ def stored_admin_key() -> str | None:
 def server_options(fn: Callable) -> Callable:
     """``--server`` and ``--admin-key``, from the flags or the environment."""
     fn = click.option("--admin-key", envvar="VLOC_ADMIN_KEY", metavar="KEY",
-                      help="Admin API key [env VLOC_ADMIN_KEY; else the key the server "
-                           "stored in $VLOC_DATA_DIR/admin_key, when readable].")(fn)
+                      help="Admin API key [env VLOC_ADMIN_KEY; else the key `vloc serve` "
+                           "stored in ./data/admin_key of the current folder, or "
+                           "$VLOC_DATA_DIR/admin_key].")(fn)
     fn = click.option("--server", envvar="VLOC_URL", default=DEFAULT_URL, show_default=True,
                       metavar="URL", help="Server address [env VLOC_URL].")(fn)
     return fn
@@ -47,30 +52,76 @@ def make_async_client(server: str, admin_key: str | None, **kwargs):
     return AsyncClient(server, admin_key=admin_key or stored_admin_key() or "", **kwargs)
 
 
+CLI_ADVICE = {
+    "map-not-built": "build it first: vloc map build {map_id}",
+    "map-up-to-date": "`vloc map build --force {map_id}` packs it again",
+    "session-expired": "open a new one: vloc session create MAP_ID",
+}
+"""What to do about a problem, as commands of this CLI (the server's own advice names the
+HTTP routes), by problem kind."""
+
+
 def reports_errors(fn: Callable) -> Callable:
     """Turn client errors into one clear line on stderr and a non-zero exit status:
     1 for an error answer from the server, 3 when the server cannot be reached."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        from vloc.clients.sdk import APIError, TransportError, Unauthorized, VlocError
+        from vloc.clients.sdk import (
+            APIError,
+            Forbidden,
+            TransportError,
+            Unauthorized,
+            VlocError,
+        )
 
+        params = click.get_current_context().params
         try:
             return fn(*args, **kwargs)
         except TransportError as exc:
-            server = click.get_current_context().params.get("server", "the server")
+            server = params.get("server", "the server")
             raise CommandError(f"cannot reach {server}: {exc}\n"
                                "Is `vloc serve` running there? Set --server or VLOC_URL.",
                                exit_code=3) from exc
         except Unauthorized as exc:
-            raise CommandError(f"{exc}\nGive the admin key with --admin-key or "
-                               "VLOC_ADMIN_KEY.") from exc
+            raise CommandError(f"{exc}\n{_key_hint(params, refused=False)}") from exc
+        except Forbidden as exc:
+            raise CommandError(f"{exc}\n{_key_hint(params, refused=True)}") from exc
         except APIError as exc:
-            raise CommandError(str(exc)) from exc
+            raise CommandError(_with_advice(exc, params)) from exc
         except VlocError as exc:
             raise CommandError(str(exc)) from exc
 
     return wrapper
+
+
+def _with_advice(exc, params: dict) -> str:
+    advice = CLI_ADVICE.get(exc.kind or "")
+    if advice is None:
+        return str(exc)
+    # the server's detail up to its own advice (after "; "), then this CLI's
+    detail = exc.detail.split("; ")[0] if "; " in exc.detail else exc.detail
+    map_id = params.get("map_id") or "MAP_ID"
+    return f"{exc.status} {exc.title}: {detail}\n{advice.format(map_id=map_id)}"
+
+
+def _key_hint(params: dict, *, refused: bool) -> str:
+    """Where the key came from, and where the right one is."""
+    path = admin_key_file()
+    if params.get("admin_key"):
+        source = "--admin-key / VLOC_ADMIN_KEY"
+    elif params.get("token"):
+        source = "--token / VLOC_SESSION_TOKEN"
+    elif stored_admin_key() is not None:
+        source = str(path)
+    else:
+        source = None
+    if refused:
+        return (f"The server refused the key from {source or 'the command line'}. The "
+                "server's admin key is in the admin_key file of its data directory (./data/admin_key where `vloc "
+                "serve` runs, or $VLOC_DATA_DIR), or is its VLOC_ADMIN_KEY.")
+    return ("No key was sent: give the admin key with --admin-key or VLOC_ADMIN_KEY, or run "
+            f"this where `vloc serve` runs (the CLI reads {path}, which is not there).")
 
 
 class CommandError(click.ClickException):
@@ -110,21 +161,22 @@ def no_bar(quiet: bool) -> bool:
     return quiet or not sys.stderr.isatty()
 
 
-def build_with_bar(vloc, map_id: str, *, quiet: bool = False, timeout: float = 3600.0):
+def build_with_bar(vloc, map_id: str, *, quiet: bool = False, timeout: float = 3600.0,
+                   force: bool = False):
     """Build a map and wait for it behind a progress bar; returns the finished job."""
     from vloc.clients.sdk import Conflict
 
     try:
-        return _build(vloc, map_id, quiet=quiet, timeout=timeout)
+        return _build(vloc, map_id, quiet=quiet, timeout=timeout, force=force)
     except Conflict as exc:
         if exc.kind != "map-up-to-date":
             raise
         click.echo(f"map {map_id} is up to date: revision {exc.body.get('revision')} holds "
-                   "every image", err=True)
+                   f"every image (`vloc map build --force {map_id}` packs it again)", err=True)
         return None
 
 
-def _build(vloc, map_id: str, *, quiet: bool, timeout: float):
+def _build(vloc, map_id: str, *, quiet: bool, timeout: float, force: bool = False):
     from tqdm import tqdm
 
     from vloc.clients.mapping import build_and_wait
@@ -134,7 +186,7 @@ def _build(vloc, map_id: str, *, quiet: bool, timeout: float):
         def progress(job) -> None:
             bar.update(round(100 * job.progress) - bar.n)
 
-        job = build_and_wait(vloc, map_id, timeout=timeout, on_progress=progress)
+        job = build_and_wait(vloc, map_id, timeout=timeout, on_progress=progress, force=force)
     click.echo(f"map {map_id} built: revision {job.revision}, {job.n_extracted} images "
                "extracted", err=True)
     return job

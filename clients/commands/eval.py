@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
+import time
 from pathlib import Path
 
 import click
@@ -54,10 +56,14 @@ def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
                    "has no GPS columns.")
 @click.option("--heading-sigma", type=click.FloatRange(min=0.1, max=180.0), default=5.0,
               show_default=True, help="Simulated compass noise (degrees).")
+@click.option("--threads", type=click.IntRange(1), default=1, show_default=True,
+              help="Threads of OpenCV and the BLAS: one keeps the timings from swinging "
+                   "with the machine's load (a small matrix product that waits for a busy "
+                   "core costs many times its work), as the service's workers run.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photometric, starts,
              skip, seed, param_items, retrieval_grid, plot, use_metadata, gps_accuracy,
-             heading_sigma, as_json) -> None:
+             heading_sigma, threads, as_json) -> None:
     """Run the localisers over DATASET (a folder of geotagged images, optionally with a CSV
     of positions and a `pass` column) and report error and speed per mode."""
     from vloc.workers.core.datasets import DatasetError
@@ -109,13 +115,18 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
         if not as_json:
             click.echo(f"\r  {config}/{mode}: run {k}/{n}", nl=(k == n), err=True)
 
+    wall, cpu = time.perf_counter(), time.process_time()
     try:
-        results = evaluate(exp.map_data, exp.queries, exp.truth, modes=mode_list,
-                           configs=config_list, starts=starts, seed=seed, skip=skip,
-                           params=params, progress=progress)
+        with _threads(threads):
+            results = evaluate(exp.map_data, exp.queries, exp.truth, modes=mode_list,
+                               configs=config_list, starts=starts, seed=seed, skip=skip,
+                               params=params, progress=progress)
     except ValueError as exc:
         raise click.ClickException(str(exc)) from exc
+    timing = {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu,
+              "threads": threads}
     data = results_dict(results)
+    data["timing"] = timing
     data.update(dataset=str(dataset), photometric=photometric, starts=starts, skip=skip,
                 seed=seed, map_images=len(exp.map_data), query_frames=len(exp.queries))
     if metadata_summary is not None:
@@ -133,11 +144,28 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
         sys.stdout.write("\n")
         return
     click.echo(markdown_table(data))
+    click.echo(f"\nran in {timing['wall_s']:.1f} s wall clock, {timing['cpu_s']:.1f} s CPU, "
+               f"{threads} thread{'s' if threads > 1 else ''} (ms columns: wall clock)")
     if retrieval_grid:
         click.echo("\nretrieval error, mean / median (m), feature x measure:")
         click.echo(grid_table(data["retrieval_grid"]))
     if plot:
         click.echo(f"\ntracks written to {plot}")
+
+
+@contextlib.contextmanager
+def _threads(n: int):
+    """OpenCV and the BLAS limited to ``n`` threads for the block."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        with threadpool_limits(limits=n):
+            yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def _metadata_summary(exp, metas, kinds: tuple[str, ...], skip: int) -> dict:

@@ -168,13 +168,15 @@ def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | 
 @click.option("--timeout", type=float, default=3600.0, show_default=True,
               help="Seconds to wait.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option("--force", is_flag=True,
+              help="Pack a new revision even when no image was added or deleted.")
 @server_options
 @reports_errors
-def build_cmd(map_id: str, wait: bool, timeout: float, quiet: bool, server: str,
+def build_cmd(map_id: str, wait: bool, timeout: float, quiet: bool, force: bool, server: str,
               admin_key: str | None) -> None:
     """Extract the features of the new images of MAP_ID and pack a new revision."""
     with make_client(server, admin_key) as vloc:
         if not wait:
-            click.echo(vloc.build_map(map_id).id)
+            click.echo(vloc.build_map(map_id, force=force).id)
             return
-        build_with_bar(vloc, map_id, quiet=quiet, timeout=timeout)
+        build_with_bar(vloc, map_id, quiet=quiet, timeout=timeout, force=force)

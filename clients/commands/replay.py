@@ -112,6 +112,7 @@ def replay_cmd(dataset: Path, map_id, build_map: bool, map_pass, query_pass, rul
                 seed=seed, params=params, rate=rate, speed=speed, transport=transport,
                 window=window, quiet=quiet)
     _report(runs, data, origin, map_xy, skip=skip, plot=plot, as_json=as_json,
+            config=str(params.get("config", "default")),
             extra={"dataset": str(dataset), "map_id": map_id, "photometric": photometric,
                    "rate": rate, "transport": transport, "devices": devices, "seed": seed,
                    "skip": skip, "query_frames": len(data.frames),
@@ -188,15 +189,16 @@ def _run(server, admin_key, map_id, frames, origin, *, modes, devices, quiet, **
         return asyncio.run(main())
 
 
-def _report(runs, data, origin, map_xy, *, skip, plot, as_json, extra) -> None:
+def _report(runs, data, origin, map_xy, *, skip, plot, as_json, extra,
+            config: str = "default") -> None:
     from vloc.clients._replay_report import plot_replay, replay_table, replay_tracks, summarise
 
     results = summarise(runs, data.frames, origin, skip=skip) | extra
     if plot is not None:
-        plot_replay(plot, map_xy, runs, data.frames, origin)
+        plot_replay(plot, map_xy, runs, data.frames, origin, skip=skip, config=config)
         results["plot"] = str(plot)
     if as_json:
-        print_json(results | replay_tracks(map_xy, runs, data.frames, origin))
+        print_json(results | replay_tracks(map_xy, runs, data.frames, origin, config=config))
         return
     click.echo(replay_table(results))
     if plot is not None:

@@ -29,8 +29,12 @@ def serve_cmd(host: str, port: int, workers: int | None, processes: int,
 
     Configuration comes from VLOC_* environment variables (VLOC_DATABASE_URL,
     VLOC_DATA_DIR, VLOC_WORKERS, VLOC_ADMIN_KEY, VLOC_REDIS_URL, VLOC_ENGINE,
-    VLOC_RAY_ADDRESS, VLOC_MAX_*); see docs/api.md. Without VLOC_ADMIN_KEY an admin key is
-    generated on the first start, stored in the data directory and printed once.
+    VLOC_RAY_ADDRESS, VLOC_MAX_*, VLOC_LOG_JSON); see docs/api.md. Without VLOC_ADMIN_KEY an
+    admin key is generated on the first start and stored in DATA_DIR/admin_key (readable by
+    this user only); it is never printed, and the `vloc` commands read it from there.
+    Once ready, the server prints the addresses of the web viewer (/ui/) and of the API's
+    documentation (/docs). Logs go to stderr: plain lines on a terminal, JSON lines
+    otherwise.
     """
     from vloc.app.config import Settings
 
@@ -76,8 +80,15 @@ def _serve(overrides: dict, host: str, port: int, sock: socket.socket | None,
                             log_level=settings.log_level.lower(),
                             ws_max_size=settings.max_frame_bytes + 4096,
                             timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S)
-    DrainingServer(config, drain=lambda: drain(app)).run(
+    DrainingServer(config, drain=lambda: drain(app),
+                   on_ready=None if sock is not None else _say_where).run(
         sockets=[sock] if sock is not None else None)
+
+
+def _say_where(base_url: str) -> None:
+    click.echo(f"vloc: ready at {base_url}\n"
+               f"  web viewer  {base_url}/ui/\n"
+               f"  API docs    {base_url}/docs", err=True)
 
 
 def _supervise(overrides: dict, host: str, port: int, n: int, base_name: str) -> None:
@@ -109,7 +120,11 @@ def _supervise(overrides: dict, host: str, port: int, n: int, base_name: str) ->
     procs = [start(i) for i in range(n)]
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
-    click.echo(f"vloc: {n} API processes on {host}:{sock.getsockname()[1]}", err=True)
+    from vloc.app.server import browser_url
+
+    base_url = browser_url(host, sock.getsockname()[1])
+    click.echo(f"vloc: {n} API processes on {base_url} (viewer {base_url}/ui/, API docs "
+               f"{base_url}/docs)", err=True)
     while not stopping:
         time.sleep(RESTART_DELAY_S)
         for i, p in enumerate(procs):
@@ -122,3 +137,4 @@ def _supervise(overrides: dict, host: str, port: int, n: int, base_name: str) ->
         if p.is_alive():
             p.kill()
     sock.close()
+

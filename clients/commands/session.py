@@ -58,14 +58,18 @@ def _describe(s) -> str:
 @click.option("--param", "param_items", multiple=True, metavar="KEY=VALUE",
               help="A localiser parameter (JSON value), e.g. n_particles=500.")
 @click.option("--seed", type=click.IntRange(0), help="Random seed [default: random].")
+@click.option("--ttl", "ttl_s", type=click.IntRange(10), metavar="SECONDS",
+              help="Seconds without a frame or keep-alive after which the session expires "
+                   "[default: the server's, VLOC_SESSION_TTL_S].")
 @click.option("--json", "as_json", is_flag=True)
 @server_options
 @reports_errors
-def create_cmd(map_id: str, mode: str, param_items, seed, as_json: bool, server: str,
+def create_cmd(map_id: str, mode: str, param_items, seed, ttl_s, as_json: bool, server: str,
                admin_key: str | None) -> None:
     """Open a session on a built map. Prints `ID TOKEN`."""
     with make_client(server, admin_key) as vloc:
-        s = vloc.create_session(map_id, mode=mode, params=parse_params(param_items), seed=seed)
+        s = vloc.create_session(map_id, mode=mode, params=parse_params(param_items), seed=seed,
+                                ttl_s=ttl_s)
     print_json(model_json(s)) if as_json else click.echo(f"{s.id} {s.token}")
 
 
@@ -225,7 +229,13 @@ def _parse_time(text: str) -> datetime:
 def watch_cmd(session_id: str, count, timeout, token, server: str, admin_key) -> None:
     """Print the session's pose stream, one JSON line per message, until it ends (or
     --count messages came, or none came for --timeout seconds)."""
-    from vloc.clients.sdk import FrameRejected, WaitTimeout
+    from vloc.clients.sdk import (
+        FrameRejected,
+        ServerShutdown,
+        SessionDeleted,
+        SessionExpired,
+        WaitTimeout,
+    )
 
     if timeout is None and count is not None:
         timeout = 60.0
@@ -243,6 +253,15 @@ def watch_cmd(session_id: str, count, timeout, token, server: str, admin_key) ->
     except WaitTimeout:
         raise CommandError(f"no message for {timeout:g} s after {n}"
                            + (f" of {count}" if count else "") + " messages") from None
+    except (SessionDeleted, SessionExpired, ServerShutdown) as exc:
+        why = {SessionDeleted: "the session was deleted", SessionExpired:
+               "the session expired (create a new one: vloc session create MAP_ID)",
+               ServerShutdown: "the server is stopping"}[type(exc)]
+        click.echo(f"stream ended: {why}" + (f" after {n} of {count} messages" if count
+                                             else ""), err=True)
+        if count is not None or not isinstance(exc, SessionDeleted):
+            raise SystemExit(1) from None
+        return
     click.echo("stream ended" + (f" after {n} of {count} messages" if count else ""),
                err=True)
     if count is not None:

@@ -9,14 +9,18 @@ Every error the client raises is a :class:`VlocError`::
     │   ├── Unauthorized ...... 401  no credentials, or not for this route
     │   ├── Forbidden ......... 403  credentials that do not grant this
     │   ├── NotFound .......... 404  unknown map, job, session or route
+    │   │   └── SessionDeleted  the session was deleted while its stream was open (4404)
     │   ├── Conflict .......... 409  duplicate or stale frame ``seq``, map busy building
     │   ├── PayloadTooLarge ... 413
     │   ├── UnsupportedMediaType 415 not a JPEG/PNG image
-    │   ├── Gone .............. 410  the session expired
+    │   ├── Gone .............. 410
+    │   │   └── SessionExpired  the session expired: 410 ``session-expired``, or its
+    │   │                       stream closed with 4410
     │   ├── UnprocessableEntity 422  a body, query or form field the server refused
     │   ├── TooManyRequests ... 429  too many frames of the session still queued
     │   └── ServerError ....... 5xx
     ├── StreamError ........... the pose stream ended abnormally
+    │   └── ServerShutdown .... the server is stopping (the stream closed with 1001)
     ├── JobFailed ............. a waited-for build job ended ``failed``
     └── WaitTimeout ........... a wait ran out of time (also a built-in ``TimeoutError``)
 
@@ -104,8 +108,17 @@ class UnsupportedMediaType(APIError):
     """415."""
 
 
+class SessionDeleted(NotFound):
+    """The session was deleted while its stream was open (close code 4404)."""
+
+
 class Gone(APIError):
-    """410: the session expired (``session-expired``); create a new one."""
+    """410."""
+
+
+class SessionExpired(Gone):
+    """410 ``session-expired``: the session went longer than its ``ttl_s`` without a frame
+    or keep-alive (HTTP, or a stream closed with 4410). Create a new session."""
 
 
 class UnprocessableEntity(APIError):
@@ -142,6 +155,11 @@ class StreamError(VlocError):
         super().__init__(f"{reason} (close code {code})" if code is not None else reason)
 
 
+class ServerShutdown(StreamError):
+    """The server is stopping: the stream closed with 1001 after the messages of every frame
+    it had accepted. Open it again once the server is back."""
+
+
 class JobFailed(VlocError):
     """The build job ended with status ``failed``; ``job`` is its last state."""
 
@@ -161,11 +179,14 @@ _BY_STATUS: dict[int, type[APIError]] = {
 }
 
 
-def error_class(status: int) -> type[APIError]:
-    """The :class:`APIError` subclass for an HTTP status."""
+_BY_KIND: dict[str, type[APIError]] = {"session-expired": SessionExpired}
+
+
+def error_class(status: int, kind: str | None = None) -> type[APIError]:
+    """The :class:`APIError` subclass for an HTTP status (and problem kind)."""
     if status >= 500:
         return ServerError
-    return _BY_STATUS.get(status, APIError)
+    return _BY_KIND.get(kind or "", _BY_STATUS.get(status, APIError))
 
 
 def error_for_response(response: httpx.Response) -> APIError:
@@ -184,7 +205,8 @@ def error_for_response(response: httpx.Response) -> APIError:
     if retry is not None and "retry_after" not in body:
         with contextlib.suppress(ValueError):
             body["retry_after"] = float(retry)
-    return error_class(response.status_code)(
+    kind = str(body.get("type") or "").removeprefix("urn:vloc:problem:")
+    return error_class(response.status_code, kind)(
         response.status_code,
         type=str(body.get("type") or "about:blank"),
         title=str(body.get("title") or response.reason_phrase or ""),

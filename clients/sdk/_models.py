@@ -161,12 +161,13 @@ class Quaternion(_Model):
 class GeoPosePosition(_Model):
     lat: float
     lon: float
-    h: float | None = None
+    h: float
 
 
 class GeoPose(_Model):
     """OGC GeoPose 1.0 Basic-Quaternion: position, and orientation in the local
-    East-North-Up frame (None when the heading is unknown)."""
+    East-North-Up frame (None when the heading is unknown). A pose without an altitude has
+    no GeoPose (``Pose.geopose`` is None)."""
 
     position: GeoPosePosition
     quaternion: Quaternion | None = None

@@ -166,12 +166,13 @@ def upload_images(map_id: str, images: Sequence[ImageSource], *, lat: float | No
                 data=form or None)
 
 
-def build_map(map_id: str) -> Call:
+def build_map(map_id: str, *, force: bool = False) -> Call:
     def parse(r: httpx.Response) -> Job:
         body = r.json()
         return Job(id=str(body["job_id"]), map_id=str(map_id), status=body.get("status", ""))
 
-    return Call("POST", f"/v1/maps/{map_id}/build", parse)
+    return Call("POST", f"/v1/maps/{map_id}/build", parse,
+                params={"force": "true"} if force else None)
 
 
 def get_job(job_id: str) -> Call:
@@ -202,10 +203,13 @@ def list_routes(map_id: str) -> Call:
 # -- sessions ---------------------------------------------------------------------------------
 
 def create_session(map_id: str, *, mode: str, params: dict[str, Any] | None,
-                   seed: int | None, navigation: dict[str, Any] | None = None) -> Call:
+                   seed: int | None, navigation: dict[str, Any] | None = None,
+                   ttl_s: int | None = None) -> Call:
     body: dict[str, Any] = {"map_id": str(map_id), "mode": mode, "params": dict(params or {})}
     if seed is not None:
         body["seed"] = seed
+    if ttl_s is not None:
+        body["ttl_s"] = int(ttl_s)
     if navigation is not None:
         body["navigation"] = navigation
     return Call("POST", "/v1/sessions", _model(Session), json=body)
@@ -380,12 +384,20 @@ def image_content_type(data: bytes, name: str = "") -> str:
     return guessed or "application/octet-stream"
 
 
+def image_bytes(image: ImageSource) -> bytes:
+    """The bytes of an image given as a path, bytes or ``(name, bytes)``."""
+    return _read_source(image, 0)[1]
+
+
 def _read_source(image: ImageSource, index: int) -> tuple[str, bytes]:
     if isinstance(image, bytes | bytearray | memoryview):
         return f"image-{index}", bytes(image)
     if isinstance(image, tuple):
         name, data = image
         return str(name), bytes(data)
+    if not isinstance(image, str | PathLike):
+        raise TypeError("an image is a path, bytes or (name, bytes), not "
+                        f"{type(image).__name__}")
     path = Path(image)
     return path.name, path.read_bytes()
 

@@ -90,9 +90,11 @@ class Routes(ABC):
         return self._call(rq.upload_images(map_id, images, lat=lat, lon=lon, alt=alt,
                                            captured_at=captured_at))
 
-    def build_map(self, map_id: str) -> Job:
-        """Start a build of the images added since the last one; returns the queued job."""
-        return self._call(rq.build_map(map_id))
+    def build_map(self, map_id: str, *, force: bool = False) -> Job:
+        """Start a build of the images added since the last one; returns the queued job.
+        ``force`` packs a new revision even when there is nothing new (else 409
+        ``map-up-to-date``)."""
+        return self._call(rq.build_map(map_id, force=force))
 
     def get_job(self, job_id: str) -> Job:
         return self._call(rq.get_job(job_id))
@@ -100,14 +102,17 @@ class Routes(ABC):
     def create_session(self, map_id: str, *, mode: str = "hybrid",
                        params: dict[str, Any] | None = None,
                        seed: int | None = None,
-                       navigation: dict[str, Any] | None = None) -> Session:
+                       navigation: dict[str, Any] | None = None,
+                       ttl_s: int | None = None) -> Session:
         """Open a session on a built map; the returned Session carries its token.
 
         ``navigation`` (``route_id``, optionally ``from_node``, ``to_node`` and ``params``)
         makes the session follow a ready route: each pose then carries the path following.
+        ``ttl_s``: seconds without a frame or keep-alive after which it expires (the
+        server's default when None).
         """
         return self._call(rq.create_session(map_id, mode=mode, params=params, seed=seed,
-                                            navigation=navigation))
+                                            navigation=navigation, ttl_s=ttl_s))
 
     def create_route(self, map_id: str, odometry: bytes, *, name: str = "route",
                      params: dict[str, Any] | None = None,

@@ -2,8 +2,12 @@
 
 The server sends ``hello`` once the subscription is live, then one ``pose`` or
 ``frame_error`` per accepted frame in sequence order, ``error`` for a frame sent on the socket
-that it refused, and ``closed`` when the session is deleted. The stream is opened only after
-``hello`` has arrived, so frames posted afterwards cannot be missed.
+that it refused, and ``closed`` when the session is deleted or expires. The stream is opened
+only after ``hello`` has arrived, so frames posted afterwards cannot be missed.
+
+How a stream ends is an exception, never a silent stop: :class:`SessionDeleted` (close code
+4404 after ``closed``), :class:`SessionExpired` (4410), :class:`ServerShutdown` (1001). Only
+the client's own ``close`` ends the iteration quietly.
 
 The socket itself is behind a small connection interface (``send``, ``recv``, ``close``), so
 tests can put the in-process app's WebSocket (Starlette's ``TestClient``) where a real
@@ -19,11 +23,19 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, Protocol
 
-from ._exceptions import APIError, StreamError, WaitTimeout, error_class
+from ._exceptions import (
+    APIError,
+    ServerShutdown,
+    SessionDeleted,
+    SessionExpired,
+    StreamError,
+    WaitTimeout,
+    error_class,
+)
 from ._models import FrameError, Pose, parse_message
-from ._requests import captured_at_param, metadata_params
+from ._requests import ImageSource, captured_at_param, image_bytes, metadata_params
 
-NORMAL_CLOSURE = (1000, 1001)
+NORMAL_CLOSURE = 1000
 
 
 class Closed(Exception):
@@ -70,11 +82,11 @@ class FrameRejected:
 
 Message = Pose | FrameError | FrameRejected
 _SKIP = object()
-_END = object()
 
 
 def _interpret(raw: str | bytes) -> Any:
-    """One server message as what the iterator yields, ``_SKIP`` or ``_END``."""
+    """One server message as what the iterator yields, or ``_SKIP``; raises the session's
+    end for a ``closed`` message."""
     try:
         data = json.loads(raw)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -83,7 +95,8 @@ def _interpret(raw: str | bytes) -> Any:
         raise StreamError(f"unexpected stream message: {raw!r:.100}")
     kind = data.get("type")
     if kind == "closed":
-        return _END
+        raise ended_error(data.get("kind") or "session-deleted",
+                          str(data.get("reason") or ""))
     if kind == "error":
         problem = data.get("problem") or {}
         status = int(problem.get("status", 400))
@@ -94,11 +107,25 @@ def _interpret(raw: str | bytes) -> Any:
     return parsed if isinstance(parsed, Pose | FrameError) else _SKIP
 
 
-def closed_error(code: int | None, reason: str) -> Exception | None:
-    """What a close means: None for a normal end, the HTTP-like error for ``44xx`` codes
-    (4401 -> Unauthorized, 4403 -> Forbidden, 4404 -> NotFound), else StreamError."""
-    if code in NORMAL_CLOSURE:
+def ended_error(kind: str, reason: str, code: int | None = None) -> APIError:
+    """The error of a session whose stream ended: deleted or expired."""
+    cls, status = (SessionExpired, 410) if kind == "session-expired" else (SessionDeleted, 404)
+    return cls(status, type=f"urn:vloc:problem:{kind}", title="stream ended", detail=reason,
+               body={"detail": reason, "close_code": code or 4000 + status})
+
+
+def closed_error(code: int | None, reason: str, *, opened: bool = True) -> Exception | None:
+    """What a close means: None for a normal end (1000); :class:`ServerShutdown` for 1001;
+    :class:`SessionExpired` for 4410; for 4404, :class:`SessionDeleted` once the stream was
+    open (``opened``), else NotFound; the HTTP-like error for other ``44xx`` codes (4401 ->
+    Unauthorized, 4403 -> Forbidden); else StreamError."""
+    if code == NORMAL_CLOSURE:
         return None
+    if code == 1001:
+        return ServerShutdown(reason or "the server is stopping", code=code)
+    if code == 4410 or (code == 4404 and opened):
+        kind = "session-expired" if code == 4410 else "session-deleted"
+        return ended_error(kind, reason, code)
     if code is not None and 4400 <= code < 4600:
         status = code - 4000
         return error_class(status)(status, title="stream refused", detail=reason,
@@ -125,8 +152,10 @@ def frame_meta(seq: int | None, captured_at: datetime | float | str | None,
 class PoseStream:
     """A session's pose stream (blocking). Use as a context manager and iterate.
 
-    Iteration yields :class:`Pose`, :class:`FrameError` and :class:`FrameRejected` messages
-    and ends when the session is deleted or the server closes the socket normally.
+    Iteration yields :class:`Pose`, :class:`FrameError` and :class:`FrameRejected` messages.
+    It raises :class:`SessionDeleted` when the session is deleted, :class:`SessionExpired`
+    when it expires and :class:`ServerShutdown` when the server stops; it ends quietly only
+    once this side has closed the stream.
 
     Parameters
     ----------
@@ -144,6 +173,7 @@ class PoseStream:
         self._conn = conn
         self.timeout = timeout
         self.ended = False
+        self.hello: dict = {}
         try:
             raw = self._recv(timeout if timeout is not None else 30.0)
             first = json.loads(raw)
@@ -153,14 +183,14 @@ class PoseStream:
         if not isinstance(first, dict) or first.get("type") != "hello":
             self.close()
             raise StreamError(f"expected the server's hello, got {raw!r:.100}")
-        self.hello: dict = first
+        self.hello = first
 
     def _recv(self, timeout: float | None) -> str | bytes:
         try:
             return self._conn.recv(timeout)
         except Closed as c:
             self.ended = True
-            error = closed_error(c.code, c.reason)
+            error = closed_error(c.code, c.reason, opened=bool(self.hello))
             if error is not None:
                 raise error from None
             raise
@@ -174,27 +204,33 @@ class PoseStream:
                 raw = self._recv(timeout if timeout is not None else self.timeout)
             except Closed:
                 return None
-            got = _interpret(raw)
-            if got is _END:
-                self.ended = True
-                return None
+            got = self._read(raw)
             if got is not _SKIP:
                 return got
         return None
+
+    def _read(self, raw: str | bytes) -> Any:
+        try:
+            return _interpret(raw)
+        except APIError:
+            self.ended = True
+            raise
 
     def __iter__(self) -> Iterator[Message]:
         while (msg := self.receive()) is not None:
             yield msg
 
-    def send_frame(self, image: bytes, *, seq: int | None = None,
+    def send_frame(self, image: ImageSource, *, seq: int | None = None,
                    captured_at: datetime | float | str | None = None,
                    metadata: Mapping[str, float | None] | None = None) -> None:
-        """Send a JPEG/PNG frame on the socket; its estimate arrives on this stream.
-        ``captured_at`` and ``metadata`` as for :meth:`Client.send_frame`."""
+        """Send a JPEG/PNG frame on the socket (a path, bytes or ``(name, bytes)``); its
+        estimate arrives on this stream. ``captured_at`` and ``metadata`` as for
+        :meth:`Client.send_frame`."""
+        data = image_bytes(image)
         meta = frame_meta(seq, captured_at, metadata)
         if meta is not None:
             self._conn.send(meta)
-        self._conn.send(bytes(image))
+        self._conn.send(data)
 
     def ping(self) -> None:
         """Ask for a ``pong`` (skipped by the iterator; keeps idle proxies from closing)."""
@@ -242,7 +278,7 @@ class AsyncPoseStream:
             return await self._conn.recv(timeout)
         except Closed as c:
             self.ended = True
-            error = closed_error(c.code, c.reason)
+            error = closed_error(c.code, c.reason, opened=bool(self.hello))
             if error is not None:
                 raise error from None
             raise
@@ -255,13 +291,12 @@ class AsyncPoseStream:
                 raw = await self._recv(timeout if timeout is not None else self.timeout)
             except Closed:
                 return None
-            got = _interpret(raw)
-            if got is _END:
-                self.ended = True
-                return None
+            got = self._read(raw)
             if got is not _SKIP:
                 return got
         return None
+
+    _read = PoseStream._read
 
     def __aiter__(self) -> AsyncIterator[Message]:
         return self._iterate()
@@ -270,13 +305,14 @@ class AsyncPoseStream:
         while (msg := await self.receive()) is not None:
             yield msg
 
-    async def send_frame(self, image: bytes, *, seq: int | None = None,
+    async def send_frame(self, image: ImageSource, *, seq: int | None = None,
                          captured_at: datetime | float | str | None = None,
                          metadata: Mapping[str, float | None] | None = None) -> None:
+        data = image_bytes(image)
         meta = frame_meta(seq, captured_at, metadata)
         if meta is not None:
             await self._conn.send(meta)
-        await self._conn.send(bytes(image))
+        await self._conn.send(data)
 
     async def ping(self) -> None:
         await self._conn.send('{"type": "ping"}')

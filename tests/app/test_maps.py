@@ -190,7 +190,7 @@ def test_missing_files_field_is_422(module_client):
     map_id = new_map(module_client)
     before = snapshot(module_client)
     r = module_client.post(f"/v1/maps/{map_id}/images", data={"lat": "1"}, headers=ADMIN)
-    assert r.status_code == 422 and r.json()["type"] == "urn:vloc:problem:validation"
+    assert r.status_code == 422 and r.json()["type"] == "urn:vloc:problem:no-files"
     assert snapshot(module_client) == before
 
 

@@ -72,7 +72,7 @@ def test_heading_altitude_and_geopose_are_never_invented():
     msg = pose.from_estimate(_estimate(), _context(), bound_m=25.0, converged_before=False)
     assert (msg.heading_deg, msg.heading_sigma_deg, msg.heading_source, msg.altitude_m) == \
         (None, None, None, None)
-    assert msg.geopose.quaternion is None and msg.geopose.position.h is None
+    assert msg.geopose is None  # GeoPose Basic needs a height: none without an altitude
     assert msg.horizontal_accuracy_m == pytest.approx(2.0 * math.sqrt(-2 * math.log(0.32)))
     # the frame's own heading and altitude are reported back, marked as the device's
     device = pose.from_estimate(_estimate(), _context(metadata={"heading_deg": 90.0,
@@ -84,7 +84,8 @@ def test_heading_altitude_and_geopose_are_never_invented():
     # heading east (90 deg) is yaw 0 in East-North-Up: the identity rotation
     assert (q.x, q.y, q.z, q.w) == pytest.approx((0.0, 0.0, 0.0, 1.0))
     geometry = pose.from_estimate(_estimate(heading_deg=0.0, heading_sigma_deg=3.0),
-                                  _context(metadata={"heading_deg": 90.0}),
+                                  _context(metadata={"heading_deg": 90.0,
+                                                     "altitude_m": 10.0}),
                                   bound_m=25.0, converged_before=False)
     q = geometry.geopose.quaternion
     assert geometry.heading_source == "geometry" and geometry.heading_deg == 0.0
@@ -114,7 +115,7 @@ def test_poses_name_the_map_and_its_matched_image(service, shots):
         assert p["map_id"] == service.map_id and p["map_revision"] == revision
         assert p["image_id"] in images and images[p["image_id"]] == p["image_filename"]
         assert p["horizontal_accuracy_m"] == pytest.approx(horizontal_accuracy(p["cov"]))
-        assert p["geopose"]["position"] == {"lat": p["lat"], "lon": p["lon"], "h": None}
+        assert p["geopose"] is None  # no altitude sent
         assert p["converged"] == (p["status"] == "tracking"
                                   and p["horizontal_accuracy_m"] <= 25.0)
         assert "best_image" not in p

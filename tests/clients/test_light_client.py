@@ -63,6 +63,7 @@ def test_the_client_installs_alone_and_talks_to_a_server(live_server, shots, tmp
                     ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "build"))
     env_dir = tmp_path / "venv"
     venv.create(env_dir, with_pip=True)
+    before = sorted(p.name for p in source.iterdir())
     out = _pip(env_dir, "install", "--quiet", str(source))
     if out.returncode:
         if "No matching distribution" in out.stderr or "Could not find" in out.stderr or \
@@ -72,6 +73,8 @@ def test_the_client_installs_alone_and_talks_to_a_server(live_server, shots, tmp
                 pytest.fail(message)
             pytest.skip(message)
         pytest.fail(out.stdout + out.stderr)
+    # `pip install ./clients/sdk` leaves the checkout as it was: no build/, no egg-info
+    assert sorted(p.name for p in source.iterdir()) == before
     installed = {re.match(r"[A-Za-z0-9_.-]+", line).group(0).lower().replace("_", "-")
                  for line in _pip(env_dir, "freeze", "--all").stdout.splitlines() if line}
     assert {"vloc-client", "httpx", "websockets", "pydantic"} <= installed

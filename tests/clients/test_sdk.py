@@ -34,6 +34,7 @@ from vloc.clients.sdk import (
     RetryPolicy,
     ServerError,
     Session,
+    SessionDeleted,
     TooManyRequests,
     TransportError,
     Unauthorized,
@@ -374,12 +375,14 @@ def test_stream_takes_frames_and_reports_refusals(vloc, session, shots):
     assert isinstance(after, Pose) and after.seq == 4
 
 
-def test_stream_ends_when_the_session_is_deleted(vloc, built_map):
+def test_stream_raises_when_the_session_is_deleted(vloc, built_map):
     s = vloc.create_session(built_map, mode="sift", params=FAST)
     with vloc.stream(s, timeout=60) as poses:
         vloc.delete_session(s)
-        assert list(poses) == []
+        with pytest.raises(SessionDeleted) as info:
+            list(poses)
         assert poses.ended
+    assert isinstance(info.value, NotFound) and info.value.kind == "session-deleted"
 
 
 def test_stream_refusals(vloc, app_client, session):
@@ -438,7 +441,8 @@ async def test_real_sockets_async(live_server, shots):
             await poses.send_frame(queries[1].jpeg, seq=1)
             got = [await poses.receive(), await poses.receive()]
             await vloc.delete_session(s)
-            assert [m async for m in poses] == []
+            with pytest.raises(SessionDeleted):
+                [m async for m in poses]
         assert [p.seq for p in got] == [0, 1]
         with pytest.raises(NotFound):
             await vloc.stream(s.id)

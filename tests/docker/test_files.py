@@ -30,7 +30,7 @@ def test_the_lock_pins_every_runtime_dependency_as_installed():
               if line and not line.startswith("#")}
     assert pinned == expected, "run docker/lock.py"
     names = {p.split("==")[0] for p in pinned}
-    assert {"fastapi", "opencv-python-headless", "swagger-ui-bundle", "uvloop"} <= names
+    assert {"fastapi", "opencv-python-headless", "fastapi-offline", "uvloop"} <= names
     assert not names & {"pytest", "ruff", "hypothesis", "schemathesis"}
 
 

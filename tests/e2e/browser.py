@@ -123,3 +123,41 @@ def serve_in_thread(settings, timeout: float = 60.0) -> Iterator[LiveServer]:
     finally:
         server.should_exit = True
         thread.join(60)
+
+
+# -- the viewer tests' server and map (fixtures in conftest.py) ------------------------------
+
+N_MAP = 10
+TILE_URL = "https://tiles.invalid/{z}/{x}/{y}.png"
+"""Never reached: the tests answer its requests inside the browser."""
+
+
+def viewer_server(data) -> Iterator[LiveServer]:
+    from tests.app.conftest import service_settings
+
+    settings = service_settings(data / "data", f"sqlite:///{data / 'vloc.sqlite3'}",
+                                viewer_tile_url=TILE_URL, viewer_tile_attribution="test tiles")
+    yield from serve_in_thread(settings)
+
+
+def viewer_world(live: LiveServer) -> dict:
+    """A map of N_MAP geotagged images built over HTTP: its id, its shots, query frames."""
+    import httpx
+
+    from tests.app.conftest import ADMIN
+    from tests.app.imagery import map_and_queries
+
+    maps, queries = map_and_queries(N_MAP)
+    with httpx.Client(base_url=live.base_url, headers=ADMIN, timeout=60) as http:
+        map_id = http.post("/v1/maps", json={"name": "viewer test"}).json()["id"]
+        files = [("files", (s.name, s.jpeg, "image/jpeg")) for s in maps]
+        r = http.post(f"/v1/maps/{map_id}/images", files=files)
+        assert r.status_code == 201 and len(r.json()["accepted"]) == N_MAP, r.text
+        job_id = http.post(f"/v1/maps/{map_id}/build").json()["job_id"]
+        deadline = time.monotonic() + 120
+        while (job := http.get(f"/v1/jobs/{job_id}").json())["status"] not in ("done",
+                                                                               "failed"):
+            assert time.monotonic() < deadline, job
+            time.sleep(0.1)
+        assert job["status"] == "done", job
+    return {"map_id": map_id, "maps": maps, "queries": queries}

@@ -1,4 +1,5 @@
-"""A real ``vloc serve`` process on a free port."""
+"""A real ``vloc serve`` process on a free port; the viewer tests' browser, in-process
+server and built map."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import httpx
 import pytest
 
 from tests.conftest import REPO_ROOT
+from tests.e2e.browser import launch_browser, viewer_server, viewer_world
 
 
 @dataclass
@@ -79,3 +81,19 @@ def server(tmp_path) -> Iterator[Server]:
     if srv.process.poll() is None:
         srv.process.kill()
         srv.process.wait(10)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    yield from launch_browser()
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    yield from viewer_server(tmp_path_factory.mktemp("viewer"))
+
+
+@pytest.fixture(scope="module")
+def world(live):
+    """The built map, its shots and the query frames."""
+    return viewer_world(live)

@@ -62,6 +62,11 @@ def test_demo_exits_0_and_prints_the_table(demo):
     assert results["frames"] == FRAMES
     assert "hybrid vs sift-only" in proc.stdout and "server: stopped" in proc.stdout
     assert re.search(r"^viewer: http://127\.0\.0\.1:\d+/ui/ ", proc.stdout, re.M), proc.stdout
+    # the sessions' configuration is said, beside the service's default, and the Replays
+    # page names it for each track
+    assert "sessions: filter configuration weiss2008; the service's default is `default`" \
+        in proc.stdout
+    assert {t["config"] for t in results["tracks"]} == {"weiss2008"}
 
 
 def test_hybrid_error_close_to_sift_with_fewer_sift_steps(demo):

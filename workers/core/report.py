@@ -88,9 +88,16 @@ def grid_table(grid: dict) -> str:
     return "\n".join(lines)
 
 
+PALETTE = ("#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#e377c2",
+           "#8c564b", "#bcbd22", "#7f7f7f", "#393b79", "#637939")
+"""Track colours, in order: the web viewer's (``app/ui/static/common.js``), so that a mode
+has one colour in the PNG and on the Replays page."""
+
+
 def plot_tracks(path: str | Path, map_xy: np.ndarray,
                 results: dict[str, dict[str, ModeSummary]], *, title: str = "") -> Path:
-    """PNG of the map images, the true track and each mode's estimates (first run)."""
+    """PNG of the map images, the true track and each mode's estimates (first run), in the
+    viewer's colours; the legend's median error is the table's (after ``skip`` frames)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -101,13 +108,15 @@ def plot_tracks(path: str | Path, map_xy: np.ndarray,
     fig, ax = plt.subplots(figsize=(8, 7), dpi=110)
     ax.scatter(map_xy[:, 0], map_xy[:, 1], s=8, c="0.75", label="map images")
     truth_drawn = False
-    for mode, summary in modes.items():
+    for k, (mode, summary) in enumerate(modes.items()):
         run = summary.runs[0]
         if not truth_drawn:
             ax.plot(run.truth[:, 0], run.truth[:, 1], "k-", lw=2, label="true track")
             truth_drawn = True
+        median = summary.to_dict()["median_error_m"]
         ax.plot(run.estimate[:, 0], run.estimate[:, 1], ".-", lw=0.8, ms=3,
-                label=f"{mode} ({np.median(run.errors):.1f} m median)")
+                color=PALETTE[k % len(PALETTE)],
+                label=f"{mode} ({median:.1f} m median)")
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     ax.set_aspect("equal", adjustable="datalim")

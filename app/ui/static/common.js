@@ -34,6 +34,7 @@ const NorthArrow = L.Control.extend({
 new NorthArrow().addTo(plan);
 export const cloudRenderer = L.canvas({ padding: 0.2 });
 export const imageLayer = L.layerGroup().addTo(plan);
+export const liveLayer = L.layerGroup().addTo(plan);  // the watched sessions' drawings
 
 // plan coordinates: Leaflet's (lat, lng) are (north, east) in metres under CRS.Simple
 export const at = (east, north) => L.latLng(north, east);

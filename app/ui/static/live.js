@@ -5,7 +5,7 @@
 // what was drawn and how long the frames took.
 
 import {
-  $, PALETTE, api, at, cloudRenderer, imageLayer, listAll, plan, say, state,
+  $, PALETTE, api, at, cloudRenderer, imageLayer, listAll, liveLayer, plan, say, state,
 } from "./common.js";
 import { imageUrl, refreshMaps, selectMap } from "./maps.js";
 import { setOrigin } from "./tiles.js";
@@ -16,26 +16,51 @@ const TRACK_LIMIT = 5000;       // points kept per track; older ones are dropped
 const THUMB_INTERVAL_MS = 1000; // at most one last-frame fetch per session per second
 const STEP_CELLS = 60;          // frames shown in a card's strip of step kinds
 const RECONNECT_MS = [500, 1000, 2000, 5000, 10000];  // waits before each new attempt
-const FINAL_CLOSE = new Set([4401, 4403, 4404]);    // refused: trying again will not help
+const FINAL_CLOSE = new Set([4401, 4403, 4404, 4410]);    // refused: trying again will not help
 
+const TABLE_REFRESH_MS = 2000;   // the sessions table's counters, while it is shown
+
+// The sessions table: rows added and removed as sessions come and go, the counters of the
+// existing ones updated in place (a tick box being clicked stays where it is).
 export async function refreshSessions() {
   const sessions = await listAll("/v1/sessions");
   const body = $("#sessions-table tbody");
+  const rows = new Map([...body.children].map((tr) => [tr.dataset.sessionId, tr]));
   body.replaceChildren(...sessions.map((s) => {
-    const tr = document.createElement("tr");
-    tr.dataset.sessionId = s.id;
-    const box = document.createElement("input");
-    box.type = "checkbox";
-    box.checked = state.watchers.has(s.id);
-    box.addEventListener("change", () => (box.checked ? watch(s) : unwatch(s.id)));
-    const cells = [box, s.id.slice(0, 8), s.mode, String(s.frames_processed)];
-    for (const c of cells) {
-      const td = document.createElement("td");
-      td.append(c);
-      tr.append(td);
-    }
+    const tr = rows.get(s.id) || sessionRow(s);
+    tr.querySelector("[data-f=frames]").textContent = String(s.frames_processed);
+    tr.querySelector("input").checked = state.watchers.has(s.id);
     return tr;
   }));
+}
+
+function sessionRow(s) {
+  const tr = document.createElement("tr");
+  tr.dataset.sessionId = s.id;
+  const box = document.createElement("input");
+  box.type = "checkbox";
+  box.addEventListener("change", () => (box.checked ? watch(s) : unwatch(s.id)));
+  const cells = [box, s.id.slice(0, 8), s.mode, ""];
+  for (const c of cells) {
+    const td = document.createElement("td");
+    td.append(c);
+    tr.append(td);
+  }
+  tr.lastChild.dataset.f = "frames";
+  return tr;
+}
+
+// Refresh the table every TABLE_REFRESH_MS while the Live tab shows it.
+let tableTimer = null;
+export function followSessions(on) {
+  clearTimeout(tableTimer);
+  tableTimer = null;
+  if (!on) return;
+  const tick = async () => {
+    try { await refreshSessions(); } catch (err) { say(`sessions: ${err.message}`); }
+    if (tableTimer !== null) tableTimer = setTimeout(tick, TABLE_REFRESH_MS);
+  };
+  tableTimer = setTimeout(tick, 0);
 }
 
 export async function watch(session) {
@@ -99,6 +124,10 @@ class Watcher {
       <dt>step</dt><dd data-f="step">-</dd><dt>position</dt><dd data-f="pos">-</dd>
       <dt>&sigma; (m)</dt><dd data-f="sigma">-</dd><dt>latency</dt><dd data-f="latency">-</dd>
       </dl><div class="steps" data-f="steps" title="step kind per frame: global, sift, refined"></div>
+      <div class="steps-legend" aria-label="step kinds">
+        <span><i class="step-cell step-global"></i>global features</span>
+        <span><i class="step-cell step-sift"></i>SIFT</span>
+        <span><i class="step-cell step-refined"></i>refined (registered)</span></div>
       <div class="thumbs">
       <figure><img data-f="frame" alt="last frame"><figcaption data-f="frame-cap">last frame</figcaption></figure>
       <figure><img data-f="best" alt="best matched map image"><figcaption data-f="best-cap">best match</figcaption></figure>
@@ -112,7 +141,7 @@ class Watcher {
   field(name) { return this.card.querySelector(`[data-f="${name}"]`); }
 
   open() {
-    for (const layer of Object.values(this.layers)) layer.addTo(plan);
+    for (const layer of Object.values(this.layers)) layer.addTo(liveLayer);
     this.attempts = 0;
     this.connect();
     this.loadHistory();
@@ -224,7 +253,8 @@ class Watcher {
       this.field("status").textContent = `frame ${msg.seq}: ${msg.kind}`;
     } else if (msg.type === "closed") {
       this.deleted = true;
-      this.field("status").textContent = "session deleted";
+      this.field("status").textContent = msg.kind === "session-expired"
+        ? "session expired" : "session deleted";
     }
   }
 
@@ -411,6 +441,10 @@ window.vlocViewer = {
     const p = plan.latLngToContainerPoint(at(east, north));
     const box = plan.getContainer().getBoundingClientRect();
     return { x: box.left + p.x, y: box.top + p.y };
+  },
+  view() {  // the plan's centre (metres) and zoom
+    const c = plan.getCenter();
+    return { north: c.lat, east: c.lng, zoom: plan.getZoom() };
   },
   markerOf(sessionId) {
     const w = state.watchers.get(sessionId);

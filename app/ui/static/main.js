@@ -5,8 +5,8 @@
 // sessionStorage and travel only in headers (fetch) or as the WebSocket subprotocol
 // `vloc.token.<secret>`: never in a URL, which servers and proxies log.
 
-import { $, api, imageLayer, plan, state } from "./common.js";
-import { refreshSessions, watch } from "./live.js";
+import { $, api, imageLayer, liveLayer, plan, state } from "./common.js";
+import { followSessions, watch } from "./live.js";
 import { refreshMaps } from "./maps.js";
 import { replayLayer } from "./replays.js";
 import { installTiles, setOrigin } from "./tiles.js";
@@ -66,20 +66,30 @@ $("#sign-out").addEventListener("click", () => {
   location.reload();
 });
 
+let shownTab = null;
+let viewBeforeReplays = null;  // the plan's view when the Replays tab was opened
+
 function showTab(name) {
   $("#maps-pane").hidden = name !== "maps";
   $("#live-pane").hidden = name !== "live";
   $("#replays-pane").hidden = name !== "replays";
-  // a loaded replay has the plan to itself; maps and live sessions come back after it
-  for (const layer of [imageLayer]) {
+  // a loaded replay has the plan to itself; maps and live sessions come back after it,
+  // framed as they were
+  for (const layer of [imageLayer, liveLayer]) {
     if (name === "replays") layer.remove(); else layer.addTo(plan);
   }
   if (name === "replays") replayLayer.addTo(plan); else replayLayer.remove();
+  if (name === "replays" && shownTab !== "replays") {
+    viewBeforeReplays = { center: plan.getCenter(), zoom: plan.getZoom() };
+  } else if (name !== "replays" && shownTab === "replays" && viewBeforeReplays) {
+    plan.setView(viewBeforeReplays.center, viewBeforeReplays.zoom, { animate: false });
+  }
+  shownTab = name;
   // a replay's file says nothing of where on earth its frame is
   setOrigin(name === "replays" ? null : state.origin);
   document.querySelectorAll("#tabs button").forEach((b) =>
     b.classList.toggle("active", b.dataset.tab === name));
-  if (name === "live" && state.creds.kind === "admin") refreshSessions();
+  followSessions(name === "live" && state.creds.kind === "admin");
 }
 document.querySelectorAll("#tabs button").forEach((b) =>
   b.addEventListener("click", () => showTab(b.dataset.tab)));
