@@ -36,9 +36,12 @@ EXTRACT_SHARE = 0.5
 TIE_SHARE = 0.15
 """Share it fills next while the reconstruction's tie points are extracted, ..."""
 
-PAIR_SHARE = 0.15
-"""... and next while the engine's workers match them pair by pair; packing the map (the
-reconstruction included) is the rest."""
+PAIR_SHARE = 0.1
+"""... next while the engine's workers match them pair by pair, ..."""
+
+TILE_SHARE = 0.15
+"""... and next while they reconstruct a large map tile by tile; packing the map (a small
+map's reconstruction included) is the rest."""
 
 PAIR_BATCH = 256
 """Pairs of map images matched per engine call: a few seconds of work, so that a call's
@@ -120,16 +123,18 @@ class BuildRunner(BackgroundRunner):
         folder = self.settings.packed_map_dir(str(map_id), revision)
         lens_files, image_files = await asyncio.to_thread(self._files, map_id)
         # The reconstruction's tie points, extracted over the images in parallel by the
-        # engine's workers into a folder beside the revision, their pairs matched there, and
-        # the folder removed once the revision is packed. A build that fails leaves it: a
-        # retry packs the same revision and takes up the tie points and pairs found there
-        # (an hour of work for a map of 50,000 images) instead of computing them again.
+        # engine's workers into a folder beside the revision, their pairs matched and a large
+        # map's tiles reconstructed there, and the folder removed once the revision is
+        # packed. A build that fails leaves it: a retry packs the same revision and takes up
+        # the tie points, pairs and tiles found there (hours of work for a map of 50,000
+        # images) instead of computing them again.
         tie_dir = folder.with_name(folder.name + ".ties")
         await asyncio.to_thread(tie_dir.mkdir, parents=True, exist_ok=True)
         await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
             tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id)))
             for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
         await self._match_pairs(job_id, url, map_id, tie_dir)
+        await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files)
         packed = await asyncio.wrap_future(self.engine.call(
             tasks.pack_map, url, str(map_id), revision, str(folder),
             lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir)))
@@ -151,6 +156,16 @@ class BuildRunner(BackgroundRunner):
             batches.append(asyncio.wrap_future(self.engine.call(
                 tasks.match_tie_pairs, str(tie_dir), names, batch, len(batches))))
         await self._fan_out(job_id, batches, EXTRACT_SHARE + TIE_SHARE, PAIR_SHARE)
+
+    async def _reconstruct_tiles(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
+                                 tie_dir: Path, lens_files: list[str]) -> None:
+        """A large map's reconstruction, tile by tile on the engine's workers
+        (:mod:`vloc.workers.core.tiles`); the packing reads the results from ``tie_dir``."""
+        n = await asyncio.wrap_future(self.engine.call(
+            tasks.plan_tiles, url, str(map_id), str(tie_dir), lens_files))
+        await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
+            tasks.reconstruct_tile, str(tie_dir), k)) for k in range(n)],
+            EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE, TILE_SHARE)
 
     async def _fan_out(self, job_id: uuid.UUID, futures: list, start: float,
                        share: float) -> None:

@@ -131,6 +131,31 @@ def match_tie_pairs(tie_dir: str, image_ids: dict[int, int], pairs: list[tuple[i
                                 Path(tie_dir) / f"pairs-{batch:06d}.npz")
 
 
+def plan_tiles(database_url: str, map_id: str, tie_dir: str,
+               lens_files: list[str] | None = None) -> int:
+    """Write the tiles of a large map's reconstruction to ``tie_dir`` from the pairs matched
+    there (:mod:`vloc.workers.core.tiles`), for :func:`reconstruct_tile` to reconstruct;
+    returns how many (0 for a map the packing reconstructs whole)."""
+    from vloc.workers.core import tiepairs, tiles
+    from vloc.workers.core.mapbuild import local_frame, typical_focal_px
+
+    images = _read_images(database_url, map_id)
+    known = tiepairs.load_results(tie_dir, [img["id"] for img in images])
+    _, xy, alt = local_frame([img["lat"] for img in images], [img["lon"] for img in images],
+                             [img["alt"] for img in images])
+    return tiles.plan(tie_dir, [p for _, p in sorted(known.items()) if p is not None], xy,
+                      alt, typical_focal_px(_readers(lens_files or [])),
+                      [tie_stem(tie_dir, img["id"]) for img in images])
+
+
+def reconstruct_tile(tie_dir: str, tile: int) -> int:
+    """Reconstruct one planned tile of the map (:func:`plan_tiles`); run by the engine's
+    workers, the result written to ``tie_dir`` for :func:`pack_map`."""
+    from vloc.workers.core import tiles
+
+    return tiles.reconstruct(tie_dir, tile)
+
+
 def tie_stem(tie_dir: str | Path, image_id: int) -> str:
     """Where a build keeps image ``image_id``'s tie points in ``tie_dir``."""
     return str(Path(tie_dir) / str(image_id))
@@ -200,7 +225,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     extracted here from its file in ``image_files`` (image id -> file), and one whose file
     is missing or unreadable is tied by its stored SIFT. Without ``tie_dir`` they go to a
     folder beside ``folder``, removed afterwards. Pairs of them matched in ``tie_dir``
-    beforehand (:func:`match_tie_pairs`) are not matched again.
+    beforehand (:func:`match_tie_pairs`) are not matched again, nor tiles of the
+    reconstruction reconstructed there (:func:`reconstruct_tile`) reconstructed again.
 
     The place descriptors' vocabularies are trained here on the map's images and stored in
     ``map_vocabularies`` under ``revision`` (replacing rows a failed earlier attempt at the
@@ -216,7 +242,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         ``north`` in the new local frame, and ``geometry``: what became of the map's camera
         geometry (:func:`vloc.workers.core.mapbuild.geometry_report`).
     """
-    from vloc.workers.core import tiepairs
+    from vloc.workers.core import tiepairs, tiles
     from vloc.workers.core.mapbuild import (
         TiePointFiles,
         assemble_map,
@@ -239,8 +265,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                 if tie is None and extract_ties((image_files or {}).get(img["id"]), stem) >= 0:
                     tie = TiePointFiles.find(stem)
                 ties.append(tie)
-        with stage(timings, "reading tie pairs"):
+        with stage(timings, "reading tie pairs and tiles"):
             known = tiepairs.load_results(ties_at, [img["id"] for img in images])
+            reconstructed = tiles.load_results(ties_at)
         # The features go straight into the map: holding no list of them here lets the
         # build drop each image's decoded copy once the map has packed them.
         data = assemble_map(names=[img["filename"] for img in images],
@@ -251,6 +278,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                                                     timings),
                             captured_at=[img["captured_at"] for img in images],
                             map_id=map_id, revision=revision, known_pairs=known,
+                            known_tiles=reconstructed,
                             focal_px=typical_focal_px(_readers(lens_files or [])),
                             timings=timings, report=report)
     finally:

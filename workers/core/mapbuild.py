@@ -171,7 +171,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  ratio: float = RATIO, geometry: bool = True,
                  focal_px: float | None = None,
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
-                 known_pairs: dict | None = None,
+                 known_pairs: dict | None = None, known_tiles: dict | None = None,
                  timings: dict[str, tuple[float, float]] | None = None,
                  report: dict | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
@@ -202,9 +202,10 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     seed : int
         Seeds the vocabulary training and the reconstruction's RANSAC: the same images
         give the same map.
-    known_pairs : dict, optional
+    known_pairs, known_tiles : dict, optional
         The reconstruction's tie-point pairs matched beforehand with the same ``seed``
-        (:mod:`workers.core.tiepairs`); the others are matched here.
+        (:mod:`workers.core.tiepairs`), and a large map's tiles reconstructed beforehand
+        (:mod:`workers.core.tiles`); the others are matched and reconstructed here.
     timings : dict, optional
         Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
         ``"vocabularies"`` (training and describing every image), ``"packing"``,
@@ -255,7 +256,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     if geometry:
         with stage(timings, "geometry"):
             data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
-                                         known_pairs=known_pairs, report=report)
+                                         known_pairs=known_pairs, known_tiles=known_tiles,
+                                         report=report)
     return data
 
 
@@ -273,13 +275,15 @@ def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
 
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
                  tie_points: list[SiftFeatures | TiePointFiles | None] | None = None,
-                 known_pairs: dict | None = None, report: dict | None = None):
+                 known_pairs: dict | None = None, known_tiles: dict | None = None,
+                 report: dict | None = None):
     """The map's camera geometry with every stored SIFT (and ORB) keypoint's 3-D point,
     checked by localising the map's own images (:func:`workers.core.selfcheck.self_check`),
     or None.
 
     ``tie_points`` (one per image, None where missing) tie the images together; an image
-    without them is tied by its stored SIFT. ``known_pairs`` are pairs matched beforehand
+    without them is tied by its stored SIFT. ``known_pairs`` and ``known_tiles`` are pairs
+    matched and tiles reconstructed beforehand
     (:func:`~workers.core.geometry.build_geometry`). ``report`` is filled with what became
     of the geometry (:func:`geometry_report`).
     """
@@ -294,7 +298,8 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     kps, desc = _Field(ties, "keypoints"), _Field(ties, "descriptors")
     report = {} if report is None else report
     built = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
-                           focal_px, seed=seed, known_pairs=known_pairs)
+                           focal_px, seed=seed, known_pairs=known_pairs,
+                           known_tiles=known_tiles)
     if built is None:
         report.update(status="none", images=n,
                       reason="structure from motion placed too few cameras consistently "

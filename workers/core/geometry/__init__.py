@@ -79,6 +79,7 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
                    positions: np.ndarray, altitudes: np.ndarray, focal_px: float | None, *,
                    seed: int = 0,
                    known_pairs: dict[tuple[int, int], PairMatches | None] | None = None,
+                   known_tiles: dict | None = None,
                    ) -> tuple[MapGeometry, Structure] | None:
     """Reconstruct the map's cameras and 3-D points, or None where that fails.
 
@@ -98,6 +99,9 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
     known_pairs : dict, optional
         Pairs of :func:`tie_pairs` matched elsewhere with the same ``seed``
         (:func:`.pairs.match_pair`); the rest are matched here.
+    known_tiles : dict, optional
+        Tiles of a large map reconstructed elsewhere, by :func:`.sfm.tile_key`
+        (:mod:`workers.core.tiles`); the rest are reconstructed here.
 
     Returns
     -------
@@ -112,7 +116,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
     with threadpool_limits(limits=1, user_api="blas"):
         pairs = match_pairs(keypoints, descriptors, positions,
                             max_distance=tie_reach(positions), seed=seed, known=known_pairs)
-        structure = reconstruct(keypoints, pairs, positions, altitudes, focal_px, seed=seed)
+        structure = reconstruct(keypoints, pairs, positions, altitudes, focal_px, seed=seed,
+                                known_tiles=known_tiles)
     if structure is None:
         return None
     if (structure.placed.mean() < MIN_PLACED or structure.residual_px > MAX_RESIDUAL_PX

@@ -27,6 +27,7 @@ pixels mean what its defaults intend.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import tempfile
 from collections.abc import Sequence
@@ -135,7 +136,9 @@ def colmap_camera(focal_px: float | None):
 
 def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                 positions: np.ndarray, altitudes: np.ndarray, focal_px: float | None, *,
-                seed: int = 0) -> Structure | None:
+                seed: int = 0,
+                known_tiles: dict[str, list[TileModel] | None] | None = None,
+                ) -> Structure | None:
     """The map's cameras and 3-D points from its tie points and verified pairs.
 
     A map of more than :data:`MAX_TILE` images is reconstructed tile by tile
@@ -156,6 +159,9 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
         EXIF focal length at the working resolution; None where unknown.
     seed : int
         Seeds COLMAP and the alignment's RANSAC: the same inputs give the same map.
+    known_tiles : dict, optional
+        Tiles reconstructed elsewhere (:func:`tile_models`), by :func:`tile_key`; the
+        others are reconstructed here.
 
     Returns
     -------
@@ -167,23 +173,60 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     if len(pairs) == 0 or len(positions) < 3:
         return None
     tiles = spatial_tiles(positions, MAX_TILE)
-    if len(tiles) == 1:
-        models = _reconstruct_tile(keypoints, pairs, gps, focal_px, seed)
-        return None if models is None else _structure(models, len(positions), gps)
-    found: list[tuple[np.ndarray, _Model]] = []
+    found: list[tuple[np.ndarray, TileModel]] = []
     for inside in tiles:
-        index = np.full(len(positions), -1)
-        index[inside] = np.arange(len(inside))
-        sub = [PairMatches(int(index[p.a]), int(index[p.b]), p.matches, p.config)
-               for p in pairs if index[p.a] >= 0 and index[p.b] >= 0]
-        models = _reconstruct_tile(_Subset(keypoints, inside), sub, gps[inside], focal_px,
-                                   seed) if sub else None
-        for m in models or []:
-            m.images = inside[m.images]
-            found.append((inside, m))
+        key = tile_key(inside, pairs, gps, focal_px, seed)
+        if known_tiles is not None and key in known_tiles:
+            models = known_tiles[key]
+        else:
+            models = tile_models(keypoints, pairs, gps, focal_px, inside, seed=seed)
+        found += [(inside, m) for m in models or []]
     if not found:
         return None
-    return _structure(_by_centrality(found, positions), len(positions), gps)
+    if len(tiles) > 1:
+        found = [(None, m) for m in _by_centrality(found, positions)]
+    return _structure([m for _, m in found], len(positions), gps)
+
+
+def tile_pairs(pairs: list[PairMatches], inside: np.ndarray) -> list[PairMatches]:
+    """The pairs with both images in the tile ``inside`` (map indices), by (a, b)."""
+    member = set(np.asarray(inside).tolist())
+    return sorted((p for p in pairs if p.a in member and p.b in member),
+                  key=lambda p: (p.a, p.b))
+
+
+def tile_key(inside: np.ndarray, pairs: list[PairMatches], gps: np.ndarray,
+             focal_px: float | None, seed: int) -> str:
+    """What a tile's reconstruction depends on, hashed: its images, their GPS, their pairs
+    (:func:`tile_pairs`), the focal length and the seed. A tile reconstructed elsewhere
+    (:mod:`workers.core.tiles`) is taken up where its key is the one the packing finds."""
+    inside = np.ascontiguousarray(inside, np.int64)
+    h = hashlib.sha1()
+    h.update(inside.tobytes())
+    h.update(np.ascontiguousarray(gps[inside], np.float64).tobytes())
+    h.update(repr((None if focal_px is None else float(focal_px), int(seed))).encode())
+    for p in tile_pairs(pairs, inside):
+        h.update(np.array([p.a, p.b, p.config], np.int64).tobytes())
+        h.update(np.ascontiguousarray(p.matches, np.int64).tobytes())
+    return h.hexdigest()
+
+
+def tile_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches], gps: np.ndarray,
+                focal_px: float | None, inside: np.ndarray, *,
+                seed: int = 0) -> list[TileModel] | None:
+    """COLMAP's models of the tile ``inside`` (map indices), aligned to their GPS; their
+    images are map indices. ``keypoints`` and ``gps`` are the whole map's, read by index."""
+    inside = np.asarray(inside, np.int64)
+    index = np.full(len(gps), -1)
+    index[inside] = np.arange(len(inside))
+    sub = [PairMatches(int(index[p.a]), int(index[p.b]), p.matches, p.config)
+           for p in tile_pairs(pairs, inside)]
+    if not sub:
+        return None
+    models = _reconstruct_tile(_Subset(keypoints, inside), sub, gps[inside], focal_px, seed)
+    for m in models or []:
+        m.images = inside[m.images]
+    return models
 
 
 def spatial_tiles(positions: np.ndarray, max_size: int) -> list[np.ndarray]:
@@ -212,7 +255,11 @@ def spatial_tiles(positions: np.ndarray, max_size: int) -> list[np.ndarray]:
         lo, hi = positions[part].min(axis=0) - margin, positions[part].max(axis=0) + margin
         inside = np.all((positions >= lo) & (positions <= hi), axis=1)
         tiles.append(np.flatnonzero(inside))
-    return tiles
+    # a small map's widened tiles may hold one another: each is reconstructed once
+    sets = [set(t.tolist()) for t in tiles]
+    return [t for k, t in enumerate(tiles)
+            if not any(sets[k] < sets[j] or (sets[k] == sets[j] and j < k)
+                       for j in range(len(tiles)) if j != k)]
 
 
 class _Subset(Sequence):
@@ -228,8 +275,8 @@ class _Subset(Sequence):
         return self._items[int(self._index[k])]
 
 
-def _by_centrality(found: list[tuple[np.ndarray, _Model]],
-                   positions: np.ndarray) -> list[_Model]:
+def _by_centrality(found: list[tuple[np.ndarray, TileModel]],
+                   positions: np.ndarray) -> list[TileModel]:
     """The tiles' models with each image kept only in the tile whose centre it is nearest
     (the tile reconstructed most of what surrounds it)."""
     best: dict[int, tuple[float, int]] = {}
@@ -244,7 +291,7 @@ def _by_centrality(found: list[tuple[np.ndarray, _Model]],
         keep = np.array([best[i][1] == k for i in m.images.tolist()], bool)
         if keep.sum() == 0:
             continue
-        out.append(_Model(m.images[keep], m.rotations[keep], m.centres[keep],
+        out.append(TileModel(m.images[keep], m.rotations[keep], m.centres[keep],
                           [o for o, y in zip(m.observations, keep, strict=True) if y],
                           [p for p, y in zip(m.points, keep, strict=True) if y],
                           m.camera, m.residual_px))
@@ -253,7 +300,7 @@ def _by_centrality(found: list[tuple[np.ndarray, _Model]],
 
 def _reconstruct_tile(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                       gps: np.ndarray, focal_px: float | None,
-                      seed: int) -> list[_Model] | None:
+                      seed: int) -> list[TileModel] | None:
     """COLMAP's models of one set of images (indices of ``keypoints``), aligned to ``gps``;
     run again with the intrinsics held where refining them went astray."""
     with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
@@ -268,9 +315,10 @@ def _reconstruct_tile(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
 
 
 @dataclass
-class _Model:
+class TileModel:
     """One of COLMAP's models, aligned to GPS: per placed image (map index) its pose,
-    observed tie points and their 3-D points."""
+    observed tie points and their 3-D points, with the model's camera (COLMAP's f, cx, cy,
+    k at :data:`COLMAP_SCALE`) and mean reprojection error."""
 
     images: np.ndarray
     rotations: np.ndarray
@@ -314,7 +362,7 @@ def _write_database(path: Path, keypoints: Sequence[np.ndarray], pairs: list[Pai
 
 
 def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool,
-         seed: int) -> list[_Model] | None:
+         seed: int) -> list[TileModel] | None:
     """COLMAP's incremental mapper over ``database``, each model aligned to ``gps``."""
     import pycolmap
 
@@ -333,6 +381,8 @@ def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool,
     out = folder / ("refined" if refine else "held")
     out.mkdir(exist_ok=True)
     pycolmap.set_random_seed(seed)
+    # COLMAP logs every registration to the process's stderr: its errors only
+    pycolmap.logging.minloglevel = pycolmap.logging.ERROR
     models = pycolmap.incremental_mapping(str(database), str(folder), str(out), options)
     rng = np.random.default_rng(seed)
     aligned = [m for m in (_aligned(rec, gps, rng) for _, rec in sorted(models.items()))
@@ -340,7 +390,7 @@ def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool,
     return aligned or None
 
 
-def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> _Model | None:
+def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> TileModel | None:
     """A COLMAP model on the map's GPS, without the cameras the alignment refuses."""
     images, rotations, centres, observations, points = [], [], [], [], []
     for image in rec.images.values():
@@ -372,21 +422,21 @@ def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> _Model | None:
         return None
     keep = np.flatnonzero(inliers)
     camera = np.asarray(next(iter(rec.cameras.values())).params, np.float64)
-    return _Model(images_a[keep], sim.apply_to_rotations(rotations_a[keep]),
+    return TileModel(images_a[keep], sim.apply_to_rotations(rotations_a[keep]),
                   sim.apply(centres_a[keep]),
                   [observations[k] for k in keep],
                   [sim.apply(points[k]) if len(points[k]) else points[k] for k in keep],
                   camera, float(rec.compute_mean_reprojection_error()) / COLMAP_SCALE)
 
 
-def _count(models: list[_Model] | None) -> int:
+def _count(models: list[TileModel] | None) -> int:
     """Distinct images the models place."""
     if not models:
         return 0
     return len(set(np.concatenate([m.images for m in models]).tolist()))
 
 
-def _good(models: list[_Model] | None, focal_px: float, n: int) -> bool:
+def _good(models: list[TileModel] | None, focal_px: float, n: int) -> bool:
     """Whether a run with refined intrinsics can stand: enough images placed, and the
     largest model's focal length near the EXIF's."""
     if not models or _count(models) < GOOD_SHARE * n:
@@ -396,7 +446,7 @@ def _good(models: list[_Model] | None, focal_px: float, n: int) -> bool:
     return abs(f / focal_px - 1.0) <= MAX_FOCAL_CHANGE
 
 
-def _structure(models: list[_Model], n: int, gps: np.ndarray) -> Structure | None:
+def _structure(models: list[TileModel], n: int, gps: np.ndarray) -> Structure | None:
     """One set of cameras from the aligned models: an image placed by several models takes
     the largest's pose; the intrinsics are the largest model's."""
     models = sorted(models, key=lambda m: -len(m.images))

@@ -1,0 +1,101 @@
+"""A large map's tiles reconstructed apart (as the engine's workers do) give the map that one
+process reconstructing every tile gives, and the packing takes them up instead of
+reconstructing them again."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.core.geometry.scene import F_TRUE, survey
+from vloc.workers.core import tiles
+from vloc.workers.core.geometry import sfm, tie_reach
+from vloc.workers.core.geometry.pairs import match_pairs
+from vloc.workers.core.mapbuild import save_tie_points
+from vloc.workers.core.sift import SiftFeatures
+
+
+@pytest.fixture(scope="module")
+def surveyed(tmp_path_factory):
+    """A 3 x 6 survey over relief, its tie points on disk and its verified pairs."""
+    s = survey(np.random.default_rng(21), rows=3, cols=6, n_points=2500)
+    folder = tmp_path_factory.mktemp("ties")
+    stems = [str(folder / str(i)) for i in range(len(s.keypoints))]
+    for kp, desc, stem in zip(s.keypoints, s.image_descriptors, stems, strict=True):
+        save_tie_points(SiftFeatures(kp, desc), stem)
+    pairs = match_pairs(s.keypoints, s.image_descriptors, s.positions,
+                        max_distance=tie_reach(s.positions))
+    return s, stems, pairs
+
+
+@pytest.fixture
+def small_tiles(monkeypatch):
+    """Tiles of at most eight images, widened by one spacing, so that 18 make several."""
+    monkeypatch.setattr(sfm, "MAX_TILE", 8)
+    monkeypatch.setattr(sfm, "TILE_MARGIN", 1.0)
+
+
+def test_spatial_tiles_cover_every_image_and_overlap():
+    xy = np.array([[x * 10.0, y * 10.0] for y in range(16) for x in range(16)])
+    parts = sfm.spatial_tiles(xy, 32)
+    assert len(parts) == 8
+    assert set(np.concatenate(parts).tolist()) == set(range(len(xy)))
+    assert sum(len(p) for p in parts) > len(xy)  # neighbouring tiles share their edges
+    # a core of 32 widened by three spacings either way
+    assert all(32 < len(p) <= (4 + 6) * (8 + 6) for p in parts)
+    assert [p.tolist() for p in sfm.spatial_tiles(xy, 1000)] == [list(range(len(xy)))]
+
+
+def test_spatial_tiles_drop_a_tile_another_holds():
+    # three images in a row, tiles of one: widened by three spacings each holds them all
+    xy = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    assert [p.tolist() for p in sfm.spatial_tiles(xy, 1)] == [[0, 1, 2]]
+
+
+def test_tiles_reconstructed_apart_are_the_map_of_one_process(surveyed, small_tiles,
+                                                                 tmp_path, monkeypatch):
+    s, stems, pairs = surveyed
+    n = tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems)
+    assert n >= 3
+    placed = [tiles.reconstruct(tmp_path, k) for k in range(n)]
+    assert all(p > 0 for p in placed)
+    known = tiles.load_results(tmp_path)
+    assert len(known) == n
+    whole = sfm.reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a tile reconstructed elsewhere was reconstructed again")
+
+    monkeypatch.setattr(sfm, "tile_models", refuse)
+    taken = sfm.reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE,
+                            known_tiles=known)
+    np.testing.assert_array_equal(taken.centres, whole.centres)
+    np.testing.assert_array_equal(taken.rotations, whole.rotations)
+    for i in range(len(s.centres)):
+        np.testing.assert_array_equal(taken.points[i], whole.points[i])
+    # and the tiles' cameras are where the survey flew
+    assert taken.placed.mean() > 0.9
+    err = np.linalg.norm(taken.centres[taken.placed] - s.centres[taken.placed], axis=1)
+    assert np.median(err) < 1.0
+
+
+def test_a_tile_done_for_other_inputs_is_redone(surveyed, small_tiles, tmp_path):
+    s, stems, pairs = surveyed
+    n = tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems)
+    tiles.reconstruct(tmp_path, 0)
+    before = set(tiles.load_results(tmp_path))
+    # the same folder planned again with another focal length: tile 0's result is stale
+    assert tiles.plan(tmp_path, pairs, s.positions, s.altitudes, 1.1 * F_TRUE, stems) == n
+    tiles.reconstruct(tmp_path, 0)
+    after = set(tiles.load_results(tmp_path))
+    assert len(after) == 1 and after != before
+    # and kept as it is when nothing changed
+    stamp = (tmp_path / tiles.RESULT.format(0)).stat().st_mtime_ns
+    tiles.reconstruct(tmp_path, 0)
+    assert (tmp_path / tiles.RESULT.format(0)).stat().st_mtime_ns == stamp
+
+
+def test_a_small_map_is_not_tiled(surveyed, tmp_path):
+    s, stems, pairs = surveyed
+    assert tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems) == 0
+    assert tiles.load_results(tmp_path) == {}

@@ -1,0 +1,144 @@
+"""The tiles of a large map's reconstruction, reconstructed in parallel ahead of the packing.
+
+A map of more than :data:`~workers.core.geometry.sfm.MAX_TILE` images is reconstructed in
+overlapping spatial tiles (:func:`~workers.core.geometry.sfm.spatial_tiles`), each by COLMAP
+on its own and aligned to its own GPS. Once the tie points' pairs are matched
+(:mod:`.tiepairs`), a build writes each tile's pairs and what the tiles share to disk
+(:func:`plan`), lets the engine's workers reconstruct the tiles (:func:`reconstruct`, one
+file of results per tile, the tie points read from disk) and hands them to the packing
+(:func:`load_results`), which reconstructs only tiles whose inputs it does not find among
+them (:func:`~workers.core.geometry.sfm.tile_key`): the map comes out the same as when one
+process reconstructs every tile.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from .geometry import sfm
+from .geometry.pairs import PairMatches
+from .geometry.sfm import TileModel, spatial_tiles, tile_key, tile_models, tile_pairs
+from .mapbuild import load_tie_points
+from .tiepairs import read_results, save_results
+
+PLAN_FILE = "tiles-plan.npz"
+INPUT = "tile-{:05d}-pairs.npz"
+RESULT = "tile-{:05d}.npz"
+RESULTS_GLOB = "tile-?????.npz"
+
+
+def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
+         altitudes: np.ndarray, focal_px: float | None, stems: list[str], *,
+         seed: int = 0) -> int:
+    """Write what each tile's reconstruction needs into ``folder``; returns the number of
+    tiles (0 for a map reconstructed whole, which the packing does itself).
+
+    ``verified`` are the map's verified pairs (map indices), ``stems[i]`` where image
+    ``i``'s tie points were written (:func:`~workers.core.mapbuild.save_tie_points`)."""
+    positions = np.asarray(positions, np.float64)
+    tiles = spatial_tiles(positions, sfm.MAX_TILE)
+    if len(tiles) < 2:
+        return 0
+    folder = Path(folder)
+    np.savez(folder / PLAN_FILE, positions=positions,
+             altitudes=np.asarray(altitudes, np.float64),
+             focal=np.array(np.nan if focal_px is None else float(focal_px)),
+             seed=np.array(int(seed)), stems=np.array(stems, dtype=str),
+             tiles=np.concatenate(tiles),
+             offsets=np.concatenate([[0], np.cumsum([len(t) for t in tiles])]))
+    for k, inside in enumerate(tiles):
+        save_results([(p.a, p.b, p) for p in tile_pairs(verified, inside)],
+                     folder / INPUT.format(k))
+    return len(tiles)
+
+
+def reconstruct(folder: str | Path, tile: int) -> int:
+    """Reconstruct one planned tile (:func:`plan`) and write its models beside it; returns
+    the number of cameras it placed. A result already there for the same inputs (a failed
+    build's, by :func:`~workers.core.geometry.sfm.tile_key`) is kept."""
+    folder = Path(folder)
+    with np.load(folder / PLAN_FILE) as z:
+        positions, altitudes = z["positions"], z["altitudes"]
+        focal = float(z["focal"])
+        seed, stems = int(z["seed"]), [str(s) for s in z["stems"]]
+        inside = z["tiles"][z["offsets"][tile]:z["offsets"][tile + 1]]
+    focal_px = None if not np.isfinite(focal) else focal
+    gps = np.column_stack([positions, altitudes])
+    pairs = [p for _, _, p in read_results(folder / INPUT.format(tile)) if p is not None]
+    key = tile_key(inside, pairs, gps, focal_px, seed)
+    out = folder / RESULT.format(tile)
+    if out.is_file():
+        found = _read(out)
+        if found is not None and found[0] == key:
+            return sum(len(m.images) for m in found[1] or [])
+    # one BLAS thread, as the packing reconstructs with (build_geometry)
+    with threadpool_limits(limits=1, user_api="blas"):
+        models = tile_models(_TiePoints(stems), pairs, gps, focal_px, inside, seed=seed)
+    _write(out, key, models)
+    return sum(len(m.images) for m in models or [])
+
+
+def load_results(folder: str | Path) -> dict[str, list[TileModel] | None]:
+    """Every tile reconstructed into ``folder`` (:func:`reconstruct`), by its inputs' key;
+    None for a tile that placed no camera."""
+    out: dict[str, list[TileModel] | None] = {}
+    for path in sorted(Path(folder).glob(RESULTS_GLOB)):
+        found = _read(path)
+        if found is not None:
+            out[found[0]] = found[1]
+    return out
+
+
+class _TiePoints(Sequence):
+    """Each image's tie-point keypoints, read from disk when indexed."""
+
+    def __init__(self, stems: list[str]) -> None:
+        self._stems = stems
+
+    def __len__(self) -> int:
+        return len(self._stems)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        tie = load_tie_points(self._stems[i])
+        if tie is None:
+            raise FileNotFoundError(f"tie points of map image {i} missing at {self._stems[i]}")
+        return tie.keypoints
+
+
+def _write(out: Path, key: str, models: list[TileModel] | None) -> None:
+    arrays: dict[str, np.ndarray] = {"key": np.array(key), "models": np.array(
+        0 if models is None else len(models))}
+    for j, m in enumerate(models or []):
+        arrays |= {
+            f"m{j}_images": m.images, f"m{j}_rotations": m.rotations,
+            f"m{j}_centres": m.centres, f"m{j}_camera": m.camera,
+            f"m{j}_residual": np.array(m.residual_px),
+            f"m{j}_counts": np.array([len(o) for o in m.observations], np.int64),
+            f"m{j}_observations": (np.concatenate(m.observations) if m.observations
+                                   else np.zeros(0, np.int64)),
+            f"m{j}_points": (np.concatenate(m.points) if m.points else np.zeros((0, 3))),
+        }
+    tmp = out.with_name("." + out.name)  # outside the results' glob until whole
+    np.savez(tmp, **arrays)
+    tmp.replace(out)
+
+
+def _read(path: Path) -> tuple[str, list[TileModel] | None] | None:
+    with np.load(path) as z:
+        if "key" not in z.files:
+            return None
+        key, n = str(z["key"]), int(z["models"])
+        models = []
+        for j in range(n):
+            ends = np.concatenate([[0], np.cumsum(z[f"m{j}_counts"])])
+            obs, pts = z[f"m{j}_observations"], z[f"m{j}_points"]
+            models.append(TileModel(
+                z[f"m{j}_images"], z[f"m{j}_rotations"], z[f"m{j}_centres"],
+                [obs[a:b] for a, b in zip(ends[:-1], ends[1:], strict=True)],
+                [pts[a:b] for a, b in zip(ends[:-1], ends[1:], strict=True)],
+                z[f"m{j}_camera"], float(z[f"m{j}_residual"])))
+    return key, (models or None)
