@@ -220,6 +220,14 @@ def test_an_admin_creates_uploads_and_builds_a_map(browser, live, world, tmp_pat
     made = [m for m in maps if m["name"] == "made in the browser"]
     assert [(m["status"], m["revision"], m["image_count"]) for m in made] == [
         ("ready", 1, N_MAP)]
+    # the map says what its camera geometry gives, in the API's own figures
+    geometry = made[0]["geometry"]
+    line = page.locator("#map-geometry").inner_text()
+    if geometry["status"] == "accepted":
+        median = geometry["self_check"]["median_m"]
+        assert f"localises to about {median:.1f} m" in line, line
+    else:
+        assert line.startswith("No camera geometry"), line
     assert not log.errors, log.errors
     page.close()
 

@@ -42,10 +42,31 @@ export async function selectMap(mapId, { fit = true } = {}) {
   $("#map-title").textContent = m.name;
   $("#map-summary").textContent = `${m.status}, revision ${m.revision}, ` +
     `${m.image_count} images (${m.pending_images} not built yet)`;
+  $("#map-geometry").textContent = geometryLine(m.geometry);
   state.mapImages = await listAll(`/v1/maps/${mapId}/images`, { by: "after_id", limit: 10000 });
   state.origin = m.origin;
   setOrigin(m.origin);
   drawImages(m, fit);
+}
+
+// What the revision's camera geometry gives frames, in a sentence.
+export function geometryLine(g) {
+  if (!g) return "";
+  const check = g.self_check;
+  if (g.status === "accepted" && check && check.median_m !== null) {
+    return `Camera geometry: ${g.placed} of ${g.images} images placed; this map localises ` +
+      `to about ${check.median_m.toFixed(1)} m (median over ${check.images} of its own ` +
+      `images, ${Math.round(100 * check.within_5m)} % within 5 m), where the nearest ` +
+      `image alone gives ${check.floor_median_m.toFixed(1)} m.`;
+  }
+  if (g.status === "refused" && check) {
+    const got = check.median_m === null ? "placed none of its own images"
+      : `localised its own images to ${check.median_m.toFixed(1)} m`;
+    return `No camera geometry: the reconstruction ${got}, no better than the nearest ` +
+      `image (${check.floor_median_m.toFixed(1)} m); positions come from the map's images.`;
+  }
+  return `No camera geometry${g.reason ? `: ${g.reason}` : ""}; positions come from the ` +
+    "map's images.";
 }
 
 // Built images have east/north in the revision's frame; images waiting for a build are

@@ -86,8 +86,8 @@ def refine_sift(query: SiftFeatures, map_data: MapData, ranked: np.ndarray,
     Returns
     -------
     Refinement or None
-        Registered where the map has camera geometry, else interpolated between the
-        images; None when too few matches.
+        Registered where the map's camera geometry gives a pose, else interpolated
+        between the images; None when too few matches.
     """
     ranked, scores = _best(ranked, scores, max_images)
     if len(query) == 0 or len(ranked) == 0:
@@ -101,7 +101,10 @@ def refine_sift(query: SiftFeatures, map_data: MapData, ranked: np.ndarray,
     if map_data.geometry is not None:
         reg = register_against(map_data.geometry, "sift", np.asarray(query.keypoints),
                                matches, frame_shape=frame_shape)
-        return None if reg is None else Refinement.from_registration(reg)
+        if reg is not None:
+            return Refinement.from_registration(reg)
+    # no geometry, or none where the frame is (images the reconstruction left out, too
+    # few 3-D points): a position between the images it matched
     return interpolate(map_data, ranked, scores)
 
 
