@@ -20,6 +20,19 @@ class JobStatus:
     ACTIVE = (QUEUED, RUNNING)
 
 
+class BuildStage:
+    """The stages of a build, in order, with the share of the progress bar each ends at."""
+
+    FEATURES = "extracting features"
+    TIE_POINTS = "extracting tie points"
+    MATCHING = "matching tie points"
+    TILES = "reconstructing tiles"
+    PACKING = "packing"  # the SIFT reduction, vocabularies and reading the features
+    GEOMETRY = "reconstructing the map"
+    SAVING = "saving"
+    DONE = "done"
+
+
 class BuildJob(Base):
     __tablename__ = "build_jobs"
 
@@ -28,10 +41,12 @@ class BuildJob(Base):
         ForeignKey("maps.id", ondelete="CASCADE"), index=True)
     status: Mapped[str] = mapped_column(String(16), default=JobStatus.QUEUED)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
-    """0..1: feature extraction is the first 90 %, packing the map the rest."""
+    """0..1 over the whole build (:class:`BuildStage`)."""
     error: Mapped[str | None] = mapped_column(Text)
     n_images: Mapped[int] = mapped_column(Integer, default=0)
     n_extracted: Mapped[int] = mapped_column(Integer, default=0)
+    stage: Mapped[str | None] = mapped_column(String(32))
+    """What the build is doing now (:class:`BuildStage`); NULL before it starts."""
     revision: Mapped[int | None] = mapped_column(Integer)
     """The map revision this job produced (set when done)."""
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

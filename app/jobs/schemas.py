@@ -17,6 +17,10 @@ class JobRead(BaseModel):
     status: Literal["queued", "running", "done", "failed"] = Field(
         description="queued, running, done or failed")
     progress: float = Field(ge=0, le=1)
+    stage: str | None = Field(
+        None, description="What the build is doing: extracting features, extracting tie "
+                          "points, matching tie points, reconstructing tiles, packing, "
+                          "reconstructing the map, saving, done")
     error: str | None
     n_images: int = Field(description="Images whose features this job extracts")
     n_extracted: int

@@ -22,7 +22,7 @@ from vloc.app.config import Settings
 from vloc.app.db import utcnow
 from vloc.app.engine import Engine
 from vloc.app.jobs import tasks
-from vloc.app.jobs.models import BuildJob, JobStatus
+from vloc.app.jobs.models import BuildJob, BuildStage, JobStatus
 from vloc.app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapStatus
 from vloc.app.maps.service import image_path
 from vloc.app.metrics import Metrics
@@ -130,6 +130,8 @@ class BuildRunner(BackgroundRunner):
         # images) instead of computing them again.
         tie_dir = folder.with_name(folder.name + ".ties")
         await asyncio.to_thread(tie_dir.mkdir, parents=True, exist_ok=True)
+        await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE,
+                                BuildStage.TIE_POINTS)
         await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
             tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id)))
             for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
@@ -137,7 +139,8 @@ class BuildRunner(BackgroundRunner):
         await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files)
         packed = await asyncio.wrap_future(self.engine.call(
             tasks.pack_map, url, str(map_id), revision, str(folder),
-            lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir)))
+            lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir),
+            job_id=str(job_id)))
         await asyncio.to_thread(shutil.rmtree, tie_dir, True)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 
@@ -146,6 +149,8 @@ class BuildRunner(BackgroundRunner):
         """The reconstruction's pairs of neighbouring images, matched from their tie points in
         batches by the engine's workers (:mod:`vloc.workers.core.tiepairs`); the packing
         reads the results from ``tie_dir``."""
+        await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE + TIE_SHARE,
+                                BuildStage.MATCHING)
         plan = await asyncio.wrap_future(self.engine.call(
             tasks.plan_tie_pairs, url, str(map_id), str(tie_dir)))
         ids, pairs = plan["image_ids"], plan["pairs"]
@@ -163,6 +168,9 @@ class BuildRunner(BackgroundRunner):
         (:mod:`vloc.workers.core.tiles`); the packing reads the results from ``tie_dir``."""
         n = await asyncio.wrap_future(self.engine.call(
             tasks.plan_tiles, url, str(map_id), str(tie_dir), lens_files))
+        if n:
+            await asyncio.to_thread(self._set_progress, job_id,
+                                    EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE, BuildStage.TILES)
         await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
             tasks.reconstruct_tile, str(tie_dir), k)) for k in range(n)],
             EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE, TILE_SHARE)
@@ -191,6 +199,7 @@ class BuildRunner(BackgroundRunner):
                        or_(ImageSift.image_id.is_(None), ImageOrb.image_id.is_(None)))
                 .order_by(MapImage.id)))
             job.status, job.started_at = JobStatus.RUNNING, utcnow()
+            job.stage = BuildStage.FEATURES
             job.n_images = len(images)
             db.commit()
             return job.map_id, [(img.id, str(image_path(self.settings, img))) for img in images]
@@ -210,12 +219,17 @@ class BuildRunner(BackgroundRunner):
     def _progress(self, job_id: uuid.UUID, done: int, total: int) -> None:
         with self.db_sessions() as db:
             db.execute(update(BuildJob).where(BuildJob.id == job_id).values(
-                n_extracted=done, progress=EXTRACT_SHARE * done / max(total, 1)))
+                n_extracted=done, progress=EXTRACT_SHARE * done / max(total, 1),
+                stage=BuildStage.FEATURES))
             db.commit()
 
-    def _set_progress(self, job_id: uuid.UUID, progress: float) -> None:
+    def _set_progress(self, job_id: uuid.UUID, progress: float,
+                      stage: str | None = None) -> None:
+        values: dict = {"progress": progress}
+        if stage is not None:
+            values["stage"] = stage
         with self.db_sessions() as db:
-            db.execute(update(BuildJob).where(BuildJob.id == job_id).values(progress=progress))
+            db.execute(update(BuildJob).where(BuildJob.id == job_id).values(**values))
             db.commit()
 
     def _next_revision(self, map_id: uuid.UUID) -> int:
@@ -243,6 +257,7 @@ class BuildRunner(BackgroundRunner):
             m.status = MapStatus.UNBUILT if waiting else MapStatus.READY
             job = db.get(BuildJob, job_id)
             job.status, job.progress, job.revision = JobStatus.DONE, 1.0, revision
+            job.stage = BuildStage.DONE
             job.finished_at = utcnow()
             db.commit()
         self.metrics.build_jobs.labels(JobStatus.DONE).inc()

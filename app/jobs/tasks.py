@@ -19,7 +19,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-from sqlalchemy import delete, select
+from sqlalchemy import delete, select, update
 
 from vloc.app.db import make_engine, make_session_factory
 from vloc.app.engine import (
@@ -30,6 +30,7 @@ from vloc.app.engine import (
     encode_vector,
     encode_vocabulary,
 )
+from vloc.app.jobs.models import BuildJob, BuildStage
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
 from vloc.app.sessions.pose import write_image_ids
 
@@ -156,6 +157,20 @@ def reconstruct_tile(tie_dir: str, tile: int) -> int:
     return tiles.reconstruct(tie_dir, tile)
 
 
+PACKING_PROGRESS: dict[str, float] = {
+    BuildStage.PACKING: 0.9, BuildStage.GEOMETRY: 0.92, BuildStage.SAVING: 0.98}
+"""Where the progress bar stands as each stage of the packing starts."""
+
+
+def _set_stage(database_url: str, job_id: str, stage: str) -> None:
+    """Record the build job's stage (and its progress, for the packing's stages)."""
+    values: dict = {"stage": stage}
+    if stage in PACKING_PROGRESS:
+        values["progress"] = PACKING_PROGRESS[stage]
+    with _sessions(database_url)() as db, db.begin():
+        db.execute(update(BuildJob).where(BuildJob.id == uuid.UUID(job_id)).values(**values))
+
+
 def tie_stem(tie_dir: str | Path, image_id: int) -> str:
     """Where a build keeps image ``image_id``'s tie points in ``tie_dir``."""
     return str(Path(tie_dir) / str(image_id))
@@ -215,7 +230,8 @@ def _read_features(database_url: str, map_id: str, images: list[dict], ties: lis
 
 def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
              lens_files: list[str] | None = None,
-             image_files: dict[int, str] | None = None, tie_dir: str | None = None) -> dict:
+             image_files: dict[int, str] | None = None, tie_dir: str | None = None,
+             job_id: str | None = None) -> dict:
     """Assemble every extracted image of a map into a MapData folder.
 
     ``lens_files`` are some of the map's image files, read for the camera's focal length
@@ -233,7 +249,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     same revision left); the descriptors over ORB need every image's ORB features.
 
     The (wall, CPU) seconds of each stage, reading the features included, are written
-    beside the revision as ``build_timings.json``.
+    beside the revision as ``build_timings.json``. With ``job_id``, the build job's stage and
+    progress follow the packing (:data:`PACKING_PROGRESS`).
 
     Returns
     -------
@@ -252,6 +269,12 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
 
     timings: dict[str, tuple[float, float]] = {}
     report: dict = {}
+
+    def on_stage(name: str) -> None:
+        if job_id is not None:
+            _set_stage(database_url, job_id, name)
+
+    on_stage(BuildStage.PACKING)
     images = _read_images(database_url, map_id)
     own = tie_dir is None
     ties_at = Path(folder).with_name(Path(folder).name + ".ties") if own else Path(tie_dir)
@@ -280,7 +303,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                             map_id=map_id, revision=revision, known_pairs=known,
                             known_tiles=reconstructed,
                             focal_px=typical_focal_px(_readers(lens_files or [])),
-                            timings=timings, report=report)
+                            timings=timings, report=report,
+                            on_stage=lambda name: on_stage(
+                                BuildStage.GEOMETRY if name == "geometry" else name))
     finally:
         if own:
             shutil.rmtree(ties_at, ignore_errors=True)
@@ -293,6 +318,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                                  branching=vocab.branching, depth=vocab.depth,
                                  binary=vocab.binary, dim=vocab.dim, centroids=centroids,
                                  idf=idf, projection=projection))
+    on_stage(BuildStage.SAVING)
     with stage(timings, "saving"):
         data.save(folder)
         write_image_ids(folder, [img["id"] for img in images])

@@ -136,6 +136,7 @@ class Job(_Model):
     map_id: str | None = None
     status: str = Field(description="queued, running, done or failed")
     progress: float = 0.0
+    stage: str | None = Field(None, description="what the build is doing now")
     error: str | None = None
     n_images: int = 0
     n_extracted: int = 0

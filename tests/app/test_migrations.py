@@ -24,6 +24,7 @@ TABLES_AT = {
 }
 TABLES_AT["0007"] = TABLES_AT["0006"]
 TABLES_AT["0008"] = TABLES_AT["0006"] | {"routes", "route_images", "route_nodes", "route_arcs"}
+TABLES_AT["0009"] = TABLES_AT["0008"]
 
 
 def _tables(engine) -> set[str]:
@@ -34,8 +35,8 @@ def test_upgrade_to_head_matches_the_models(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        assert migrate.current_revision(engine) == migrate.head_revision() == "0008"
-        assert _tables(engine) == TABLES_AT["0008"]
+        assert migrate.current_revision(engine) == migrate.head_revision() == "0009"
+        assert _tables(engine) == TABLES_AT["0009"]
         with engine.connect() as conn:
             diff = compare_metadata(MigrationContext.configure(
                 conn, opts={"compare_type": True}), Base.metadata)
@@ -52,7 +53,8 @@ def test_each_step_downgrades_and_upgrades_again(database_url):
             migrate.downgrade(engine, revision or "base")
             assert migrate.current_revision(engine) == revision
             assert _tables(engine) == TABLES_AT[revision]
-        for revision in ("0001", "0002", "0003", "0004", "0005", "0006", "0007", "0008"):
+        for revision in ("0001", "0002", "0003", "0004", "0005", "0006", "0007", "0008",
+                         "0009"):
             migrate.upgrade(engine, revision)
             assert _tables(engine) == TABLES_AT[revision]
         names = {c["name"] for c in inspect(engine).get_unique_constraints("map_images")}
@@ -106,5 +108,37 @@ def test_0007_keeps_stored_poses_and_gives_them_an_accuracy(database_url):
         migrate.downgrade(engine, "0006")
         with engine.connect() as conn:
             assert conn.execute(text("SELECT best_image FROM pose_estimates")).scalar() == -1
+    finally:
+        engine.dispose()
+
+
+def test_0009_adds_the_geometry_report_and_build_stage_and_keeps_every_map(database_url):
+    """Maps and their images stored at 0008 survive 0009 both ways (no table rebuilt, so no
+    cascade), with a NULL geometry report and build stage until built again."""
+    import uuid
+    from datetime import UTC, datetime
+
+    from sqlalchemy import text
+
+    engine = make_engine(database_url)
+    mid = uuid.uuid4()
+    now = datetime.now(UTC)
+    try:
+        migrate.upgrade(engine, "0008")
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                              "VALUES (:id, 'm', 'ready', 1, :now)"),
+                         {"id": mid.hex if engine.dialect.name == "sqlite" else mid,
+                          "now": now})
+        migrate.upgrade(engine)
+        columns = {c["name"] for c in inspect(engine).get_columns("maps")}
+        assert "geometry" in columns
+        assert "stage" in {c["name"] for c in inspect(engine).get_columns("build_jobs")}
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT name, geometry FROM maps")).all() == [("m", None)]
+        migrate.downgrade(engine, "0008")
+        assert "geometry" not in {c["name"] for c in inspect(engine).get_columns("maps")}
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT name FROM maps")).all() == [("m",)]
     finally:
         engine.dispose()

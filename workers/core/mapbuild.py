@@ -9,7 +9,7 @@ every map image (:mod:`workers.core.features.descriptors`), so each build trains
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -173,7 +173,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
                  known_pairs: dict | None = None, known_tiles: dict | None = None,
                  timings: dict[str, tuple[float, float]] | None = None,
-                 report: dict | None = None) -> MapData:
+                 report: dict | None = None,
+                 on_stage: Callable[[str], None] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
 
     Parameters
@@ -212,6 +213,9 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         ``"shortlist codes"`` (maps of more than ``CODES_FROM`` images) and ``"geometry"``.
     report : dict, optional
         Filled with what became of the geometry (:func:`geometry_report`).
+    on_stage : callable, optional
+        Called with ``"geometry"`` as the reconstruction starts (the longest stage of a
+        small map's packing).
 
     Returns
     -------
@@ -254,6 +258,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
             data.place_codes = {name: PlaceCodes.fit(matrix, seed=seed)
                                 for name, (_, matrix) in trained.items()}
     if geometry:
+        if on_stage is not None:
+            on_stage("geometry")
         with stage(timings, "geometry"):
             data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
                                          known_pairs=known_pairs, known_tiles=known_tiles,

@@ -162,7 +162,8 @@ $("#build").addEventListener("click", async () => {
     for (;;) {
       const j = await api(`/v1/jobs/${job.job_id}`);
       bar.value = j.progress;
-      $("#build-status").textContent = `${j.status} ${Math.round(100 * j.progress)} %`;
+      $("#build-status").textContent = `${j.status} ${Math.round(100 * j.progress)} %` +
+        (j.status === "running" && j.stage ? ` (${j.stage})` : "");
       if (j.status === "done" || j.status === "failed") {
         if (j.error) $("#build-status").textContent += `: ${j.error}`;
         break;
