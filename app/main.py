@@ -40,7 +40,7 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     """Build the application; the engine and the database start with its lifespan."""
     settings = settings or Settings()
     if configure_logging:
-        logs.configure(settings.log_level, json_lines=settings.log_json)
+        logs.configure(settings.log_level, json_lines=settings.log_json, native=True)
     logs.redact_uvicorn()
     private_dir(settings.data_dir)
     db_engine = make_engine(settings.resolved_database_url)
