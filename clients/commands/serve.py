@@ -47,7 +47,9 @@ def serve_cmd(host: str, port: int, workers: int | None, processes: int,
         (settings.engine != "ray", "VLOC_ENGINE=ray (a local engine's sessions live in one "
                                    "process)"),
         (settings.embedded_database, "VLOC_DATABASE_URL (a database every process shares)"),
-        (not settings.redis_url, "VLOC_REDIS_URL (poses reach streams held by any process)"))
+        (not settings.redis_url, "VLOC_REDIS_URL (poses reach streams held by any process)"),
+        (settings.engine == "ray" and not settings.ray_address,
+         "VLOC_RAY_ADDRESS (without it each process starts a private Ray cluster)"))
         if bad]
     if problems:
         raise click.UsageError("--processes > 1 needs " + "; ".join(problems))

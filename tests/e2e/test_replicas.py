@@ -146,7 +146,7 @@ def test_a_killed_shard_resumes_the_session_and_every_frame_is_answered_or_repor
     _, queries = shots
     sid, token = session["id"], session["token"]
     shard = ray.get_actor(shard_name(shard_of(sid, N_SHARDS)), namespace=namespace)
-    pid, _ = ray.get(shard.ping.remote())
+    pid, _, _ = ray.get(shard.ping.remote())
 
     async def scenario():
         async with httpx.AsyncClient(base_url=a.base_url, timeout=120) as ha, \

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import os
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import ray
 
@@ -36,6 +38,20 @@ from .worker import THREAD_ENV, WorkerState, _single_threaded
 
 NAMESPACE = "vloc"
 MAP_STORE = "vloc-maps"
+
+
+def _code_version() -> str:
+    """A digest of the engine's and the core's source: shards must run the code of the API
+    processes that send them work (messages and checkpoints are pickled)."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.blake2b(digest_size=8)
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+CODE_VERSION = _code_version()
 HOLD_S = 30.0
 """How long a shard holds a session's frame for a seq reserved before it that has not come:
 long enough for a busy API process to store the frame's record and send it, short enough
@@ -112,7 +128,8 @@ class Shard:
     """Sessions of one shard; run as an async Ray actor (see the module's doc)."""
 
     def __init__(self, index: int, *, max_pixels: int, checkpoint_every: int,
-                 namespace: str = NAMESPACE, hold_s: float = HOLD_S) -> None:
+                 namespace: str = NAMESPACE, hold_s: float = HOLD_S,
+                 version: str = CODE_VERSION) -> None:
         for var in THREAD_ENV:
             os.environ.setdefault(var, "1")
         _single_threaded()
@@ -123,10 +140,12 @@ class Shard:
         self.orders: dict[str, _Order] = {}
         self.pool = ThreadPoolExecutor(1, thread_name_prefix=f"shard-{index}")
         self.started = time.time()
+        self.version = version
 
-    async def ping(self) -> tuple[int, float]:
-        """(pid, start time): a new start time means the actor was restarted."""
-        return os.getpid(), self.started
+    async def ping(self) -> tuple[int, float, str]:
+        """(pid, start time, code version): a new start time means the actor was
+        restarted."""
+        return os.getpid(), self.started, self.version
 
     async def held(self) -> list[str]:
         return sorted(sid for sid, o in self.orders.items() if o.opened.done())

@@ -22,6 +22,13 @@ Shape
   failed (``worker_died``) and its sessions are reopened by the service from their
   checkpoints in the database, which is the only state that counts.
 - Build work (:meth:`RayEngine.call`) runs as Ray tasks, in parallel over the cluster.
+  They reserve no CPU from the scheduler, so that they always find room beside the shards
+  whatever those reserve; the engine itself keeps no more of them running than the
+  cluster has CPUs.
+- The cluster is the one ``address`` names, or a private one started inside this process
+  (never one that happens to run on the machine: Ray's default would join it). Shards
+  found by name must run this code version (:data:`.ray_actors.CODE_VERSION`); others
+  are refused at the start.
 
 The actors themselves are in :mod:`.ray_actors`. Nothing here imports the service: it works
 with the same messages as the local engine (:mod:`workers.engine.messages`).
@@ -29,9 +36,12 @@ with the same messages as the local engine (:mod:`workers.engine.messages`).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import hashlib
 import logging
+import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -49,7 +59,7 @@ from .messages import (
 )
 from .pool import _settle
 from .protocol import SeqRefused
-from .ray_actors import HOLD_S, MAP_STORE, NAMESPACE, MapStore, Shard
+from .ray_actors import CODE_VERSION, HOLD_S, MAP_STORE, NAMESPACE, MapStore, Shard
 from .slots import EngineClosed, WorkerDied, remote_error
 from .worker import _function
 
@@ -79,8 +89,8 @@ class RayEngine:
     n_shards : int
         Shard actors; every API process of the cluster must use the same number.
     address : str or None
-        The cluster (``ray.init(address=...)``); None joins the cluster this process is
-        already connected to, or starts one inside it.
+        The cluster (``ray.init(address=...)``); None uses the cluster this process is
+        already connected to, or starts a private one inside it.
     on_outcome, checkpoint_every, max_pixels
         As for :class:`~workers.engine.pool.LocalEngine`; the shard counts the frames of a
         session for its checkpoints, whichever process sent them.
@@ -117,15 +127,25 @@ class RayEngine:
         self._states: dict[str, bytes] = {}
         self._pending: dict[tuple[str, int], ray.ObjectRef] = {}
         self._remote_fns: dict[Callable, object] = {}
+        self._calls_waiting: collections.deque = collections.deque()
+        self._calls_running = 0
+        self._call_slots = 1
 
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self, timeout: float = 120.0) -> None:
         """Join the cluster, find or create the shards and the map store, wait for them."""
         if not ray.is_initialized():
-            ray.init(address=self.address, namespace=self.namespace,
-                     include_dashboard=False, log_to_driver=False)
+            if self.address:
+                ray.init(address=self.address, namespace=self.namespace,
+                         include_dashboard=False, log_to_driver=False)
+            else:
+                # "local": a new cluster for this process, whatever runs on the machine
+                cpus = max(os.cpu_count() or 1, math.ceil(self.shard_cpus * self.n_workers))
+                ray.init(address="local", num_cpus=cpus, namespace=self.namespace,
+                         include_dashboard=False, log_to_driver=False)
             self._initialised_here = True
+        self._call_slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
         common = {"namespace": self.namespace, "lifetime": "detached",
                   "get_if_exists": True, "max_restarts": -1, "max_task_retries": 0}
         ray.remote(MapStore).options(name=MAP_STORE, num_cpus=0, **common).remote()
@@ -134,14 +154,20 @@ class RayEngine:
             shard_cls.options(name=shard_name(i), num_cpus=self.shard_cpus,
                               max_concurrency=1000, **common)
             .remote(i, max_pixels=self.max_pixels, checkpoint_every=self.checkpoint_every,
-                    namespace=self.namespace, hold_s=self.hold_s)
+                    namespace=self.namespace, hold_s=self.hold_s, version=CODE_VERSION)
             for i in range(self.n_workers)]
         try:
             stamps = ray.get([s.ping.remote() for s in self._shards], timeout=timeout)
         except GetTimeoutError:
             raise RuntimeError(f"the Ray shards did not start in {timeout:g} s (are there "
                                "CPUs free for them?)") from None
-        self._stamps = {i: started for i, (_, started) in enumerate(stamps)}
+        for i, (_, _, version) in enumerate(stamps):
+            if version != CODE_VERSION:
+                raise RuntimeError(
+                    f"shard {shard_name(i)} of Ray namespace {self.namespace!r} runs code "
+                    f"version {version}, this server {CODE_VERSION}: give this deployment "
+                    "its own VLOC_RAY_NAMESPACE, or remove the other's shards")
+        self._stamps = {i: started for i, (_, started, _) in enumerate(stamps)}
         self._running = True
 
     def close(self, timeout: float = 10.0) -> None:
@@ -157,6 +183,9 @@ class RayEngine:
             time.sleep(0.05)  # let the done callbacks of the last ones run
         with self._lock:
             left, self._pending = list(self._pending), {}
+            calls, self._calls_waiting = list(self._calls_waiting), collections.deque()
+        for out, *_ in calls:
+            _settle(out, error=EngineClosed("the engine stopped"))
         for sid, seq in left:
             self._emit(FrameFailed(sid, seq, "worker_died", "the engine stopped"))
         if self._initialised_here:
@@ -183,7 +212,7 @@ class RayEngine:
                 ok.append(False)
                 continue
             try:
-                _, started = ray.get(ref)
+                _, started, _ = ray.get(ref)
             except RayActorError:
                 ok.append(False)
                 continue
@@ -307,15 +336,46 @@ class RayEngine:
     # -- calls ------------------------------------------------------------------------------
 
     def call(self, fn: Callable | str, *args, **kwargs) -> Future:
-        """Run ``fn`` as a Ray task (one CPU, never retried)."""
+        """Run ``fn`` as a Ray task (never retried), once fewer calls of this engine run
+        than the cluster has CPUs.
+
+        The task reserves no CPU: shards may hold every CPU the scheduler counts, and a
+        task that waited for one would wait for ever.
+        """
         self._check_running()
         fn = _function(fn)
+        out: Future = Future()
         with self._lock:
             remote = self._remote_fns.get(fn)
             if remote is None:
-                remote = self._remote_fns[fn] = ray.remote(fn).options(num_cpus=1,
+                remote = self._remote_fns[fn] = ray.remote(fn).options(num_cpus=0,
                                                                        max_retries=0)
-        return self._future(remote.remote(*args, **kwargs), lambda v: v)
+            self._calls_waiting.append((out, remote, args, kwargs))
+        self._start_calls()
+        return out
+
+    def _start_calls(self) -> None:
+        while True:
+            with self._lock:
+                if not self._calls_waiting or self._calls_running >= self._call_slots:
+                    return
+                out, remote, args, kwargs = self._calls_waiting.popleft()
+                self._calls_running += 1
+            try:
+                inner = self._future(remote.remote(*args, **kwargs), lambda v: v)
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                inner = Future()
+                inner.set_exception(exc)
+            inner.add_done_callback(lambda f, out=out: self._call_done(f, out))
+
+    def _call_done(self, inner: Future, out: Future) -> None:
+        with self._lock:
+            self._calls_running -= 1
+        if inner.exception() is not None:
+            _settle(out, error=inner.exception())
+        else:
+            _settle(out, value=inner.result())
+        self._start_calls()
 
     # -- internals --------------------------------------------------------------------------
 
