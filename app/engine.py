@@ -52,6 +52,7 @@ def engine_for(settings: Settings) -> Engine:
                          address=settings.ray_address,
                          checkpoint_every=settings.checkpoint_every,
                          max_pixels=settings.max_pixels, shard_cpus=settings.ray_shard_cpus,
-                         namespace=settings.ray_namespace, hold_s=settings.ray_hold_s)
+                         namespace=settings.ray_namespace, hold_s=settings.ray_hold_s,
+                         instance=settings.instance_name)
     return LocalEngine(settings.worker_count, checkpoint_every=settings.checkpoint_every,
                        max_pixels=settings.max_pixels, stall_s=settings.worker_stall_s)

@@ -34,6 +34,7 @@ log = logging.getLogger("vloc.app")
 DRAIN_TIMEOUT_S = 10.0
 STREAMS_CLOSE_TIMEOUT_S = 5.0
 SWEEP_INTERVAL_S = 30.0
+SETTLE_INTERVAL_S = 1.0
 
 
 def create_app(settings: Settings | None = None, *, configure_logging: bool = False) -> FastAPI:
@@ -94,12 +95,15 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     ctx.routes.loop = loop
     await ctx.hub.start()
     sweeper = asyncio.create_task(_expire_sessions(ctx))
+    settler = asyncio.create_task(_settle_gone(ctx)) if ctx.engine.shared else None
     log.info("vloc ready", extra={"workers": ctx.engine.n_workers,
                                   "database": ctx.db_engine.dialect.name})
     try:
         yield
     finally:
         sweeper.cancel()
+        if settler is not None:
+            settler.cancel()
         await ctx.builds.cancel_all()
         await ctx.routes.cancel_all()
         await ctx.runtime.drain(DRAIN_TIMEOUT_S)
@@ -130,6 +134,17 @@ async def _expire_sessions(ctx: AppContext) -> None:
             await ctx.runtime.expire_idle()
         except Exception:  # noqa: BLE001 - the next round tries again
             log.exception("expiring idle sessions failed")
+
+
+async def _settle_gone(ctx: AppContext) -> None:
+    """Shared engine: report the frames that dead API processes left queued, every so
+    often."""
+    while True:
+        await asyncio.sleep(SETTLE_INTERVAL_S)
+        try:
+            await ctx.runtime.settle_gone()
+        except Exception:  # noqa: BLE001 - the next round tries again
+            log.exception("settling the frames of dead API processes failed")
 
 
 def _prepare_database(ctx: AppContext) -> None:

@@ -55,6 +55,9 @@ from vloc.app.stream.hub import LocalHub
 log = logging.getLogger(__name__)
 
 OPEN_TIMEOUT_S = 120.0
+GONE_AFTER_S = 3.0
+"""A shared engine's API process whose lease no shard has seen renewed for this long is
+gone: the frames it left queued are settled by the processes still alive."""
 
 
 class SessionRuntime:
@@ -264,6 +267,27 @@ class SessionRuntime:
         return [FrameError(session_id=live.id, seq=f.seq, captured_at=f.captured_at,
                            kind=f.error_kind, reason=f.error_reason, latency_ms=None)
                 .model_dump(mode="json") for f in frames]
+
+    async def settle_gone(self) -> int:
+        """Shared engine: report the frames that API processes no longer alive left queued
+        (failed, kind ``interrupted``, published to their sessions' streams); how many."""
+        alive = await asyncio.to_thread(self.engine.live_instances, GONE_AFTER_S)
+        if alive is None:
+            return 0
+        frames = await asyncio.to_thread(self._settle_gone, alive | {self.owner})
+        for f in frames:
+            self.hub.publish(str(f.session_id), FrameError(
+                session_id=f.session_id, seq=f.seq, captured_at=f.captured_at,
+                kind=f.error_kind, reason=f.error_reason, latency_ms=None)
+                .model_dump(mode="json"))
+        if frames:
+            log.warning("%d frame(s) left queued by API processes no longer alive reported "
+                        "interrupted", len(frames))
+        return len(frames)
+
+    def _settle_gone(self, alive: set[str]) -> list:
+        with self.db_sessions() as db:
+            return store.settle_gone(db, alive=alive)
 
     def _take_interrupted(self, session_id: uuid.UUID) -> list:
         with self.db_sessions() as db:

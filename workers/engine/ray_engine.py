@@ -42,8 +42,10 @@ import hashlib
 import logging
 import math
 import os
+import socket
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from concurrent.futures import Future
 
@@ -59,7 +61,7 @@ from .messages import (
 )
 from .pool import _settle
 from .protocol import SeqRefused
-from .ray_actors import CODE_VERSION, HOLD_S, MAP_STORE, NAMESPACE, MapStore, Shard
+from .ray_actors import CODE_VERSION, HOLD_S, LEASE_S, MAP_STORE, NAMESPACE, MapStore, Shard
 from .slots import EngineClosed, WorkerDied, remote_error
 from .worker import _function
 
@@ -97,7 +99,12 @@ class RayEngine:
     shard_cpus : float
         CPUs the scheduler reserves for each shard actor.
     hold_s : float
-        How long a shard waits for a reserved seq's frame before stepping later ones.
+        How long a shard waits for a reserved seq's frame before stepping later ones (while
+        this engine's lease on the shard lasts: the seqs of a dead process are given up
+        within :data:`~.ray_actors.LEASE_S`).
+    instance : str or None
+        This API process's instance name, the owner of the frames it records: the shards
+        tell every process which instances hold leases (:meth:`live_instances`).
     """
 
     shared = True
@@ -106,7 +113,7 @@ class RayEngine:
                  on_outcome: Callable[[Outcome], None] | None = None,
                  checkpoint_every: int = 1, max_pixels: int = 50_000_000,
                  shard_cpus: float = 1.0, namespace: str = NAMESPACE,
-                 hold_s: float = HOLD_S) -> None:
+                 hold_s: float = HOLD_S, instance: str | None = None) -> None:
         if n_shards < 1:
             raise ValueError("n_shards must be at least 1")
         self.n_workers = n_shards
@@ -117,7 +124,9 @@ class RayEngine:
         self.shard_cpus = shard_cpus
         self.namespace = namespace
         self.hold_s = hold_s
+        self.lease = (uuid.uuid4().hex, instance or socket.gethostname())
         self.restarts = 0
+        self._renewing = threading.Event()
         self._lock = threading.Lock()
         self._running = False
         self._initialised_here = False
@@ -169,6 +178,17 @@ class RayEngine:
                     "its own VLOC_RAY_NAMESPACE, or remove the other's shards")
         self._stamps = {i: started for i, (_, started, _) in enumerate(stamps)}
         self._running = True
+        self._renewing.set()
+        threading.Thread(target=self._renew_leases, name="ray-leases", daemon=True).start()
+
+    def _renew_leases(self) -> None:
+        """Renew this process's lease on every shard, four times per lease period, from a
+        thread of its own (a busy event loop must not look like a dead process)."""
+        while self._renewing.is_set():
+            for shard in self._shards:
+                with contextlib.suppress(Exception):  # a dead shard comes back by itself
+                    shard.lease.remote(*self.lease)
+            time.sleep(LEASE_S / 4)
 
     def close(self, timeout: float = 10.0) -> None:
         """Stop taking work, wait (up to ``timeout``) for the frames sent, report the rest
@@ -181,6 +201,10 @@ class RayEngine:
         if refs:
             ray.wait(refs, num_returns=len(refs), timeout=timeout)
             time.sleep(0.05)  # let the done callbacks of the last ones run
+        self._renewing.clear()
+        ends = [s.end_lease.remote(self.lease[0]) for s in self._shards]
+        with contextlib.suppress(Exception):
+            ray.wait(ends, num_returns=len(ends), timeout=PING_TIMEOUT_S)
         with self._lock:
             left, self._pending = list(self._pending), {}
             calls, self._calls_waiting = list(self._calls_waiting), collections.deque()
@@ -269,7 +293,8 @@ class RayEngine:
                 raise SeqRefused(reply[1], seq, reply[2])
             return reply[1]
 
-        return self._future(self.shard(session_id).reserve.remote(session_id, seq), reserved)
+        return self._future(self.shard(session_id).reserve.remote(session_id, seq, self.lease),
+                            reserved)
 
     def release_seq(self, session_id: str, seq: int) -> None:
         if self._running:
@@ -300,6 +325,24 @@ class RayEngine:
                 if session_id in self._open:
                     self._states[session_id] = outcome.state
         self._emit(outcome)
+
+    def live_instances(self, within_s: float) -> set[str] | None:
+        """Instance names of the API processes that renewed their lease on a shard in the
+        last ``within_s`` seconds, as the shards saw them; None when no shard has been up
+        that long (an answer could miss a live one)."""
+        if not self._running:
+            return None
+        refs = [s.instances.remote(within_s) for s in self._shards]
+        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=PING_TIMEOUT_S)
+        seen: set[str] | None = None
+        for ref in ready:
+            try:
+                found = ray.get(ref)
+            except RayActorError:
+                continue
+            if found is not None:
+                seen = (seen or set()) | set(found)
+        return seen
 
     def pending_frames(self, session_id: str) -> int:
         with self._lock:
