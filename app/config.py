@@ -61,6 +61,14 @@ class Settings(BaseSettings):
     max_pixels: int = Field(50_000_000, gt=0, description="Decompression-bomb guard.")
     max_pending_frames: int = Field(
         64, gt=0, description="Frames a session may have queued before 429.")
+    max_queued_bytes: int = Field(
+        128 * 2**20, gt=0,
+        description="Bytes of frames the API process holds at once, from their bodies' "
+                    "arrival to their answers, over every session; past it frames get 503 "
+                    "server-busy, and a session past its fair share of it 429 "
+                    "over-fair-share, both with Retry-After.")
+    max_queued_frames: int = Field(
+        1024, gt=0, description="Frames the API process holds at once, in the same way.")
     frame_wait_timeout_s: float = Field(
         60.0, gt=0, description="How long ?wait=true waits for an estimate.")
     checkpoint_every: int = Field(

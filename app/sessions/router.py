@@ -126,16 +126,19 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
     if declared is None:
         raise Problem(415, "send the frame as the raw body with Content-Type image/jpeg or "
                       "image/png", kind="unsupported-media-type")
+    runtime = ctx.runtime
+    limit = ctx.settings.max_frame_bytes
     try:
         captured = check_captured_at(captured_at)
-        data = await read_body(request, ctx.settings.max_frame_bytes)
-        check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
+        # the body's room is taken before it is read: bodies in flight are what fills memory
+        with runtime.budget.reading(live.id, _declared_size(request, limit)):
+            data = await read_body(request, limit)
+            check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
+            seq, queued = await runtime.accept(live, data, seq=seq, captured_at=captured,
+                                               t0=t0, metadata=metadata, admitted=True)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
         raise
-    runtime = ctx.runtime
-    seq, queued = await runtime.accept(live, data, seq=seq, captured_at=captured, t0=t0,
-                                       metadata=metadata)
     fut = runtime.waiter(live, seq) if wait else None
     try:
         # Answered once the frame is recorded: an accepted frame survives a crash.
@@ -156,6 +159,12 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
         return JSONResponse(msg, status_code=200)
     raise Problem(FAILED_FRAME_STATUS.get(msg["kind"], 500), msg["reason"],
                   kind=f"frame-{msg['kind'].replace('_', '-')}", seq=seq)
+
+
+def _declared_size(request: Request, limit: int) -> int:
+    """The body's size as declared, else (chunked) the most it may be."""
+    declared = request.headers.get("content-length")
+    return min(int(declared), limit) if declared is not None and declared.isdigit() else limit
 
 
 @router.post("/{session_id}/reset", response_model=SessionRead)

@@ -44,7 +44,8 @@ from vloc.app.metrics import Metrics
 from vloc.app.problems import Problem
 from vloc.app.sessions import store
 from vloc.app.sessions.admission import check_revision, next_seq, spec_for
-from vloc.app.sessions.live import Arrival, LiveSession
+from vloc.app.sessions.budget import FrameBudget, Held
+from vloc.app.sessions.live import LAST_FRAME_MAX_BYTES, Arrival, LiveSession
 from vloc.app.sessions.models import LocalisationSession
 from vloc.app.sessions.outcomes import Outcomes
 from vloc.app.sessions.schemas import MAX_SEQ, FrameError
@@ -81,6 +82,9 @@ class SessionRuntime:
                                  live=self._live.get)
         self._idle = asyncio.Event()
         self._closing = False
+        self.budget = FrameBudget(max_bytes=settings.max_queued_bytes,
+                                  max_frames=settings.max_queued_frames,
+                                  accepted=self._accepted_held)
 
     # -- life cycle -------------------------------------------------------------------------
 
@@ -106,6 +110,11 @@ class SessionRuntime:
 
     def pending_total(self) -> int:
         return sum(len(live.arrivals) for live in list(self._live.values()))
+
+    def _accepted_held(self) -> dict[str, Held]:
+        """The frames accepted and not answered, by session (for :attr:`budget`)."""
+        return {live.id: Held(len(live.arrivals), sum(a.size for a in live.arrivals.values()))
+                for live in list(self._live.values()) if live.arrivals}
 
     # -- sessions ---------------------------------------------------------------------------
 
@@ -297,7 +306,8 @@ class SessionRuntime:
 
     async def accept(self, live: LiveSession, data: bytes, *, seq: int | None,
                      captured_at: datetime | None, t0: float,
-                     metadata: dict | None = None) -> tuple[int, asyncio.Future]:
+                     metadata: dict | None = None,
+                     admitted: bool = False) -> tuple[int, asyncio.Future]:
         """Number a frame whose bytes passed the header checks and queue its record.
 
         Returns the frame's seq and a future that resolves (with the seq) once the frame is
@@ -307,11 +317,14 @@ class SessionRuntime:
         A local engine's frames are numbered here, with no await between the sequence
         check and the queueing; a shared engine numbers them itself, across API processes.
 
+        ``admitted``: the frame's body was let in by :attr:`budget` already.
+
         Raises
         ------
         Problem
             409 for a duplicate, stale or exhausted ``seq``, 429 when the session has too
-            many frames queued, 503 while the server shuts down.
+            many frames queued or more than its share of the server's, 503 while the server
+            shuts down or when it holds as many frames as it takes.
         """
         if self._closing:
             raise Problem(503, "the server is shutting down; send the frame again later",
@@ -321,14 +334,16 @@ class SessionRuntime:
         if len(live.arrivals) >= self.settings.max_pending_frames:
             raise Problem(429, f"{len(live.arrivals)} frames of this session are still queued",
                           kind="too-many-pending", headers={"Retry-After": "1"})
+        if not admitted:
+            self.budget.check(live.id, len(data))
         if self.engine.shared:
             seq = await self._reserve(live, seq)
         arrival = Arrival(t0, utcnow(), captured_at, data, self.loop.create_future(),
-                          live.last_seq, metadata or None)
+                          live.last_seq, metadata or None, len(data))
         live.arrivals[seq] = arrival
         live.last_seq = seq if live.last_seq is None else max(live.last_seq, seq)
         live.last_active = arrival.received_at
-        live.last_frame = (seq, data)
+        live.last_frame = (seq, data) if len(data) <= LAST_FRAME_MAX_BYTES else None
         self._writer.put(Accepted(live, FrameRecord(live.id, seq, arrival.received_at,
                                                     captured_at)))
         self.metrics.frames_accepted.inc()
