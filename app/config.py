@@ -69,6 +69,11 @@ class Settings(BaseSettings):
                     "over-fair-share, both with Retry-After.")
     max_queued_frames: int = Field(
         1024, gt=0, description="Frames the API process holds at once, in the same way.")
+    drain_timeout_s: float = Field(
+        120.0, gt=0, description="On a graceful stop, the longest the server keeps answering "
+                                 "the frames it accepted before closing the streams; it stops "
+                                 "sooner once they are answered, or 10 s after the last one "
+                                 "answered when the engine answers no more.")
     frame_wait_timeout_s: float = Field(
         60.0, gt=0, description="How long ?wait=true waits for an estimate.")
     checkpoint_every: int = Field(

@@ -31,7 +31,6 @@ from vloc.app.stream.router import router as stream_router
 
 log = logging.getLogger("vloc.app")
 
-DRAIN_TIMEOUT_S = 10.0
 STREAMS_CLOSE_TIMEOUT_S = 5.0
 SWEEP_INTERVAL_S = 30.0
 SETTLE_INTERVAL_S = 1.0
@@ -106,7 +105,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             settler.cancel()
         await ctx.builds.cancel_all()
         await ctx.routes.cancel_all()
-        await ctx.runtime.drain(DRAIN_TIMEOUT_S)
+        await ctx.runtime.drain(ctx.settings.drain_timeout_s)
         await asyncio.to_thread(ctx.engine.close)
         await asyncio.to_thread(ctx.runtime.stop)
         await asyncio.sleep(0)  # let the last publications run
@@ -115,12 +114,13 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         log.info("vloc stopped")
 
 
-async def drain(app: FastAPI, timeout: float = DRAIN_TIMEOUT_S) -> None:
+async def drain(app: FastAPI, timeout: float | None = None) -> None:
     """A graceful stop's first half, while connections are still open: refuse new frames,
-    answer and store the frames already accepted, let every stream send their messages,
-    then close the streams with 1001 (going away)."""
+    answer and store the frames already accepted (while the backlog shrinks, at most
+    ``timeout``, by default ``VLOC_DRAIN_TIMEOUT_S``), let every stream send their
+    messages, then close the streams with 1001 (going away)."""
     ctx: AppContext = app.state.ctx
-    await ctx.runtime.drain(timeout)
+    await ctx.runtime.drain(ctx.settings.drain_timeout_s if timeout is None else timeout)
     if (left := ctx.runtime.pending_total()):
         log.warning("closing the streams with %d frame(s) still unanswered", left)
     await ctx.hub.going_away(STREAMS_CLOSE_TIMEOUT_S)

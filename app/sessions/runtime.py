@@ -21,6 +21,7 @@ The parts, and the threads and loop they run on:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import threading
 import time
@@ -56,6 +57,9 @@ from vloc.app.stream.hub import LocalHub
 log = logging.getLogger(__name__)
 
 OPEN_TIMEOUT_S = 120.0
+DRAIN_STALL_S = 10.0
+"""A drain gives up once no frame has been answered for this long."""
+DRAIN_POLL_S = 0.5
 GONE_AFTER_S = 3.0
 """A shared engine's API process whose lease no shard has seen renewed for this long is
 gone: the frames it left queued are settled by the processes still alive."""
@@ -92,17 +96,22 @@ class SessionRuntime:
         self.loop = self.outcomes.loop = loop
         self._writer.start(loop)
 
-    async def drain(self, timeout: float) -> None:
-        """Refuse new frames, then wait (up to ``timeout``) until every accepted frame has
-        been answered and stored."""
+    async def drain(self, timeout: float, *, stall_s: float = DRAIN_STALL_S) -> None:
+        """Refuse new frames, then wait until every accepted frame has been answered and
+        stored: as long as the backlog keeps shrinking, up to ``timeout`` in all, and no
+        more than ``stall_s`` after the last frame answered (an engine that answers
+        nothing more is not waited for)."""
         self._closing = True
-        deadline = time.monotonic() + timeout
-        while self.pending_total() and time.monotonic() < deadline:
+        now = time.monotonic()
+        deadline, progress, left = now + timeout, now, self.pending_total()
+        while left and now < deadline and now - progress < stall_s:
             self._idle.clear()
-            try:
-                await asyncio.wait_for(self._idle.wait(), max(deadline - time.monotonic(), 0))
-            except TimeoutError:
-                break
+            wake = min(deadline, progress + stall_s, now + DRAIN_POLL_S)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._idle.wait(), max(wake - now, 0))
+            now, before, left = time.monotonic(), left, self.pending_total()
+            if left < before:
+                progress = now
 
     def stop(self) -> None:
         """Store what the engine has reported; call after the engine has stopped."""

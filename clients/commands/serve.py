@@ -119,8 +119,11 @@ def _supervise(overrides: dict, host: str, port: int, n: int, base_name: str) ->
                 click.echo(f"vloc: API process {i} (pid {p.pid}) exited with {p.exitcode}; "
                            "starting another", err=True)
                 procs[i] = start(i)
+    from vloc.app.config import Settings
+
+    drain_s = Settings(**overrides).drain_timeout_s
     for p in procs:
-        p.join(GRACEFUL_SHUTDOWN_S + 10)
+        p.join(drain_s + GRACEFUL_SHUTDOWN_S + 10)
         if p.is_alive():
             p.kill()
     sock.close()
