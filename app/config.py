@@ -77,7 +77,13 @@ class Settings(BaseSettings):
     frame_wait_timeout_s: float = Field(
         60.0, gt=0, description="How long ?wait=true waits for an estimate.")
     checkpoint_every: int = Field(
-        1, ge=1, description="Store the filter state in the database every N frames.")
+        1, ge=1, description="Have the worker return the filter state every N frames.")
+    checkpoint_interval_s: float = Field(
+        2.0, ge=0, description="Store a session's filter state in the database at most once "
+                               "in this many seconds (0: every state); the latest state is "
+                               "kept in memory meanwhile and stored on a graceful stop. After "
+                               "a crash a session resumes from a state at most this old; its "
+                               "frames' records and poses are stored regardless.")
     worker_stall_s: float = Field(
         5.0, gt=0.5, description="A worker silent this long is not ready (/readyz 503).")
     instance_name: str = Field(

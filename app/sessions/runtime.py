@@ -112,6 +112,8 @@ class SessionRuntime:
             now, before, left = time.monotonic(), left, self.pending_total()
             if left < before:
                 progress = now
+        if (n := self.outcomes.flush_checkpoints()):
+            log.info("stored the latest checkpoints of %d session(s)", n)
 
     def stop(self) -> None:
         """Store what the engine has reported; call after the engine has stopped."""
@@ -233,6 +235,7 @@ class SessionRuntime:
         key = str(session_id)
         with self._lock:
             self._live.pop(key, None)
+        self.outcomes.forget(key)
         self.metrics.live_sessions.set(len(self._live))
         self.engine.close_session(key)
         self.loop.call_soon_threadsafe(self.hub.close_session, key)

@@ -123,7 +123,10 @@ def _apply(db: Session, row: LocalisationSession, outcome: Outcome,
            msg: dict | None) -> dict | None:
     """Apply one outcome to its session; the frame's settled status (bind parameters)."""
     if isinstance(outcome, Checkpoint):
-        row.state = outcome.state
+        if outcome.seq is None:
+            row.state = outcome.state
+        elif row.state_seq is None or outcome.seq >= row.state_seq:
+            row.state, row.state_seq = outcome.state, outcome.seq
         return None
     row.last_seq = outcome.seq if row.last_seq is None else max(row.last_seq, outcome.seq)
     row.last_active_at = utcnow()
