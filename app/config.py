@@ -66,7 +66,9 @@ class Settings(BaseSettings):
         description="Bytes of frames the API process holds at once, from their bodies' "
                     "arrival to their answers, over every session; past it frames get 503 "
                     "server-busy, and a session past its fair share of it 429 "
-                    "over-fair-share, both with Retry-After.")
+                    "over-fair-share, both with Retry-After. The API process's memory "
+                    "stays within its idle size plus three times this "
+                    "(bench/results/admission.md).")
     max_queued_frames: int = Field(
         1024, gt=0, description="Frames the API process holds at once, in the same way.")
     drain_timeout_s: float = Field(
