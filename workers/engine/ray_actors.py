@@ -156,6 +156,10 @@ class Shard:
         restarted."""
         return os.getpid(), self.started, self.version
 
+    async def node(self) -> str:
+        """The id of the Ray node this shard runs on."""
+        return ray.get_runtime_context().get_node_id()
+
     async def lease(self, owner: str, instance: str) -> None:
         """Renew an API process's lease; a renewal after a lapse counts as a new one."""
         self.leases[owner] = (time.monotonic(), instance)

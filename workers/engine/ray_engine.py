@@ -4,7 +4,7 @@ process shares (``pip install 'vloc[ray]'``).
 Shape
 -----
 - ``n_shards`` named, detached shard actors (``vloc-shard-<i>`` in the ``vloc`` namespace),
-  each a process that holds many sessions. A session's shard is a hash of its id, so every
+  each a process that holds many sessions, spread over the cluster's nodes. A session's shard is a hash of its id, so every
   API process finds it by name with no table to share. One actor per session would cost a
   process per session; a shard holds hundreds.
 - A shard is an async actor: its event loop orders the work, one thread of its own runs
@@ -161,7 +161,7 @@ class RayEngine:
         shard_cls = ray.remote(Shard)
         self._shards = [
             shard_cls.options(name=shard_name(i), num_cpus=self.shard_cpus,
-                              max_concurrency=1000, **common)
+                              max_concurrency=1000, scheduling_strategy="SPREAD", **common)
             .remote(i, max_pixels=self.max_pixels, checkpoint_every=self.checkpoint_every,
                     namespace=self.namespace, hold_s=self.hold_s, version=CODE_VERSION)
             for i in range(self.n_workers)]
