@@ -82,7 +82,8 @@ def list_poses(row: SessionDep, db: DbSession,
                                             "opened on this server"}})
 def last_frame(live: LiveSessionDep) -> Response:
     """The latest frame this server accepted for the session, as it was sent. Frames are
-    kept in memory only: before the first one, and after a restart, the answer is 204."""
+    kept in memory only, up to 1 MiB: before the first one, after a larger one, and after a
+    restart, the answer is 204."""
     if live.last_frame is None:
         return Response(status_code=204, headers={"Cache-Control": "no-store"})
     seq, data = live.last_frame

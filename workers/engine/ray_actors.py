@@ -54,9 +54,10 @@ def _code_version() -> str:
 
 CODE_VERSION = _code_version()
 HOLD_S = 30.0
-"""How long a shard holds a session's frame for a seq reserved before it that has not come:
-long enough for a busy API process to store the frame's record and send it, short enough
-that a session whose API process died between the two does not stall for long."""
+"""How long a shard holds a session's frame for a seq reserved before it that has not come,
+while the API process that reserved it is alive (its lease renewed): long enough for a busy
+process to store the frame's record and send it. A dead process's seqs are given up as soon
+as its lease lapses (:data:`LEASE_S`)."""
 LEASE_S = 0.8
 """An API process renews its lease on every shard four times in this time; once it has not
 for this long it is taken for dead, and the seqs it reserved and never sent are given up at
