@@ -146,9 +146,12 @@ class Figures:
         return np.diff(times)
 
     def resumed_after(self, sid: str) -> float:
-        """Seconds from the kill to the session's first pose after it."""
+        """Seconds from the kill to the session's first pose of a frame after those the
+        kill lost (a pose of a frame stepped just before the kill does not count)."""
+        lost = [m["seq"] for _, m in self.arrivals[sid] if m["type"] == "frame_error"]
         return min(t for t, m in self.arrivals[sid]
-                   if t > self.kill_at and m["type"] == "pose") - self.kill_at
+                   if t > self.kill_at and m["type"] == "pose"
+                   and m["seq"] > max(lost, default=-1)) - self.kill_at
 
 
 async def _stream(server: Server, sid: str, token: str, arrivals: list, stop: asyncio.Event):
