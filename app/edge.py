@@ -123,8 +123,8 @@ class EdgeGate:
         policy, parts = policy_for(scope["method"], scope["path"])
         limit = body_limit(policy.body, ctx.settings)
         try:
-            _check_url(scope)
             await self._authenticate(policy.access, scope, parts, ctx)
+            _check_url(scope)
             declared = _content_length(scope)
         except Problem as problem:
             await _refuse(problem, scope, receive, send)

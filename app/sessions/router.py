@@ -100,11 +100,15 @@ def last_frame(live: LiveSessionDep) -> Response:
                         422: {"description": "Empty, corrupt or truncated image; seq, "
                                              "captured_at or metadata out of range "
                                              "(bad-metadata names the field)"},
+                        429: {"description": "Too many frames of the session queued, or "
+                                             "more than its share of the server's "
+                                             "(Retry-After)"},
                         500: {"description": "With ?wait=true: the frame was accepted and "
                                              "gave no estimate (frame-error), or its outcome "
                                              "could not be stored (frame-not-stored)"},
-                        503: {"description": "Shutting down, or the frame could not be "
-                                             "recorded"}},
+                        503: {"description": "Shutting down, the server holds as many "
+                                             "frames as it takes (Retry-After), or the "
+                                             "frame could not be recorded"}},
              openapi_extra={"requestBody": {"required": True, "content": {
                  "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
                  "image/png": {"schema": {"type": "string", "format": "binary"}}}}})

@@ -140,18 +140,21 @@ class Figures:
     arrivals: dict[str, list[tuple[float, dict]]]
     nodes_before: list[str]
     nodes_after: list[str]
+    accepted_at: dict[str, dict[int, float]]
+    """Session -> seq -> when its 202 came."""
+    victim: str
+    other: str
 
     def gaps(self, sid: str) -> np.ndarray:
         times = [t for t, _ in self.arrivals[sid]]
         return np.diff(times)
 
     def resumed_after(self, sid: str) -> float:
-        """Seconds from the kill to the session's first pose of a frame after those the
-        kill lost (a pose of a frame stepped just before the kill does not count)."""
-        lost = [m["seq"] for _, m in self.arrivals[sid] if m["type"] == "frame_error"]
+        """Seconds from the kill to the session's first pose of a frame accepted after
+        it."""
+        late = {seq for seq, t in self.accepted_at[sid].items() if t > self.kill_at}
         return min(t for t, m in self.arrivals[sid]
-                   if t > self.kill_at and m["type"] == "pose"
-                   and m["seq"] > max(lost, default=-1)) - self.kill_at
+                   if m["type"] == "pose" and m["seq"] in late) - self.kill_at
 
 
 async def _stream(server: Server, sid: str, token: str, arrivals: list, stop: asyncio.Event):
@@ -165,7 +168,7 @@ async def _stream(server: Server, sid: str, token: str, arrivals: list, stop: as
 
 
 async def _device(http: httpx.AsyncClient, sid: str, token: str, frames: list[bytes],
-                  until: float, accepted: list[int]) -> None:
+                  until: float, accepted: dict[int, float]) -> None:
     """A frame every FRAME_PERIOD_S; one refused while the session's shard restarts is
     sent again after its Retry-After, as a client would."""
     headers = {"Authorization": f"Bearer {token}", "Content-Type": "image/jpeg"}
@@ -174,7 +177,7 @@ async def _device(http: httpx.AsyncClient, sid: str, token: str, frames: list[by
         r = await http.post(f"/v1/sessions/{sid}/frames", content=frames[i % len(frames)],
                             headers=headers)
         if r.status_code == 202:
-            accepted.append(r.json()["seq"])
+            accepted[r.json()["seq"]] = time.monotonic()
             i += 1
             await asyncio.sleep(FRAME_PERIOD_S)
         else:
@@ -214,7 +217,7 @@ def node_loss(tmp: Path, *, before_s: float = 4.0, after_s: float = 10.0) -> Fig
                     victim, other = on[SECOND_NODE_IP], on[head_ip]
                     stop = asyncio.Event()
                     arrivals = {victim[0]: [], other[0]: []}
-                    accepted = {victim[0]: [], other[0]: []}
+                    accepted = {victim[0]: {}, other[0]: {}}
                     streams = [asyncio.create_task(_stream(server, sid, token, arrivals[sid],
                                                            stop)) for sid, token in on.values()]
                     await asyncio.sleep(0.5)  # the streams subscribed
@@ -244,9 +247,8 @@ def node_loss(tmp: Path, *, before_s: float = 4.0, after_s: float = 10.0) -> Fig
             nodes_after = shard_nodes(cluster.address, namespace)
         finally:
             server.stop()
-    figures = Figures(kill_at, accepted, outcomes, arrivals, nodes_before, nodes_after)
-    figures.victim, figures.other = victim, other
-    return figures
+    return Figures(kill_at, {sid: sorted(a) for sid, a in accepted.items()}, outcomes,
+                   arrivals, nodes_before, nodes_after, accepted, victim, other)
 
 
 def test_a_killed_node_s_sessions_resume_on_the_other_and_the_others_never_pause(tmp_path):
