@@ -124,6 +124,16 @@ def two_nodes(tmp: Path) -> Iterator[Cluster]:
             current.unlink()
 
 
+def kill_node(node: subprocess.Popen) -> None:
+    """SIGKILL to the node's every process: ``ray start``, its raylet, its workers (which
+    may have sessions of their own)."""
+    from tests.procs import descendants
+
+    for pid in [node.pid, *descendants(node.pid)]:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+
+
 def shard_nodes(address: str, namespace: str) -> list[str]:
     """The node address of each shard."""
     return _query(address, f"""
@@ -227,7 +237,7 @@ def node_loss(tmp: Path, *, before_s: float = 4.0, after_s: float = 10.0) -> Fig
                                for sid, token in on.values()]
                     await asyncio.sleep(before_s)
                     kill_at = time.monotonic()
-                    os.killpg(cluster.second.pid, signal.SIGKILL)
+                    kill_node(cluster.second)
                     await asyncio.gather(*devices)
                     outcomes = {}
                     for sid, _ in on.values():  # every accepted frame answered or reported
