@@ -58,8 +58,8 @@ def main() -> None:
         "the second node is killed 4 s in; 10 s more of frames.",
         "",
         "| run | longest silence, surviving node's session | its median gap | killed "
-        "node's session: kill to first pose | its longest silence | frames accepted | "
-        "answered or reported | reported lost (worker_died) |",
+        "node's session: kill to the first pose of a frame sent after it | its longest "
+        "silence | frames accepted | answered or reported | reported lost (worker_died) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for i, r in enumerate(rows, 1):

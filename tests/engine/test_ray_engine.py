@@ -303,8 +303,22 @@ def test_shards_of_another_code_version_are_refused(ray_cluster):
     ray.get(old.ping.remote())
     engine = RayEngine(1, shard_cpus=0, namespace=namespace)
     try:
-        with pytest.raises(RuntimeError, match="runs code version 0123456789"):
+        with pytest.raises(RuntimeError, match="deployment 0123456789, this server"):
             engine.start(timeout=TIMEOUT)
         assert not engine.running
     finally:
         engine.remove_actors()
+
+
+def test_shards_of_another_deployment_are_refused(ray_cluster):
+    namespace = f"vloc-test-{uuid.uuid4().hex[:8]}"
+    theirs = RayEngine(1, shard_cpus=0, namespace=namespace, deployment="theirs")
+    theirs.start(timeout=TIMEOUT)
+    ours = RayEngine(1, shard_cpus=0, namespace=namespace, deployment="ours")
+    try:
+        with pytest.raises(RuntimeError, match=r":theirs, this server .*:ours"):
+            ours.start(timeout=TIMEOUT)
+        assert theirs.alive()
+    finally:
+        theirs.close()
+        theirs.remove_actors()

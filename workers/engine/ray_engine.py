@@ -27,8 +27,8 @@ Shape
   cluster has CPUs.
 - The cluster is the one ``address`` names, or a private one started inside this process
   (never one that happens to run on the machine: Ray's default would join it). Shards
-  found by name must run this code version (:data:`.ray_actors.CODE_VERSION`); others
-  are refused at the start.
+  found by name must run this code version (:data:`.ray_actors.CODE_VERSION`) for this
+  deployment; others are refused at the start.
 
 The actors themselves are in :mod:`.ray_actors`. Nothing here imports the service: it works
 with the same messages as the local engine (:mod:`workers.engine.messages`).
@@ -105,6 +105,9 @@ class RayEngine:
     instance : str or None
         This API process's instance name, the owner of the frames it records: the shards
         tell every process which instances hold leases (:meth:`live_instances`).
+    deployment : str
+        What the API processes sharing the shards have in common (their database); shards
+        of another deployment, or of another code version, are refused.
     """
 
     shared = True
@@ -113,7 +116,8 @@ class RayEngine:
                  on_outcome: Callable[[Outcome], None] | None = None,
                  checkpoint_every: int = 1, max_pixels: int = 50_000_000,
                  shard_cpus: float = 1.0, namespace: str = NAMESPACE,
-                 hold_s: float = HOLD_S, instance: str | None = None) -> None:
+                 hold_s: float = HOLD_S, instance: str | None = None,
+                 deployment: str = "") -> None:
         if n_shards < 1:
             raise ValueError("n_shards must be at least 1")
         self.n_workers = n_shards
@@ -125,6 +129,7 @@ class RayEngine:
         self.namespace = namespace
         self.hold_s = hold_s
         self.lease = (uuid.uuid4().hex, instance or socket.gethostname())
+        self.identity = f"{CODE_VERSION}:{deployment}"
         self.restarts = 0
         self._renewing = threading.Event()
         self._lock = threading.Lock()
@@ -163,19 +168,19 @@ class RayEngine:
             shard_cls.options(name=shard_name(i), num_cpus=self.shard_cpus,
                               max_concurrency=1000, scheduling_strategy="SPREAD", **common)
             .remote(i, max_pixels=self.max_pixels, checkpoint_every=self.checkpoint_every,
-                    namespace=self.namespace, hold_s=self.hold_s, version=CODE_VERSION)
+                    namespace=self.namespace, hold_s=self.hold_s, version=self.identity)
             for i in range(self.n_workers)]
         try:
             stamps = ray.get([s.ping.remote() for s in self._shards], timeout=timeout)
         except GetTimeoutError:
             raise RuntimeError(f"the Ray shards did not start in {timeout:g} s (are there "
                                "CPUs free for them?)") from None
-        for i, (_, _, version) in enumerate(stamps):
-            if version != CODE_VERSION:
+        for i, (_, _, identity) in enumerate(stamps):
+            if identity != self.identity:
                 raise RuntimeError(
                     f"shard {shard_name(i)} of Ray namespace {self.namespace!r} runs code "
-                    f"version {version}, this server {CODE_VERSION}: give this deployment "
-                    "its own VLOC_RAY_NAMESPACE, or remove the other's shards")
+                    f"version and deployment {identity}, this server {self.identity}: give "
+                    "this deployment its own VLOC_RAY_NAMESPACE, or remove the other's shards")
         self._stamps = {i: started for i, (_, started, _) in enumerate(stamps)}
         self._running = True
         self._renewing.set()
