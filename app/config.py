@@ -61,10 +61,31 @@ class Settings(BaseSettings):
     max_pixels: int = Field(50_000_000, gt=0, description="Decompression-bomb guard.")
     max_pending_frames: int = Field(
         64, gt=0, description="Frames a session may have queued before 429.")
+    max_queued_bytes: int = Field(
+        128 * 2**20, gt=0,
+        description="Bytes of frames the API process holds at once, from their bodies' "
+                    "arrival to their answers, over every session; past it frames get 503 "
+                    "server-busy, and a session past its fair share of it 429 "
+                    "over-fair-share, both with Retry-After. The API process's memory "
+                    "stays within its idle size plus three times this "
+                    "(bench/results/admission.md).")
+    max_queued_frames: int = Field(
+        1024, gt=0, description="Frames the API process holds at once, in the same way.")
+    drain_timeout_s: float = Field(
+        120.0, gt=0, description="On a graceful stop, the longest the server keeps answering "
+                                 "the frames it accepted before closing the streams; it stops "
+                                 "sooner once they are answered, or 10 s after the last one "
+                                 "answered when the engine answers no more.")
     frame_wait_timeout_s: float = Field(
         60.0, gt=0, description="How long ?wait=true waits for an estimate.")
     checkpoint_every: int = Field(
-        1, ge=1, description="Store the filter state in the database every N frames.")
+        1, ge=1, description="Have the worker return the filter state every N frames.")
+    checkpoint_interval_s: float = Field(
+        2.0, ge=0, description="Store a session's filter state in the database at most once "
+                               "in this many seconds (0: every state); the latest state is "
+                               "kept in memory meanwhile and stored on a graceful stop. After "
+                               "a crash a session resumes from a state at most this old; its "
+                               "frames' records and poses are stored regardless.")
     worker_stall_s: float = Field(
         5.0, gt=0.5, description="A worker silent this long is not ready (/readyz 503).")
     instance_name: str = Field(

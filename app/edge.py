@@ -124,6 +124,7 @@ class EdgeGate:
         limit = body_limit(policy.body, ctx.settings)
         try:
             await self._authenticate(policy.access, scope, parts, ctx)
+            _check_url(scope)
             declared = _content_length(scope)
         except Problem as problem:
             await _refuse(problem, scope, receive, send)
@@ -131,7 +132,7 @@ class EdgeGate:
         if declared is not None and declared > limit:
             await _refuse(too_large(limit), scope, receive, send)
             return
-        await self._pass_counted(scope, receive, send, limit)
+        await self._pass_counted(scope, receive, send, limit, json_body=policy.body is BodyKind.JSON and not _is_form(scope))
 
     async def _authenticate(self, access: Access, scope: Scope, parts: dict,
                             ctx: AppContext) -> None:
@@ -161,18 +162,25 @@ class EdgeGate:
     # -- the body ---------------------------------------------------------------------------
 
     async def _pass_counted(self, scope: Scope, receive: Receive, send: Send,
-                            limit: int) -> None:
+                            limit: int, *, json_body: bool = False) -> None:
         seen = 0
         refused = False
         started = False
+        tail = b""
 
         async def counted() -> Message:
-            nonlocal seen, refused
+            nonlocal seen, refused, tail
             message = await receive()
             if message["type"] == "http.request":
-                seen += len(message.get("body", b""))
-                if seen > limit:
-                    problem = too_large(limit)
+                chunk = message.get("body", b"")
+                seen += len(chunk)
+                problem = too_large(limit) if seen > limit else None
+                if problem is None and json_body:
+                    # the tail of the previous chunk: an escape may straddle two chunks
+                    if _JSON_NUL.search(tail + chunk):
+                        problem = nul_problem("the JSON body")
+                    tail = (tail + chunk)[-_JSON_TAIL:]
+                if problem is not None:
                     if not started and not refused:
                         refused = True
                         await _refuse(problem, scope, receive, send)
@@ -192,6 +200,35 @@ class EdgeGate:
         except Problem:
             if not refused:
                 raise
+
+
+_JSON_NUL = re.compile(rb"(?<!\\)(?:\\\\)*\\u0000")
+"""A JSON string's NUL escape: ``\u0000`` after an even number of backslashes."""
+_JSON_TAIL = 64
+
+
+def nul_problem(where: str) -> Problem:
+    return Problem(422, f"{where} contains a NUL character; no name or value needs one",
+                   kind="bad-text")
+
+
+def _check_url(scope: Scope) -> None:
+    """422 ``bad-text`` for a NUL in the path or the query string."""
+    if "\x00" in scope["path"]:
+        raise nul_problem("the path")
+    query = scope.get("query_string", b"")
+    if b"\x00" in query or b"%00" in query:
+        raise nul_problem("the query string")
+
+
+def _is_form(scope: Scope) -> bool:
+    """A multipart or URL-encoded form: its files are not JSON (its text fields are checked
+    by the routes)."""
+    for key, value in scope.get("headers", ()):
+        if key == b"content-type":
+            kind = value.split(b";")[0].strip().lower()
+            return kind in (b"multipart/form-data", b"application/x-www-form-urlencoded")
+    return False
 
 
 def _content_length(scope: Scope) -> int | None:

@@ -52,6 +52,17 @@ def engine_for(settings: Settings) -> Engine:
                          address=settings.ray_address,
                          checkpoint_every=settings.checkpoint_every,
                          max_pixels=settings.max_pixels, shard_cpus=settings.ray_shard_cpus,
-                         namespace=settings.ray_namespace, hold_s=settings.ray_hold_s)
+                         namespace=settings.ray_namespace, hold_s=settings.ray_hold_s,
+                         instance=settings.instance_name, deployment=_deployment(settings))
     return LocalEngine(settings.worker_count, checkpoint_every=settings.checkpoint_every,
                        max_pixels=settings.max_pixels, stall_s=settings.worker_stall_s)
+
+
+def _deployment(settings: Settings) -> str:
+    """A digest of the database the API processes share: what makes them one deployment."""
+    import hashlib
+
+    from sqlalchemy.engine import make_url
+
+    url = make_url(settings.resolved_database_url).render_as_string(hide_password=True)
+    return hashlib.blake2b(url.encode(), digest_size=6).hexdigest()

@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import sys
+import threading
 import time
 import uuid
 from datetime import UTC, datetime
+from urllib.parse import unquote_plus
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -24,8 +27,11 @@ message with terminal colour codes, for its own console formatter only."""
 access_log = logging.getLogger("vloc.access")
 
 REDACTED = "[redacted]"
+_SECRET_KEYS = frozenset({"token", "access_token", "api_key", "key"})
+_QUERY_PAIR = re.compile(r"([?&])([^=&\s\"'#?]+)=([^&\s\"'#]*)")
+"""A query parameter; its name is compared once percent-decoded (``tok%65n`` is ``token``
+to the server that reads it)."""
 _SECRETS = (
-    re.compile(r"(?i)([?&](?:token|access_token|api_key|key)=)[^&\s\"'#]+"),
     re.compile(r"(?i)(\bbearer\s+)[^\s\"',]+"),
     re.compile(r"(?i)(\bx-api-key:\s*)[^\s\"',]+"),
     re.compile(r"(vloc\.token\.)[^\s\"',]+"),
@@ -34,9 +40,17 @@ _SECRETS = (
 
 def redact(text: str) -> str:
     """``text`` with every credential it carries replaced by ``[redacted]``."""
+    text = _QUERY_PAIR.sub(_redact_pair, text)
     for pattern in _SECRETS:
         text = pattern.sub(r"\1" + REDACTED, text)
     return text
+
+
+def _redact_pair(match: re.Match) -> str:
+    sep, name, value = match.groups()
+    if unquote_plus(name).strip().lower() in _SECRET_KEYS and value:
+        return f"{sep}{name}={REDACTED}"
+    return match.group(0)
 
 
 def _redact_value(value):
@@ -83,9 +97,16 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(out, default=str)
 
 
-def configure(level: str = "INFO", *, json_lines: bool = True) -> None:
-    """Send the service's and uvicorn's logs to stderr in one format."""
-    handler = logging.StreamHandler(sys.stderr)
+def configure(level: str = "INFO", *, json_lines: bool = True,
+              native: bool = False) -> None:
+    """Send the service's and uvicorn's logs to stderr in one format.
+
+    With ``native`` (the server's own process, never a test's), what C libraries and
+    child processes write straight to file descriptor 2 (libjpeg's and libpng's warnings)
+    becomes records too: see :func:`native_stderr`.
+    """
+    stream = native_stderr() if native and json_lines else sys.stderr
+    handler = logging.StreamHandler(stream)
     handler.addFilter(RedactSecrets())
     handler.setFormatter(JsonFormatter() if json_lines else logging.Formatter(
         "%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -96,6 +117,51 @@ def configure(level: str = "INFO", *, json_lines: bool = True) -> None:
         logger.propagate = False
     # Our access log replaces uvicorn's (it carries the request id and the duration).
     logging.getLogger("uvicorn.access").disabled = True
+
+
+_native_stream = None
+
+
+def native_stderr():
+    """The real stderr, as a text stream, after putting a pipe in place of descriptor 2.
+
+    Every line written to the pipe (by C code, by child processes, by Python's own
+    ``sys.stderr``) is read by a thread: a JSON object line goes through as it is, any
+    other line becomes a ``vloc.native`` record, so the log stays JSON lines. Done once per
+    process; child processes started later inherit the pipe.
+    """
+    global _native_stream
+    if _native_stream is None:
+        real = os.fdopen(os.dup(2), "w", buffering=1, encoding="utf-8", errors="replace")
+        read_end, write_end = os.pipe()
+        os.dup2(write_end, 2)
+        os.close(write_end)
+        _native_stream = real
+        threading.Thread(target=_pump, args=(read_end, real), name="native-stderr",
+                         daemon=True).start()
+    return _native_stream
+
+
+def _pump(read_end: int, real) -> None:
+    native = logging.getLogger("vloc.native")
+    with os.fdopen(read_end, "rb") as pipe:
+        for raw in pipe:
+            line = raw.decode("utf-8", "replace").rstrip()
+            if not line:
+                continue
+            if _is_json_object(line):
+                real.write(line + "\n")
+            else:
+                native.warning(line, extra={"source": "stderr"})
+
+
+def _is_json_object(line: str) -> bool:
+    if not line.startswith("{"):
+        return False
+    try:
+        return isinstance(json.loads(line), dict)
+    except ValueError:
+        return False
 
 
 class RequestLogMiddleware:

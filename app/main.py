@@ -32,9 +32,9 @@ from vloc.app.stream.router import router as stream_router
 
 log = logging.getLogger("vloc.app")
 
-DRAIN_TIMEOUT_S = 10.0
 STREAMS_CLOSE_TIMEOUT_S = 5.0
 SWEEP_INTERVAL_S = 30.0
+SETTLE_INTERVAL_S = 1.0
 
 
 def create_app(settings: Settings | None = None, *, configure_logging: bool = False) -> FastAPI:
@@ -43,7 +43,7 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     if configure_logging:
         json_lines = settings.log_json if settings.log_json is not None \
             else not sys.stderr.isatty()
-        logs.configure(settings.log_level, json_lines=json_lines)
+        logs.configure(settings.log_level, json_lines=json_lines, native=True)
     logs.redact_uvicorn()
     private_dir(settings.data_dir)
     db_engine = make_engine(settings.resolved_database_url)
@@ -97,15 +97,18 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     ctx.routes.loop = loop
     await ctx.hub.start()
     sweeper = asyncio.create_task(_expire_sessions(ctx))
+    settler = asyncio.create_task(_settle_gone(ctx)) if ctx.engine.shared else None
     log.info("vloc ready", extra={"workers": ctx.engine.n_workers,
                                   "database": ctx.db_engine.dialect.name})
     try:
         yield
     finally:
         sweeper.cancel()
+        if settler is not None:
+            settler.cancel()
         await ctx.builds.cancel_all()
         await ctx.routes.cancel_all()
-        await ctx.runtime.drain(DRAIN_TIMEOUT_S)
+        await ctx.runtime.drain(ctx.settings.drain_timeout_s)
         await asyncio.to_thread(ctx.engine.close)
         await asyncio.to_thread(ctx.runtime.stop)
         await asyncio.sleep(0)  # let the last publications run
@@ -114,12 +117,13 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         log.info("vloc stopped")
 
 
-async def drain(app: FastAPI, timeout: float = DRAIN_TIMEOUT_S) -> None:
+async def drain(app: FastAPI, timeout: float | None = None) -> None:
     """A graceful stop's first half, while connections are still open: refuse new frames,
-    answer and store the frames already accepted, let every stream send their messages,
-    then close the streams with 1001 (going away)."""
+    answer and store the frames already accepted (while the backlog shrinks, at most
+    ``timeout``, by default ``VLOC_DRAIN_TIMEOUT_S``), let every stream send their
+    messages, then close the streams with 1001 (going away)."""
     ctx: AppContext = app.state.ctx
-    await ctx.runtime.drain(timeout)
+    await ctx.runtime.drain(ctx.settings.drain_timeout_s if timeout is None else timeout)
     if (left := ctx.runtime.pending_total()):
         log.warning("closing the streams with %d frame(s) still unanswered", left)
     await ctx.hub.going_away(STREAMS_CLOSE_TIMEOUT_S)
@@ -133,6 +137,17 @@ async def _expire_sessions(ctx: AppContext) -> None:
             await ctx.runtime.expire_idle()
         except Exception:  # noqa: BLE001 - the next round tries again
             log.exception("expiring idle sessions failed")
+
+
+async def _settle_gone(ctx: AppContext) -> None:
+    """Shared engine: report the frames that dead API processes left queued, every so
+    often."""
+    while True:
+        await asyncio.sleep(SETTLE_INTERVAL_S)
+        try:
+            await ctx.runtime.settle_gone()
+        except Exception:  # noqa: BLE001 - the next round tries again
+            log.exception("settling the frames of dead API processes failed")
 
 
 def _prepare_database(ctx: AppContext) -> None:

@@ -68,3 +68,13 @@ def check_metadata(values: dict) -> dict | None:
         raise Problem(422, str(exc), kind="bad-metadata",
                       field=name if name in values else None) from None
     return metadata.to_dict() or None
+
+
+def check_text(value: str, field: str) -> str:
+    """``value`` when it is free of NUL characters; 422 ``bad-text`` naming the field.
+
+    PostgreSQL cannot store NUL in text, and no name or file name needs one.
+    """
+    if "\x00" in value:
+        raise Problem(422, f"{field} contains a NUL character", kind="bad-text", field=field)
+    return value

@@ -128,7 +128,10 @@ def ray_cluster(tmp_path_factory) -> Iterator[str]:
     os.environ["RAY_AUTH_MODE"] = "disabled"
     env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), RAY_USAGE_STATS_ENABLED="0")
     head = subprocess.Popen(
-        [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block",
+        # this interpreter, not the ``ray`` script's: the nodes' workers must import this
+        # checkout's code (a script copied with a virtual environment names another one)
+        [sys.executable, "-c", "import sys; from ray.scripts.scripts import main; "
+         "sys.argv[0] = 'ray'; main()", "start", "--head", "--block",
          f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
          "--node-ip-address=127.0.0.1", "--disable-usage-stats"],
         env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT, start_new_session=True)

@@ -29,7 +29,7 @@ from vloc.app.sessions.dependencies import FrameMetadataDep
 from vloc.app.sessions.pose import pose_fields
 from vloc.app.sessions.schemas import MAX_INITIAL_SIGMA_M, InitialPose, Localization
 from vloc.app.sessions.service import check_initial_pose, map_frame
-from vloc.app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_captured_at
+from vloc.app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_captured_at, check_text
 from vloc.workers.core.localisers import validate_params
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(require_admin)])
@@ -131,7 +131,8 @@ async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: Image
     if lat is not None:
         position = service.GivenPosition(lat, lon, alt, aware(captured_at))
     # One byte past the limit is enough to know that a file is too large.
-    uploads = [service.Upload(f.filename or "image", await f.read(settings.max_upload_bytes + 1))
+    uploads = [service.Upload(check_text(f.filename or "image", "filename"),
+                              await f.read(settings.max_upload_bytes + 1))
                for f in files]
     return await service.add_images(db_sessions=ctx.db_sessions,
                                     map_id=parse_id(map_id, "map"), uploads=uploads,

@@ -74,6 +74,8 @@ def parse_odometry(data: bytes, *, max_step_m: float) -> list[OdometryRow]:
         name = raw["filename"].strip()
         if not name:
             raise _bad("empty filename", row=n, column="filename")
+        if "\x00" in name:
+            raise _bad("the filename contains a NUL character", row=n, column="filename")
         if name in seen:
             raise _bad(f"{name} is already row {seen[name]}", row=n, column="filename")
         seen[name] = n

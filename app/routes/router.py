@@ -12,6 +12,7 @@ from vloc.app.problems import Problem
 from vloc.app.routes import service
 from vloc.app.routes.odometry import parse_odometry
 from vloc.app.routes.schemas import RouteDetail, RouteRead
+from vloc.app.validation import check_text
 
 router = APIRouter(prefix="/v1/maps/{map_id}/routes", tags=["routes"],
                    dependencies=[Depends(require_admin)])
@@ -34,6 +35,7 @@ async def create_route(map_: MapDep, db: DbSession, ctx: Ctx, settings: Settings
     """Teach a route: the map's images in driving order with their odometry. The route is
     partitioned into nodes, loops are closed and the nodes relaxed in the background;
     ``status`` turns ``ready`` (or ``failed``)."""
+    check_text(name, "name")
     data = await odometry.read(settings.max_upload_bytes + 1)
     if len(data) > settings.max_upload_bytes:
         raise Problem(413, f"the odometry CSV exceeds {settings.max_upload_bytes} bytes",

@@ -9,6 +9,9 @@ from datetime import datetime, timedelta
 from vloc.app.db import utcnow
 from vloc.app.engine import SessionSpec
 
+LAST_FRAME_MAX_BYTES = 2**20
+"""A larger frame is not kept for viewers: every session would keep one until it expires."""
+
 
 @dataclass(slots=True)
 class Arrival:
@@ -26,6 +29,8 @@ class Arrival:
     """The session's last seq before this frame: restored if the record fails."""
     metadata: dict | None = None
     """The frame's :class:`~workers.core.metadata.FrameMetadata`, as its ``to_dict()``."""
+    size: int = 0
+    """Its bytes, held in this process until it is answered (:mod:`app.sessions.budget`)."""
 
 
 @dataclass(eq=False)
@@ -47,7 +52,8 @@ class LiveSession:
     """The last frame accepted or keep-alive; the session expires ``ttl_s`` after it."""
 
     last_frame: tuple[int, bytes] | None = None
-    """The latest accepted frame (seq, image bytes), for viewers; kept in memory only."""
+    """The latest accepted frame (seq, image bytes), for viewers; kept in memory only, and
+    only up to :data:`LAST_FRAME_MAX_BYTES`."""
 
     def expired(self, now: datetime | None = None) -> bool:
         return (now or utcnow()) > self.last_active + timedelta(seconds=self.ttl_s)

@@ -12,8 +12,11 @@ its session's arrivals.
 from __future__ import annotations
 
 import asyncio
+import math
+import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 from vloc.app.config import Settings
@@ -55,6 +58,9 @@ class Outcomes:
         self.live = live
         self.loop: asyncio.AbstractEventLoop | None = None
         self._waiters: dict[tuple[str, int], asyncio.Future] = {}
+        self._checkpoint_lock = threading.Lock()
+        self._checkpoint_at: dict[str, float] = {}
+        self._deferred: dict[str, Checkpoint] = {}
 
     def waiter(self, session_id: str, seq: int) -> asyncio.Future:
         """A future for the frame's stored message (pose or frame_error)."""
@@ -68,10 +74,43 @@ class Outcomes:
     def on_outcome(self, outcome: Outcome) -> None:
         """Engine reader thread: publish the message now, store it later."""
         msg = self.message(outcome, time.perf_counter())
+        outcome = self._checkpoint_rate(outcome)
         if msg is not None and self.loop is not None and not self.loop.is_closed():
             self.loop.call_soon_threadsafe(self.hub.publish, outcome.session_id,
                                            streamed(outcome, msg))
         self.writer.put(OutcomeRecord(outcome, msg))
+
+    def _checkpoint_rate(self, outcome: Outcome) -> Outcome:
+        """The outcome, without its state when the session's last one was stored less
+        than ``VLOC_CHECKPOINT_INTERVAL_S`` ago: that state is kept here instead, the
+        latest of each session, until :meth:`flush_checkpoints` (a filter state is tens of
+        kilobytes; stored for every frame it was most of what the database wrote)."""
+        if not isinstance(outcome, FrameDone) or outcome.state is None:
+            return outcome
+        now, sid = time.monotonic(), outcome.session_id
+        with self._checkpoint_lock:
+            if now - self._checkpoint_at.get(sid, -math.inf) >= \
+                    self.settings.checkpoint_interval_s:
+                self._checkpoint_at[sid] = now
+                self._deferred.pop(sid, None)
+                return outcome
+            last = self._deferred.get(sid)
+            if last is None or outcome.seq >= last.seq:
+                self._deferred[sid] = Checkpoint(sid, outcome.state, outcome.seq)
+        return replace(outcome, state=None)
+
+    def flush_checkpoints(self) -> int:
+        """Queue the states put off for storing (a graceful stop); how many."""
+        with self._checkpoint_lock:
+            deferred, self._deferred = list(self._deferred.values()), {}
+        for checkpoint in deferred:
+            self.writer.put(OutcomeRecord(checkpoint, None))
+        return len(deferred)
+
+    def forget(self, session_id: str) -> None:
+        with self._checkpoint_lock:
+            self._deferred.pop(session_id, None)
+            self._checkpoint_at.pop(session_id, None)
 
     def message(self, outcome: Outcome, t_back: float) -> dict | None:
         """The stored message of an outcome (None for a checkpoint, or an estimate of a

@@ -82,7 +82,8 @@ def list_poses(row: SessionDep, db: DbSession,
                                             "opened on this server"}})
 def last_frame(live: LiveSessionDep) -> Response:
     """The latest frame this server accepted for the session, as it was sent. Frames are
-    kept in memory only: before the first one, and after a restart, the answer is 204."""
+    kept in memory only, up to 1 MiB: before the first one, after a larger one, and after a
+    restart, the answer is 204."""
     if live.last_frame is None:
         return Response(status_code=204, headers={"Cache-Control": "no-store"})
     seq, data = live.last_frame
@@ -99,11 +100,15 @@ def last_frame(live: LiveSessionDep) -> Response:
                         422: {"description": "Empty, corrupt or truncated image; seq, "
                                              "captured_at or metadata out of range "
                                              "(bad-metadata names the field)"},
+                        429: {"description": "Too many frames of the session queued, or "
+                                             "more than its share of the server's "
+                                             "(Retry-After)"},
                         500: {"description": "With ?wait=true: the frame was accepted and "
                                              "gave no estimate (frame-error), or its outcome "
                                              "could not be stored (frame-not-stored)"},
-                        503: {"description": "Shutting down, or the frame could not be "
-                                             "recorded"}},
+                        503: {"description": "Shutting down, the server holds as many "
+                                             "frames as it takes (Retry-After), or the "
+                                             "frame could not be recorded"}},
              openapi_extra={"requestBody": {"required": True, "content": {
                  "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
                  "image/png": {"schema": {"type": "string", "format": "binary"}}}}})
@@ -126,16 +131,19 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
     if declared is None:
         raise Problem(415, "send the frame as the raw body with Content-Type image/jpeg or "
                       "image/png", kind="unsupported-media-type")
+    runtime = ctx.runtime
+    limit = ctx.settings.max_frame_bytes
     try:
         captured = check_captured_at(captured_at)
-        data = await read_body(request, ctx.settings.max_frame_bytes)
-        check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
+        # the body's room is taken before it is read: bodies in flight are what fills memory
+        with runtime.budget.reading(live.id, _declared_size(request, limit)):
+            data = await read_body(request, limit)
+            check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
+            seq, queued = await runtime.accept(live, data, seq=seq, captured_at=captured,
+                                               t0=t0, metadata=metadata, admitted=True)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
         raise
-    runtime = ctx.runtime
-    seq, queued = await runtime.accept(live, data, seq=seq, captured_at=captured, t0=t0,
-                                       metadata=metadata)
     fut = runtime.waiter(live, seq) if wait else None
     try:
         # Answered once the frame is recorded: an accepted frame survives a crash.
@@ -156,6 +164,12 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
         return JSONResponse(msg, status_code=200)
     raise Problem(FAILED_FRAME_STATUS.get(msg["kind"], 500), msg["reason"],
                   kind=f"frame-{msg['kind'].replace('_', '-')}", seq=seq)
+
+
+def _declared_size(request: Request, limit: int) -> int:
+    """The body's size as declared, else (chunked) the most it may be."""
+    declared = request.headers.get("content-length")
+    return min(int(declared), limit) if declared is not None and declared.isdigit() else limit
 
 
 @router.post("/{session_id}/reset", response_model=SessionRead)

@@ -21,6 +21,7 @@ The parts, and the threads and loop they run on:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import threading
 import time
@@ -44,7 +45,8 @@ from vloc.app.metrics import Metrics
 from vloc.app.problems import Problem
 from vloc.app.sessions import store
 from vloc.app.sessions.admission import check_revision, next_seq, spec_for
-from vloc.app.sessions.live import Arrival, LiveSession
+from vloc.app.sessions.budget import FrameBudget, Held
+from vloc.app.sessions.live import LAST_FRAME_MAX_BYTES, Arrival, LiveSession
 from vloc.app.sessions.models import LocalisationSession
 from vloc.app.sessions.outcomes import Outcomes
 from vloc.app.sessions.schemas import MAX_SEQ, FrameError
@@ -55,6 +57,12 @@ from vloc.app.stream.hub import CLOSED, EXPIRED, LocalHub
 log = logging.getLogger(__name__)
 
 OPEN_TIMEOUT_S = 120.0
+DRAIN_STALL_S = 10.0
+"""A drain gives up once no frame has been answered for this long."""
+DRAIN_POLL_S = 0.5
+GONE_AFTER_S = 3.0
+"""A shared engine's API process whose lease no shard has seen renewed for this long is
+gone: the frames it left queued are settled by the processes still alive."""
 
 
 class SessionRuntime:
@@ -78,6 +86,9 @@ class SessionRuntime:
                                  live=self._live.get)
         self._idle = asyncio.Event()
         self._closing = False
+        self.budget = FrameBudget(max_bytes=settings.max_queued_bytes,
+                                  max_frames=settings.max_queued_frames,
+                                  accepted=self._accepted_held)
 
     # -- life cycle -------------------------------------------------------------------------
 
@@ -85,17 +96,24 @@ class SessionRuntime:
         self.loop = self.outcomes.loop = loop
         self._writer.start(loop)
 
-    async def drain(self, timeout: float) -> None:
-        """Refuse new frames, then wait (up to ``timeout``) until every accepted frame has
-        been answered and stored."""
+    async def drain(self, timeout: float, *, stall_s: float = DRAIN_STALL_S) -> None:
+        """Refuse new frames, then wait until every accepted frame has been answered and
+        stored: as long as the backlog keeps shrinking, up to ``timeout`` in all, and no
+        more than ``stall_s`` after the last frame answered (an engine that answers
+        nothing more is not waited for)."""
         self._closing = True
-        deadline = time.monotonic() + timeout
-        while self.pending_total() and time.monotonic() < deadline:
+        now = time.monotonic()
+        deadline, progress, left = now + timeout, now, self.pending_total()
+        while left and now < deadline and now - progress < stall_s:
             self._idle.clear()
-            try:
-                await asyncio.wait_for(self._idle.wait(), max(deadline - time.monotonic(), 0))
-            except TimeoutError:
-                break
+            wake = min(deadline, progress + stall_s, now + DRAIN_POLL_S)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._idle.wait(), max(wake - now, 0))
+            now, before, left = time.monotonic(), left, self.pending_total()
+            if left < before:
+                progress = now
+        if (n := self.outcomes.flush_checkpoints()):
+            log.info("stored the latest checkpoints of %d session(s)", n)
 
     def stop(self) -> None:
         """Store what the engine has reported; call after the engine has stopped."""
@@ -103,6 +121,11 @@ class SessionRuntime:
 
     def pending_total(self) -> int:
         return sum(len(live.arrivals) for live in list(self._live.values()))
+
+    def _accepted_held(self) -> dict[str, Held]:
+        """The frames accepted and not answered, by session (for :attr:`budget`)."""
+        return {live.id: Held(len(live.arrivals), sum(a.size for a in live.arrivals.values()))
+                for live in list(self._live.values()) if live.arrivals}
 
     # -- sessions ---------------------------------------------------------------------------
 
@@ -213,6 +236,7 @@ class SessionRuntime:
         key = str(session_id)
         with self._lock:
             self._live.pop(key, None)
+        self.outcomes.forget(key)
         self.metrics.live_sessions.set(len(self._live))
         self.engine.close_session(key)
         self.loop.call_soon_threadsafe(self.hub.close_session, key, ending)
@@ -266,6 +290,27 @@ class SessionRuntime:
                            kind=f.error_kind, reason=f.error_reason, latency_ms=None)
                 .model_dump(mode="json") for f in frames]
 
+    async def settle_gone(self) -> int:
+        """Shared engine: report the frames that API processes no longer alive left queued
+        (failed, kind ``interrupted``, published to their sessions' streams); how many."""
+        alive = await asyncio.to_thread(self.engine.live_instances, GONE_AFTER_S)
+        if alive is None:
+            return 0
+        frames = await asyncio.to_thread(self._settle_gone, alive | {self.owner})
+        for f in frames:
+            self.hub.publish(str(f.session_id), FrameError(
+                session_id=f.session_id, seq=f.seq, captured_at=f.captured_at,
+                kind=f.error_kind, reason=f.error_reason, latency_ms=None)
+                .model_dump(mode="json"))
+        if frames:
+            log.warning("%d frame(s) left queued by API processes no longer alive reported "
+                        "interrupted", len(frames))
+        return len(frames)
+
+    def _settle_gone(self, alive: set[str]) -> list:
+        with self.db_sessions() as db:
+            return store.settle_gone(db, alive=alive)
+
     def _take_interrupted(self, session_id: uuid.UUID) -> list:
         with self.db_sessions() as db:
             return store.take_interrupted(db, session_id=session_id)
@@ -274,7 +319,8 @@ class SessionRuntime:
 
     async def accept(self, live: LiveSession, data: bytes, *, seq: int | None,
                      captured_at: datetime | None, t0: float,
-                     metadata: dict | None = None) -> tuple[int, asyncio.Future]:
+                     metadata: dict | None = None,
+                     admitted: bool = False) -> tuple[int, asyncio.Future]:
         """Number a frame whose bytes passed the header checks and queue its record.
 
         Returns the frame's seq and a future that resolves (with the seq) once the frame is
@@ -284,11 +330,14 @@ class SessionRuntime:
         A local engine's frames are numbered here, with no await between the sequence
         check and the queueing; a shared engine numbers them itself, across API processes.
 
+        ``admitted``: the frame's body was let in by :attr:`budget` already.
+
         Raises
         ------
         Problem
             409 for a duplicate, stale or exhausted ``seq``, 429 when the session has too
-            many frames queued, 503 while the server shuts down.
+            many frames queued or more than its share of the server's, 503 while the server
+            shuts down or when it holds as many frames as it takes.
         """
         if self._closing:
             raise Problem(503, "the server is shutting down; send the frame again later",
@@ -298,14 +347,16 @@ class SessionRuntime:
         if len(live.arrivals) >= self.settings.max_pending_frames:
             raise Problem(429, f"{len(live.arrivals)} frames of this session are still queued",
                           kind="too-many-pending", headers={"Retry-After": "1"})
+        if not admitted:
+            self.budget.check(live.id, len(data))
         if self.engine.shared:
             seq = await self._reserve(live, seq)
         arrival = Arrival(t0, utcnow(), captured_at, data, self.loop.create_future(),
-                          live.last_seq, metadata or None)
+                          live.last_seq, metadata or None, len(data))
         live.arrivals[seq] = arrival
         live.last_seq = seq if live.last_seq is None else max(live.last_seq, seq)
         live.last_active = arrival.received_at
-        live.last_frame = (seq, data)
+        live.last_frame = (seq, data) if len(data) <= LAST_FRAME_MAX_BYTES else None
         self._writer.put(Accepted(live, FrameRecord(live.id, seq, arrival.received_at,
                                                     captured_at)))
         self.metrics.frames_accepted.inc()

@@ -5,11 +5,12 @@ from __future__ import annotations
 import asyncio
 import math
 import secrets
+import threading
 from dataclasses import dataclass
 from datetime import timedelta
 from functools import lru_cache
 
-from sqlalchemy import func, select
+from sqlalchemy import delete, func, select, text
 from sqlalchemy.orm import Session, sessionmaker
 
 from vloc.app.db import new_id, utcnow
@@ -95,16 +96,22 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
     nothing holds a database connection or a request thread while it does.
     """
     row, token = await asyncio.to_thread(_plan, db_sessions, body, runtime.settings)
+    # The row takes its place under the cap before the engine opens it: concurrent creates
+    # cannot all pass the count while each waits for the engine.
+    await asyncio.to_thread(_reserve, db_sessions, row, runtime.settings.max_sessions)
     try:
         await runtime.open_new(row)
-    except ValueError as exc:
-        raise Problem(422, f"the localiser refused the session: {exc}",
-                      kind="bad-params") from None
-    except (WorkerDied, TimeoutError, RuntimeError) as exc:
-        raise Problem(503, f"the engine could not open the session: {exc}",
-                      kind="engine-unavailable") from None
+    except BaseException as exc:
+        await asyncio.to_thread(_unreserve, db_sessions, row.id)
+        if isinstance(exc, ValueError):
+            raise Problem(422, f"the localiser refused the session: {exc}",
+                          kind="bad-params") from None
+        if isinstance(exc, WorkerDied | TimeoutError | RuntimeError):
+            raise Problem(503, f"the engine could not open the session: {exc}",
+                          kind="engine-unavailable") from None
+        raise
     try:
-        read = await asyncio.to_thread(_save, db_sessions, row, runtime)
+        read = await asyncio.to_thread(_read_new, db_sessions, row.id, runtime)
     except BaseException:
         runtime.forget(row.id)
         raise
@@ -116,13 +123,6 @@ def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
     from vloc.workers.core.localisers import validate_params
 
     with db_sessions() as db:
-        existing = db.scalar(select(func.count(LocalisationSession.id)))
-        max_sessions = settings.max_sessions
-        if existing >= max_sessions:
-            raise Problem(429, f"{existing} sessions exist, the most this server keeps "
-                          f"(VLOC_MAX_SESSIONS); delete finished sessions first",
-                          kind="too-many-sessions", headers={"Retry-After": "60"},
-                          max_sessions=max_sessions)
         map_ = db.get(Map, body.map_id)
         if map_ is None:
             raise not_found("map", body.map_id)
@@ -170,12 +170,42 @@ def _navigation(db: Session, body: SessionCreate, map_id) -> dict | None:
     return {**path, "params": params}
 
 
-def _save(db_sessions: sessionmaker[Session], row: LocalisationSession,
-          runtime: SessionRuntime) -> SessionRead:
-    with db_sessions() as db:
+_CAP_LOCK = threading.Lock()
+"""Serialises the count and the insert of the session cap within one process."""
+_CAP_LOCK_KEY = 0x766C6F6353455353
+"""PostgreSQL advisory lock that serialises them across processes sharing the database."""
+
+
+def _reserve(db_sessions: sessionmaker[Session], row: LocalisationSession,
+             max_sessions: int) -> None:
+    """Insert the session's row if fewer than ``max_sessions`` exist, as one step.
+
+    Raises Problem 429 ``too-many-sessions`` (with ``Retry-After``) at the cap.
+    """
+    with _CAP_LOCK, db_sessions() as db:
+        if db.get_bind().dialect.name == "postgresql":
+            db.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _CAP_LOCK_KEY})
+        existing = db.scalar(select(func.count(LocalisationSession.id)))
+        if existing >= max_sessions:
+            raise Problem(429, f"{existing} sessions exist, the most this server keeps "
+                          f"(VLOC_MAX_SESSIONS); delete finished sessions first",
+                          kind="too-many-sessions", headers={"Retry-After": "60"},
+                          max_sessions=max_sessions)
         db.add(row)
         db.commit()
-        return read_session(db, row=row, runtime=runtime)
+
+
+def _unreserve(db_sessions: sessionmaker[Session], session_id) -> None:
+    """Give the place back: the engine could not open the session."""
+    with db_sessions() as db:
+        db.execute(delete(LocalisationSession).where(LocalisationSession.id == session_id))
+        db.commit()
+
+
+def _read_new(db_sessions: sessionmaker[Session], session_id,
+              runtime: SessionRuntime) -> SessionRead:
+    with db_sessions() as db:
+        return read_session(db, row=db.get(LocalisationSession, session_id), runtime=runtime)
 
 
 def list_sessions(db: Session, *, runtime: SessionRuntime, limit: int | None = None,

@@ -123,7 +123,10 @@ def _apply(db: Session, row: LocalisationSession, outcome: Outcome,
            msg: dict | None) -> dict | None:
     """Apply one outcome to its session; the frame's settled status (bind parameters)."""
     if isinstance(outcome, Checkpoint):
-        row.state = outcome.state
+        if outcome.seq is None:
+            row.state = outcome.state
+        elif row.state_seq is None or outcome.seq >= row.state_seq:
+            row.state, row.state_seq = outcome.state, outcome.seq
         return None
     row.last_seq = outcome.seq if row.last_seq is None else max(row.last_seq, outcome.seq)
     row.last_active_at = utcnow()
@@ -157,12 +160,26 @@ def interrupt_orphans(db: Session, *, session_id: uuid.UUID, owner: str) -> int:
     return _interrupt(db, (Frame.session_id == session_id) & (Frame.owner != owner))
 
 
-def _interrupt(db: Session, where) -> int:
-    frames = list(db.scalars(select(Frame).where(Frame.status == FrameStatus.QUEUED, where)
-                             .order_by(Frame.session_id, Frame.seq)))
+def settle_gone(db: Session, *, alive: set[str]) -> list[Frame]:
+    """The frames left queued by instances no longer alive (a shared engine's API
+    processes that died): failed, kind ``interrupted``, and counted as reported, since the
+    caller publishes them to the sessions' streams at once."""
+    frames: list[Frame] = []
+    _interrupt(db, Frame.owner.not_in(alive), status=FrameStatus.FAILED, found=frames)
+    return frames
+
+
+def _interrupt(db: Session, where, *, status: FrameStatus = FrameStatus.INTERRUPTED,
+               found: list[Frame] | None = None) -> int:
+    query = select(Frame).where(Frame.status == FrameStatus.QUEUED, where) \
+        .order_by(Frame.session_id, Frame.seq)
+    if db.get_bind().dialect.name == "postgresql":
+        # two live processes settling the same frames would count them twice
+        query = query.with_for_update(skip_locked=True)
+    frames = list(db.scalars(query))
     by_session: dict[uuid.UUID, list[Frame]] = defaultdict(list)
     for frame in frames:
-        frame.status, frame.error_kind = FrameStatus.INTERRUPTED, "interrupted"
+        frame.status, frame.error_kind = status, "interrupted"
         frame.error_reason = INTERRUPTED_REASON
         by_session[frame.session_id].append(frame)
     for session_id, lost in by_session.items():
@@ -171,6 +188,8 @@ def _interrupt(db: Session, where) -> int:
         row.frames_failed += len(lost)
         row.last_seq = top if row.last_seq is None else max(row.last_seq, top)
     db.commit()
+    if found is not None:
+        found.extend(frames)
     return len(frames)
 
 

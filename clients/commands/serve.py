@@ -51,7 +51,9 @@ def serve_cmd(host: str, port: int, workers: int | None, processes: int,
         (settings.engine != "ray", "VLOC_ENGINE=ray (a local engine's sessions live in one "
                                    "process)"),
         (settings.embedded_database, "VLOC_DATABASE_URL (a database every process shares)"),
-        (not settings.redis_url, "VLOC_REDIS_URL (poses reach streams held by any process)"))
+        (not settings.redis_url, "VLOC_REDIS_URL (poses reach streams held by any process)"),
+        (settings.engine == "ray" and not settings.ray_address,
+         "VLOC_RAY_ADDRESS (without it each process starts a private Ray cluster)"))
         if bad]
     if problems:
         raise click.UsageError("--processes > 1 needs " + "; ".join(problems))
@@ -132,8 +134,11 @@ def _supervise(overrides: dict, host: str, port: int, n: int, base_name: str) ->
                 click.echo(f"vloc: API process {i} (pid {p.pid}) exited with {p.exitcode}; "
                            "starting another", err=True)
                 procs[i] = start(i)
+    from vloc.app.config import Settings
+
+    drain_s = Settings(**overrides).drain_timeout_s
     for p in procs:
-        p.join(GRACEFUL_SHUTDOWN_S + 10)
+        p.join(drain_s + GRACEFUL_SHUTDOWN_S + 10)
         if p.is_alive():
             p.kill()
     sock.close()

@@ -56,6 +56,10 @@ def test_metadata_reaches_the_localiser_and_comes_back_on_the_pose(service, shot
     ({"gps_lat": 91, "gps_lon": 0}, "gps_lat"),
     ({"gps_lat": 41, "gps_lon": -83, "gps_accuracy_m": 0}, "gps_accuracy_m"),
     ({"gps_accuracy_m": 5}, "gps_accuracy_m"),
+    ({"gps_lat": 41, "gps_lon": -83, "gps_accuracy_m": 1e308}, "gps_accuracy_m"),
+    ({"gps_lat": 41, "gps_lon": -83, "gps_accuracy_m": 1e-300}, "gps_accuracy_m"),
+    ({"heading_deg": 10, "heading_accuracy_deg": 1e-300}, "heading_accuracy_deg"),
+    ({"velocity_east": 1e308, "velocity_north": 1e308}, "velocity"),
     ({"velocity_east": 1.0}, "velocity_east"),
     ({"velocity_east": 200, "velocity_north": 0}, "velocity"),
 ])

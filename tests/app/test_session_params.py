@@ -93,6 +93,24 @@ def test_the_session_cap_is_429(tmp_path_factory, shots, backend):
         assert c.post("/v1/sessions", json=body, headers=ADMIN).status_code == 201
 
 
+@pytest.mark.parametrize("backend", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
+def test_the_session_cap_holds_under_concurrent_creates(tmp_path_factory, shots, backend):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tests.app.conftest import backend_client, build_map
+
+    for c in backend_client(backend, tmp_path_factory, max_sessions=5):
+        map_id = build_map(c, shots[0][:4])
+        body = {"map_id": map_id, "params": FAST}
+        with ThreadPoolExecutor(20) as pool:
+            replies = [pool.submit(c.post, "/v1/sessions", json=body, headers=ADMIN)
+                       for _ in range(20)]
+            codes = [r.result().status_code for r in replies]
+        assert sorted(codes) == [201] * 5 + [429] * 15
+        listed = c.get("/v1/sessions", headers=ADMIN).json()
+        assert len(listed) == 5 and len(c.app.state.ctx.runtime._live) == 5
+
+
 def _literal_values(annotation) -> set:
     return set(typing.get_args(annotation))
 

@@ -164,3 +164,49 @@ def test_sigterm_answers_queued_frames_streams_them_then_closes_with_1001(tmp_pa
                                    "ORDER BY seq"), {"s": sid.replace("-", "")}).scalars()
         assert list(stored) == accepted
     db.dispose()
+
+
+def test_a_drain_longer_than_ten_seconds_answers_every_frame_while_the_backlog_shrinks(
+        tmp_path):
+    """The drain follows the backlog: its workers are held for 6 s twice, with one frame
+    answered in between, and every frame is still streamed before 1001."""
+    maps, queries = map_and_queries(6)
+    server = start_server(tmp_path / "data", workers=1)
+    admin = {"Authorization": f"Bearer {server.admin_key()}"}
+
+    async def scenario(server: Server):
+        async with httpx.AsyncClient(base_url=server.base_url, headers=admin,
+                                     timeout=60) as http:
+            sid, token = await _session(http, await _build_map(http, maps))
+            url = f"{server.ws_url}/v1/sessions/{sid}/stream?token={token}"
+            async with connect(url) as ws:
+                assert json.loads(await ws.recv())["type"] == "hello"
+                workers = pool_workers(server.process.pid)
+                _signal_all(workers, signal.SIGSTOP)
+                try:
+                    accepted = [(await _post(http, sid, token, q.jpeg)).json()["seq"]
+                                for q in queries]
+                    server.process.send_signal(signal.SIGTERM)
+                    stopped = asyncio.get_running_loop().time()
+                    await asyncio.sleep(6)  # a slow backlog: nothing answered for 6 s
+                    _signal_all(workers, signal.SIGCONT)
+                    got = [json.loads(await asyncio.wait_for(ws.recv(), 30))]
+                    _signal_all(workers, signal.SIGSTOP)
+                    await asyncio.sleep(6)  # and 6 s more
+                finally:
+                    _signal_all(workers, signal.SIGCONT)
+                with contextlib.suppress(ConnectionClosed):
+                    async for raw in ws:
+                        got.append(json.loads(raw))
+                took = asyncio.get_running_loop().time() - stopped
+                return accepted, got, ws.close_code, took
+
+    try:
+        accepted, got, code, took = asyncio.run(scenario(server))
+        returncode = server.process.wait(60)
+    finally:
+        if server.process.poll() is None:
+            server.process.kill()
+    assert returncode in (0, -signal.SIGTERM)
+    assert [(m["type"], m["seq"]) for m in got] == [("pose", seq) for seq in accepted]
+    assert code == 1001 and took > 12

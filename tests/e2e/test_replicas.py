@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
@@ -146,7 +147,7 @@ def test_a_killed_shard_resumes_the_session_and_every_frame_is_answered_or_repor
     _, queries = shots
     sid, token = session["id"], session["token"]
     shard = ray.get_actor(shard_name(shard_of(sid, N_SHARDS)), namespace=namespace)
-    pid, _ = ray.get(shard.ping.remote())
+    pid, _, _ = ray.get(shard.ping.remote())
 
     async def scenario():
         async with httpx.AsyncClient(base_url=a.base_url, timeout=120) as ha, \
@@ -179,6 +180,113 @@ def test_a_killed_shard_resumes_the_session_and_every_frame_is_answered_or_repor
     assert [outcomes[s]["type"] for s in accepted[4:]] == ["pose"] * 4
     assert read["frames_processed"] + read["frames_failed"] == before + 8
     assert ray.get(shard.ping.remote())[0] != pid
+
+
+def test_frames_a_dead_replica_left_queued_are_settled_by_a_live_one(replicas, session):
+    """A replica that died after recording a frame and before answering it: any live
+    replica reports the frame (failed, interrupted) on the session's stream, in its poses
+    and in its counters, without waiting for the dead one to start again."""
+    from sqlalchemy import create_engine, text
+
+    _, b, _ = replicas
+    sid, token = session["id"], session["token"]
+    db = create_engine(ENV["VLOC_DATABASE_URL"])
+
+    async def scenario():
+        async with httpx.AsyncClient(base_url=b.base_url, timeout=60) as hb:
+            read = (await hb.get(f"/v1/sessions/{sid}", headers=_admin())).json()
+            seq = read["last_seq"] + 1_000
+            url = f"{b.ws_url}/v1/sessions/{sid}/stream?token={token}"
+            async with connect(url, max_size=2**22) as ws:
+                assert json.loads(await ws.recv())["type"] == "hello"
+                with db.begin() as conn:  # what a replica named "gone" left behind
+                    conn.execute(text(
+                        "INSERT INTO frames (session_id, seq, received_at, status, owner) "
+                        "VALUES (:sid, :seq, now(), 'queued', 'gone')"),
+                        {"sid": uuid.UUID(sid), "seq": seq})
+                message = json.loads(await asyncio.wait_for(ws.recv(), 30))
+            after = (await hb.get(f"/v1/sessions/{sid}", headers=_admin())).json()
+            poses = (await hb.get(f"/v1/sessions/{sid}/poses", headers=_admin(),
+                                  params={"after_seq": seq - 1})).json()
+        return seq, read, message, after, poses
+
+    try:
+        seq, read, message, after, poses = asyncio.run(scenario())
+    finally:
+        db.dispose()
+    assert (message["type"], message["seq"], message["kind"]) == ("frame_error", seq,
+                                                                  "interrupted")
+    assert [(p["type"], p["seq"], p["kind"]) for p in poses] == [
+        ("frame_error", seq, "interrupted")]
+    assert after["frames_failed"] == read["frames_failed"] + 1
+    assert after["frames_processed"] == read["frames_processed"]
+    assert after["last_seq"] == seq
+
+
+def test_a_replica_killed_with_a_seq_reserved_stalls_the_other_for_under_a_second(
+        replicas, session, shots):
+    """Replica a reserves a frame's seq in the shard and dies before sending the frame
+    (its record is held up in the database): the frames b takes next wait only until a's
+    lease lapses, not VLOC_RAY_HOLD_S, and b refuses none of them."""
+    from sqlalchemy import create_engine, text
+
+    a, b, _ = replicas
+    _, queries = shots
+    sid, token = session["id"], session["token"]
+    db = create_engine(ENV["VLOC_DATABASE_URL"])
+
+    async def blocked_writers() -> int:
+        with db.connect() as conn:
+            return conn.scalar(text("SELECT count(*) FROM pg_stat_activity "
+                                    "WHERE wait_event_type = 'Lock'"))
+
+    async def scenario():
+        async with httpx.AsyncClient(base_url=a.base_url, timeout=60) as ha, \
+                httpx.AsyncClient(base_url=b.base_url, timeout=60) as hb:
+            url = f"{b.ws_url}/v1/sessions/{sid}/stream?token={token}"
+            async with connect(url, max_size=2**22) as ws:
+                assert json.loads(await ws.recv())["type"] == "hello"
+                lock = db.connect()
+                tx = lock.begin()
+                lock.execute(text("LOCK TABLE frames IN EXCLUSIVE MODE"))
+                posted_to_a = asyncio.create_task(_post(ha, sid, token, queries[0].jpeg))
+                for _ in range(300):  # until a has its seq and waits to record the frame
+                    if await blocked_writers():
+                        break
+                    await asyncio.sleep(0.05)
+                else:
+                    raise AssertionError("replica a never reached the database")
+                a.process.send_signal(signal.SIGKILL)
+                a.process.wait(10)
+                tx.rollback()
+                lock.close()
+                released = time.monotonic()
+                with contextlib.suppress(httpx.TransportError):
+                    await posted_to_a
+                codes, arrivals, seqs = [], [], []
+
+                async def listen():
+                    while len(arrivals) < 15:
+                        msg = json.loads(await asyncio.wait_for(ws.recv(), 60))
+                        arrivals.append(time.monotonic())
+                        seqs.append(msg["seq"])
+
+                listener = asyncio.create_task(listen())
+                for i in range(15):  # 5 frames a second for 3 s
+                    r = await _post(hb, sid, token, queries[1 + i % 8].jpeg)
+                    codes.append(r.status_code)
+                    await asyncio.sleep(0.2)
+                await listener
+        return released, codes, arrivals, seqs
+
+    try:
+        released, codes, arrivals, seqs = asyncio.run(scenario())
+    finally:
+        db.dispose()
+    gaps = np.diff([released, *arrivals])
+    assert codes == [202] * 15
+    assert seqs == sorted(seqs)
+    assert gaps.max() <= 1.5, gaps
 
 
 def test_killing_one_replica_leaves_the_other_serving_every_session(replicas, session, shots):

@@ -250,7 +250,7 @@ def test_a_killed_shard_fails_its_frames_in_flight_and_the_session_reopens(clust
     done = _take(out, 4)
     checkpoint = done[-1].state  # every second frame
     assert [o.estimate["x"] for o in done] == [1.0, 2.0, 3.0, 4.0] and checkpoint
-    pid, _ = ray.get(a._shards[0].ping.remote())
+    pid, _, _ = ray.get(a._shards[0].ping.remote())
     restarts = a.restarts
     gate.unlink()  # the next frame blocks in its step, the one after waits for its turn
     for _ in range(2):
@@ -274,3 +274,51 @@ def test_a_killed_shard_fails_its_frames_in_flight_and_the_session_reopens(clust
     (resumed,) = _take(out, 1)
     # Numbering goes on after the lost frames; the filter goes on from the checkpoint.
     assert (resumed.seq, resumed.estimate["x"]) == (6, 5.0)
+
+
+def test_build_calls_find_room_when_the_shards_reserve_every_cpu(ray_cluster):
+    """Shards that reserve every CPU the cluster has left leave build calls running
+    (they reserve none; the engine keeps no more running than the cluster has CPUs)."""
+    namespace = f"vloc-test-{uuid.uuid4().hex[:8]}"
+    free = ray.available_resources().get("CPU", 0.0)
+    engine = RayEngine(1, shard_cpus=free, namespace=namespace)
+    engine.start(timeout=TIMEOUT)
+    try:
+        assert ray.available_resources().get("CPU", 0.0) == pytest.approx(0.0, abs=1e-6)
+        futures = [engine.call(fakes.square, i) for i in range(5)]
+        assert [f.result(TIMEOUT) for f in futures] == [0, 1, 4, 9, 16]
+    finally:
+        engine.close()
+        engine.remove_actors()
+
+
+def test_shards_of_another_code_version_are_refused(ray_cluster):
+    from vloc.workers.engine.ray_actors import Shard
+    from vloc.workers.engine.ray_engine import shard_name
+
+    namespace = f"vloc-test-{uuid.uuid4().hex[:8]}"
+    old = ray.remote(Shard).options(name=shard_name(0), namespace=namespace, num_cpus=0,
+                                    lifetime="detached").remote(
+        0, max_pixels=10**6, checkpoint_every=1, namespace=namespace, version="0123456789")
+    ray.get(old.ping.remote())
+    engine = RayEngine(1, shard_cpus=0, namespace=namespace)
+    try:
+        with pytest.raises(RuntimeError, match="deployment 0123456789, this server"):
+            engine.start(timeout=TIMEOUT)
+        assert not engine.running
+    finally:
+        engine.remove_actors()
+
+
+def test_shards_of_another_deployment_are_refused(ray_cluster):
+    namespace = f"vloc-test-{uuid.uuid4().hex[:8]}"
+    theirs = RayEngine(1, shard_cpus=0, namespace=namespace, deployment="theirs")
+    theirs.start(timeout=TIMEOUT)
+    ours = RayEngine(1, shard_cpus=0, namespace=namespace, deployment="ours")
+    try:
+        with pytest.raises(RuntimeError, match=r":theirs, this server .*:ours"):
+            ours.start(timeout=TIMEOUT)
+        assert theirs.alive()
+    finally:
+        theirs.close()
+        theirs.remove_actors()

@@ -101,13 +101,40 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
             if width // factor >= min_size[0] and height // factor >= min_size[1]:
                 flag = reduced
                 break
+    if looks_truncated(data):
+        raise ImageError("truncated image")
+    if data[:2] == b"\xff\xd8":
+        _check_jpeg_complete(data, (width, height))
     buf = np.frombuffer(data, dtype=np.uint8)
     image = cv2.imdecode(buf, flag)
     if image is None:
         raise ImageError("corrupt or truncated image")
-    if looks_truncated(data):
-        raise ImageError("truncated image")
     return image
+
+
+_JPEG_COLOURS = {"Gray": "GRAY", "YCbCr": "GRAY", "RGB": "GRAY", "CMYK": "CMYK",
+                 "YCCK": "CMYK"}
+
+
+def _check_jpeg_complete(data: bytes, size: tuple[int, int]) -> None:
+    """ImageError unless every block of the JPEG's scans is in the file.
+
+    libjpeg fills the blocks of a stream cut short with grey and only warns (an end marker
+    appended to half a file decodes "successfully"); OpenCV ignores the warning. libjpeg-turbo
+    in strict mode turns it into an error. The blocks are decoded at 1/8 scale: the whole
+    entropy-coded stream is read, only the inverse DCTs are cheaper.
+    """
+    import simplejpeg
+
+    try:
+        height, width, colour, _ = simplejpeg.decode_jpeg_header(data)
+        if (width, height) != tuple(size):
+            raise ImageError(f"the JPEG's frame header says {width}x{height}, its file "
+                             f"header {size[0]}x{size[1]}")
+        simplejpeg.decode_jpeg(data, colorspace=_JPEG_COLOURS.get(colour, "GRAY"),
+                               strict=True, min_height=1, min_width=1)
+    except ValueError as exc:
+        raise ImageError(f"corrupt or incomplete JPEG data ({exc})") from None
 
 
 def image_kind(data: bytes) -> str | None:

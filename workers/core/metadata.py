@@ -18,6 +18,11 @@ METADATA_FIELDS = ("heading_deg", "heading_accuracy_deg", "altitude_m", "gps_lat
 METADATA_KINDS = ("heading", "gps", "altitude", "velocity")
 
 
+ACCURACY_RANGES = {"heading_accuracy_deg": (0.01, 180.0), "gps_accuracy_m": (0.01, 10_000.0)}
+"""Accuracies a report can state: finer is no real sensor, and squaring it underflows; a
+GNSS fix vaguer than 10 km carries nothing, and squaring a huge one overflows."""
+
+
 @dataclass(frozen=True, slots=True)
 class FrameMetadata:
     """Optional per-frame reports from the device's other sensors.
@@ -55,12 +60,12 @@ class FrameMetadata:
                 raise ValueError(f"{f.name} must be a finite number")
         if self.heading_deg is not None and not 0.0 <= self.heading_deg < 360.0:
             raise ValueError("heading_deg must be in [0, 360)")
-        for name in ("heading_accuracy_deg", "gps_accuracy_m"):
+        for name, (low, high) in ACCURACY_RANGES.items():
             v = getattr(self, name)
             if v is not None and v <= 0.0:
                 raise ValueError(f"{name} must be positive")
-        if self.heading_accuracy_deg is not None and self.heading_accuracy_deg > 180.0:
-            raise ValueError("heading_accuracy_deg must be at most 180")
+            if v is not None and not low <= v <= high:
+                raise ValueError(f"{name} must be in [{low:g}, {high:g}]")
         if (self.gps_lat is None) != (self.gps_lon is None):
             raise ValueError("gps_lat and gps_lon come together")
         if self.gps_lat is not None and not -90.0 <= self.gps_lat <= 90.0:

@@ -143,10 +143,12 @@ class FrameFailed:
 
 @dataclass(frozen=True, slots=True)
 class Checkpoint:
-    """A session's state after a control (reset, initial pose), in order with its frames."""
+    """A session's state after a control (reset, initial pose), in order with its frames;
+    or the state after frame ``seq`` whose storing was put off."""
 
     session_id: str
     state: bytes
+    seq: int | None = None
 
 
 FrameOutcome = FrameDone | FrameFailed

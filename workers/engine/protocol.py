@@ -74,6 +74,9 @@ class SharedEngine(Engine, Protocol):
         Fails with :class:`SeqRefused` (duplicate or stale) or KeyError (not open)."""
     def release_seq(self, session_id: str, seq: int) -> None:
         """A reserved seq whose frame will not come (it could not be recorded)."""
+    def live_instances(self, within_s: float) -> set[str] | None:
+        """Instance names of the API processes alive in the last ``within_s`` seconds;
+        None when the engine cannot tell yet."""
 
 
 class SeqRefused(ValueError):

@@ -8,18 +8,21 @@
   runs it (decoding, the localiser's step), so the frames of its sessions take turns on one
   core. A session's frames are stepped in seq order whichever API process sent them: a
   frame waits until every seq reserved before it has been stepped, given up
-  (:meth:`Shard.release`) or left unsent for ``hold_s``.
+  (:meth:`Shard.release`), left unsent for ``hold_s``, or its API process's lease lapsed
+  (:data:`LEASE_S`: the process died).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import os
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import ray
 
@@ -36,10 +39,29 @@ from .worker import THREAD_ENV, WorkerState, _single_threaded
 
 NAMESPACE = "vloc"
 MAP_STORE = "vloc-maps"
+
+
+def _code_version() -> str:
+    """A digest of the engine's and the core's source: shards must run the code of the API
+    processes that send them work (messages and checkpoints are pickled)."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.blake2b(digest_size=8)
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+CODE_VERSION = _code_version()
 HOLD_S = 30.0
-"""How long a shard holds a session's frame for a seq reserved before it that has not come:
-long enough for a busy API process to store the frame's record and send it, short enough
-that a session whose API process died between the two does not stall for long."""
+"""How long a shard holds a session's frame for a seq reserved before it that has not come,
+while the API process that reserved it is alive (its lease renewed): long enough for a busy
+process to store the frame's record and send it. A dead process's seqs are given up as soon
+as its lease lapses (:data:`LEASE_S`)."""
+LEASE_S = 0.8
+"""An API process renews its lease on every shard four times in this time; once it has not
+for this long it is taken for dead, and the seqs it reserved and never sent are given up at
+once, so the frames after them wait no longer (not ``hold_s``)."""
 MAPS_KEPT = 8
 """Map revisions the map store keeps in the object store at once."""
 
@@ -101,8 +123,9 @@ class _Order:
     """Highest seq reserved (or given at the open)."""
     started: int | None = None
     """Highest seq whose step has begun."""
-    held: dict[int, float] = field(default_factory=dict)
-    """Reserved seqs not stepped yet -> when the shard stops waiting for them."""
+    held: dict[int, tuple[float, str | None]] = field(default_factory=dict)
+    """Reserved seqs not stepped yet -> (when the shard stops waiting for them, the lease
+    owner that reserved them; None once the frame is here)."""
     count: int = 0
     opened: asyncio.Future | None = None
     turn: asyncio.Condition = field(default_factory=asyncio.Condition)
@@ -112,7 +135,8 @@ class Shard:
     """Sessions of one shard; run as an async Ray actor (see the module's doc)."""
 
     def __init__(self, index: int, *, max_pixels: int, checkpoint_every: int,
-                 namespace: str = NAMESPACE, hold_s: float = HOLD_S) -> None:
+                 namespace: str = NAMESPACE, hold_s: float = HOLD_S,
+                 version: str = CODE_VERSION) -> None:
         for var in THREAD_ENV:
             os.environ.setdefault(var, "1")
         _single_threaded()
@@ -123,10 +147,47 @@ class Shard:
         self.orders: dict[str, _Order] = {}
         self.pool = ThreadPoolExecutor(1, thread_name_prefix=f"shard-{index}")
         self.started = time.time()
+        self.version = version
+        self.leases: dict[str, tuple[float, str]] = {}
+        """Lease owner (one per API process) -> (last renewal, monotonic; instance name)."""
+        self.up_since = time.monotonic()
 
-    async def ping(self) -> tuple[int, float]:
-        """(pid, start time): a new start time means the actor was restarted."""
-        return os.getpid(), self.started
+    async def ping(self) -> tuple[int, float, str]:
+        """(pid, start time, code version): a new start time means the actor was
+        restarted."""
+        return os.getpid(), self.started, self.version
+
+    async def node(self) -> str:
+        """The id of the Ray node this shard runs on."""
+        return ray.get_runtime_context().get_node_id()
+
+    async def lease(self, owner: str, instance: str) -> None:
+        """Renew an API process's lease; a renewal after a lapse counts as a new one."""
+        self.leases[owner] = (time.monotonic(), instance)
+
+    async def end_lease(self, owner: str) -> None:
+        """The API process stops: what it reserved and did not send is given up now."""
+        self.leases.pop(owner, None)
+        for order in list(self.orders.values()):
+            async with order.turn:
+                order.turn.notify_all()
+
+    async def instances(self, within_s: float) -> list[str] | None:
+        """Instance names of the API processes whose lease was renewed in the last
+        ``within_s`` seconds; None when this shard has not been up that long (it may not
+        have heard from every live one yet)."""
+        now = time.monotonic()
+        if now - self.up_since < within_s:
+            return None
+        return sorted({inst for seen, inst in self.leases.values() if now - seen <= within_s})
+
+    def _expiry(self, deadline: float, owner: str | None) -> float:
+        """When the shard stops waiting for a reserved seq: its deadline, or earlier, once
+        its owner's lease lapses."""
+        if owner is None:
+            return deadline
+        seen = self.leases.get(owner)
+        return min(deadline, (seen[0] if seen else 0.0) + LEASE_S)
 
     async def held(self) -> list[str]:
         return sorted(sid for sid, o in self.orders.items() if o.opened.done())
@@ -160,8 +221,15 @@ class Shard:
             return None
         return order
 
-    async def reserve(self, sid: str, seq: int | None) -> tuple:
-        """``("ok", seq)``, ``("refused", kind, last_seq)`` or ``("not_open",)``."""
+    async def reserve(self, sid: str, seq: int | None,
+                      lease: tuple[str, str] | None = None) -> tuple:
+        """``("ok", seq)``, ``("refused", kind, last_seq)`` or ``("not_open",)``; the seq is
+        held for ``hold_s``, or while the lease ``(owner, instance)`` lasts (a reservation
+        renews it)."""
+        owner = None
+        if lease is not None:
+            owner = lease[0]
+            await self.lease(*lease)
         order = self._ready(sid)
         if order is None:
             return ("not_open",)
@@ -171,7 +239,7 @@ class Shard:
             return ("refused", "duplicate-seq" if seq == order.last else "stale-seq",
                     order.last)
         order.last = seq
-        order.held[seq] = time.monotonic() + self.hold_s
+        order.held[seq] = (time.monotonic() + self.hold_s, owner)
         return ("ok", seq)
 
     async def release(self, sid: str, seq: int) -> None:
@@ -186,9 +254,10 @@ class Shard:
         async with order.turn:
             while True:
                 now = time.monotonic()
-                for s in [s for s, t in order.held.items() if t <= now]:
+                expiries = {s: self._expiry(*h) for s, h in order.held.items()}
+                for s in [s for s, t in expiries.items() if t <= now]:
                     del order.held[s]
-                earlier = [t for s, t in order.held.items() if s < before]
+                earlier = [t for s, t in expiries.items() if s < before and t > now]
                 if not earlier:
                     return
                 with contextlib.suppress(TimeoutError):
@@ -201,7 +270,7 @@ class Shard:
             return FrameFailed(sid, seq, "not_open", "the session is not open in its shard")
         # The frame is here: frames after it wait for it however long its turn takes; only a
         # seq reserved and never sent is given up after hold_s.
-        order.held[seq] = float("inf")
+        order.held[seq] = (float("inf"), None)
         await self._wait_turn(order, seq)
         if self.orders.get(sid) is not order:
             return FrameFailed(sid, seq, "not_open", "the session was closed")

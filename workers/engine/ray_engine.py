@@ -4,7 +4,7 @@ process shares (``pip install 'vloc[ray]'``).
 Shape
 -----
 - ``n_shards`` named, detached shard actors (``vloc-shard-<i>`` in the ``vloc`` namespace),
-  each a process that holds many sessions. A session's shard is a hash of its id, so every
+  each a process that holds many sessions, spread over the cluster's nodes. A session's shard is a hash of its id, so every
   API process finds it by name with no table to share. One actor per session would cost a
   process per session; a shard holds hundreds.
 - A shard is an async actor: its event loop orders the work, one thread of its own runs
@@ -22,6 +22,13 @@ Shape
   failed (``worker_died``) and its sessions are reopened by the service from their
   checkpoints in the database, which is the only state that counts.
 - Build work (:meth:`RayEngine.call`) runs as Ray tasks, in parallel over the cluster.
+  They reserve no CPU from the scheduler, so that they always find room beside the shards
+  whatever those reserve; the engine itself keeps no more of them running than the
+  cluster has CPUs.
+- The cluster is the one ``address`` names, or a private one started inside this process
+  (never one that happens to run on the machine: Ray's default would join it). Shards
+  found by name must run this code version (:data:`.ray_actors.CODE_VERSION`) for this
+  deployment; others are refused at the start.
 
 The actors themselves are in :mod:`.ray_actors`. Nothing here imports the service: it works
 with the same messages as the local engine (:mod:`workers.engine.messages`).
@@ -29,11 +36,16 @@ with the same messages as the local engine (:mod:`workers.engine.messages`).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import hashlib
 import logging
+import math
+import os
+import socket
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from concurrent.futures import Future
 
@@ -49,7 +61,7 @@ from .messages import (
 )
 from .pool import _settle
 from .protocol import SeqRefused
-from .ray_actors import HOLD_S, MAP_STORE, NAMESPACE, MapStore, Shard
+from .ray_actors import CODE_VERSION, HOLD_S, LEASE_S, MAP_STORE, NAMESPACE, MapStore, Shard
 from .slots import EngineClosed, WorkerDied, remote_error
 from .worker import _function
 
@@ -79,15 +91,23 @@ class RayEngine:
     n_shards : int
         Shard actors; every API process of the cluster must use the same number.
     address : str or None
-        The cluster (``ray.init(address=...)``); None joins the cluster this process is
-        already connected to, or starts one inside it.
+        The cluster (``ray.init(address=...)``); None uses the cluster this process is
+        already connected to, or starts a private one inside it.
     on_outcome, checkpoint_every, max_pixels
         As for :class:`~workers.engine.pool.LocalEngine`; the shard counts the frames of a
         session for its checkpoints, whichever process sent them.
     shard_cpus : float
         CPUs the scheduler reserves for each shard actor.
     hold_s : float
-        How long a shard waits for a reserved seq's frame before stepping later ones.
+        How long a shard waits for a reserved seq's frame before stepping later ones (while
+        this engine's lease on the shard lasts: the seqs of a dead process are given up
+        within :data:`~.ray_actors.LEASE_S`).
+    instance : str or None
+        This API process's instance name, the owner of the frames it records: the shards
+        tell every process which instances hold leases (:meth:`live_instances`).
+    deployment : str
+        What the API processes sharing the shards have in common (their database); shards
+        of another deployment, or of another code version, are refused.
     """
 
     shared = True
@@ -96,7 +116,8 @@ class RayEngine:
                  on_outcome: Callable[[Outcome], None] | None = None,
                  checkpoint_every: int = 1, max_pixels: int = 50_000_000,
                  shard_cpus: float = 1.0, namespace: str = NAMESPACE,
-                 hold_s: float = HOLD_S) -> None:
+                 hold_s: float = HOLD_S, instance: str | None = None,
+                 deployment: str = "") -> None:
         if n_shards < 1:
             raise ValueError("n_shards must be at least 1")
         self.n_workers = n_shards
@@ -107,7 +128,10 @@ class RayEngine:
         self.shard_cpus = shard_cpus
         self.namespace = namespace
         self.hold_s = hold_s
+        self.lease = (uuid.uuid4().hex, instance or socket.gethostname())
+        self.identity = f"{CODE_VERSION}:{deployment}"
         self.restarts = 0
+        self._renewing = threading.Event()
         self._lock = threading.Lock()
         self._running = False
         self._initialised_here = False
@@ -117,32 +141,59 @@ class RayEngine:
         self._states: dict[str, bytes] = {}
         self._pending: dict[tuple[str, int], ray.ObjectRef] = {}
         self._remote_fns: dict[Callable, object] = {}
+        self._calls_waiting: collections.deque = collections.deque()
+        self._calls_running = 0
+        self._call_slots = 1
 
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self, timeout: float = 120.0) -> None:
         """Join the cluster, find or create the shards and the map store, wait for them."""
         if not ray.is_initialized():
-            ray.init(address=self.address, namespace=self.namespace,
-                     include_dashboard=False, log_to_driver=False)
+            if self.address:
+                ray.init(address=self.address, namespace=self.namespace,
+                         include_dashboard=False, log_to_driver=False)
+            else:
+                # "local": a new cluster for this process, whatever runs on the machine
+                cpus = max(os.cpu_count() or 1, math.ceil(self.shard_cpus * self.n_workers))
+                ray.init(address="local", num_cpus=cpus, namespace=self.namespace,
+                         include_dashboard=False, log_to_driver=False)
             self._initialised_here = True
+        self._call_slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
         common = {"namespace": self.namespace, "lifetime": "detached",
                   "get_if_exists": True, "max_restarts": -1, "max_task_retries": 0}
         ray.remote(MapStore).options(name=MAP_STORE, num_cpus=0, **common).remote()
         shard_cls = ray.remote(Shard)
         self._shards = [
             shard_cls.options(name=shard_name(i), num_cpus=self.shard_cpus,
-                              max_concurrency=1000, **common)
+                              max_concurrency=1000, scheduling_strategy="SPREAD", **common)
             .remote(i, max_pixels=self.max_pixels, checkpoint_every=self.checkpoint_every,
-                    namespace=self.namespace, hold_s=self.hold_s)
+                    namespace=self.namespace, hold_s=self.hold_s, version=self.identity)
             for i in range(self.n_workers)]
         try:
             stamps = ray.get([s.ping.remote() for s in self._shards], timeout=timeout)
         except GetTimeoutError:
             raise RuntimeError(f"the Ray shards did not start in {timeout:g} s (are there "
                                "CPUs free for them?)") from None
-        self._stamps = {i: started for i, (_, started) in enumerate(stamps)}
+        for i, (_, _, identity) in enumerate(stamps):
+            if identity != self.identity:
+                raise RuntimeError(
+                    f"shard {shard_name(i)} of Ray namespace {self.namespace!r} runs code "
+                    f"version and deployment {identity}, this server {self.identity}: give "
+                    "this deployment its own VLOC_RAY_NAMESPACE, or remove the other's shards")
+        self._stamps = {i: started for i, (_, started, _) in enumerate(stamps)}
         self._running = True
+        self._renewing.set()
+        threading.Thread(target=self._renew_leases, name="ray-leases", daemon=True).start()
+
+    def _renew_leases(self) -> None:
+        """Renew this process's lease on every shard, four times per lease period, from a
+        thread of its own (a busy event loop must not look like a dead process)."""
+        while self._renewing.is_set():
+            for shard in self._shards:
+                with contextlib.suppress(Exception):  # a dead shard comes back by itself
+                    shard.lease.remote(*self.lease)
+            time.sleep(LEASE_S / 4)
 
     def close(self, timeout: float = 10.0) -> None:
         """Stop taking work, wait (up to ``timeout``) for the frames sent, report the rest
@@ -155,8 +206,15 @@ class RayEngine:
         if refs:
             ray.wait(refs, num_returns=len(refs), timeout=timeout)
             time.sleep(0.05)  # let the done callbacks of the last ones run
+        self._renewing.clear()
+        ends = [s.end_lease.remote(self.lease[0]) for s in self._shards]
+        with contextlib.suppress(Exception):
+            ray.wait(ends, num_returns=len(ends), timeout=PING_TIMEOUT_S)
         with self._lock:
             left, self._pending = list(self._pending), {}
+            calls, self._calls_waiting = list(self._calls_waiting), collections.deque()
+        for out, *_ in calls:
+            _settle(out, error=EngineClosed("the engine stopped"))
         for sid, seq in left:
             self._emit(FrameFailed(sid, seq, "worker_died", "the engine stopped"))
         if self._initialised_here:
@@ -183,7 +241,7 @@ class RayEngine:
                 ok.append(False)
                 continue
             try:
-                _, started = ray.get(ref)
+                _, started, _ = ray.get(ref)
             except RayActorError:
                 ok.append(False)
                 continue
@@ -240,7 +298,8 @@ class RayEngine:
                 raise SeqRefused(reply[1], seq, reply[2])
             return reply[1]
 
-        return self._future(self.shard(session_id).reserve.remote(session_id, seq), reserved)
+        return self._future(self.shard(session_id).reserve.remote(session_id, seq, self.lease),
+                            reserved)
 
     def release_seq(self, session_id: str, seq: int) -> None:
         if self._running:
@@ -271,6 +330,24 @@ class RayEngine:
                 if session_id in self._open:
                     self._states[session_id] = outcome.state
         self._emit(outcome)
+
+    def live_instances(self, within_s: float) -> set[str] | None:
+        """Instance names of the API processes that renewed their lease on a shard in the
+        last ``within_s`` seconds, as the shards saw them; None when no shard has been up
+        that long (an answer could miss a live one)."""
+        if not self._running:
+            return None
+        refs = [s.instances.remote(within_s) for s in self._shards]
+        ready, _ = ray.wait(refs, num_returns=len(refs), timeout=PING_TIMEOUT_S)
+        seen: set[str] | None = None
+        for ref in ready:
+            try:
+                found = ray.get(ref)
+            except RayActorError:
+                continue
+            if found is not None:
+                seen = (seen or set()) | set(found)
+        return seen
 
     def pending_frames(self, session_id: str) -> int:
         with self._lock:
@@ -307,15 +384,46 @@ class RayEngine:
     # -- calls ------------------------------------------------------------------------------
 
     def call(self, fn: Callable | str, *args, **kwargs) -> Future:
-        """Run ``fn`` as a Ray task (one CPU, never retried)."""
+        """Run ``fn`` as a Ray task (never retried), once fewer calls of this engine run
+        than the cluster has CPUs.
+
+        The task reserves no CPU: shards may hold every CPU the scheduler counts, and a
+        task that waited for one would wait for ever.
+        """
         self._check_running()
         fn = _function(fn)
+        out: Future = Future()
         with self._lock:
             remote = self._remote_fns.get(fn)
             if remote is None:
-                remote = self._remote_fns[fn] = ray.remote(fn).options(num_cpus=1,
+                remote = self._remote_fns[fn] = ray.remote(fn).options(num_cpus=0,
                                                                        max_retries=0)
-        return self._future(remote.remote(*args, **kwargs), lambda v: v)
+            self._calls_waiting.append((out, remote, args, kwargs))
+        self._start_calls()
+        return out
+
+    def _start_calls(self) -> None:
+        while True:
+            with self._lock:
+                if not self._calls_waiting or self._calls_running >= self._call_slots:
+                    return
+                out, remote, args, kwargs = self._calls_waiting.popleft()
+                self._calls_running += 1
+            try:
+                inner = self._future(remote.remote(*args, **kwargs), lambda v: v)
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                inner = Future()
+                inner.set_exception(exc)
+            inner.add_done_callback(lambda f, out=out: self._call_done(f, out))
+
+    def _call_done(self, inner: Future, out: Future) -> None:
+        with self._lock:
+            self._calls_running -= 1
+        if inner.exception() is not None:
+            _settle(out, error=inner.exception())
+        else:
+            _settle(out, value=inner.result())
+        self._start_calls()
 
     # -- internals --------------------------------------------------------------------------
 
