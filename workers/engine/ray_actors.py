@@ -62,6 +62,8 @@ LEASE_S = 0.8
 """An API process renews its lease on every shard four times in this time; once it has not
 for this long it is taken for dead, and the seqs it reserved and never sent are given up at
 once, so the frames after them wait no longer (not ``hold_s``)."""
+LEASE_KEPT_S = 600.0
+"""A lapsed lease is forgotten after this long."""
 MAPS_KEPT = 8
 """Map revisions the map store keeps in the object store at once."""
 
@@ -153,8 +155,8 @@ class Shard:
         self.up_since = time.monotonic()
 
     async def ping(self) -> tuple[int, float, str]:
-        """(pid, start time, code version): a new start time means the actor was
-        restarted."""
+        """(pid, start time, version): a new start time means the actor was restarted; the
+        version is the code version and deployment it was started for."""
         return os.getpid(), self.started, self.version
 
     async def node(self) -> str:
@@ -177,6 +179,8 @@ class Shard:
         ``within_s`` seconds; None when this shard has not been up that long (it may not
         have heard from every live one yet)."""
         now = time.monotonic()
+        for owner in [o for o, (seen, _) in self.leases.items() if now - seen > LEASE_KEPT_S]:
+            del self.leases[owner]  # long dead: its reservations lapsed long ago
         if now - self.up_since < within_s:
             return None
         return sorted({inst for seen, inst in self.leases.values() if now - seen <= within_s})
