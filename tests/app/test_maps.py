@@ -223,10 +223,15 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     assert r.status_code == 202 and r.headers["location"] == f"/v1/jobs/{r.json()['job_id']}"
     job = wait_job(c, r.json()["job_id"])
     assert (job["status"], job["progress"], job["n_images"], job["n_extracted"],
-            job["revision"], job["error"]) == ("done", 1.0, 6, 6, 1, None)
+            job["revision"], job["error"], job["stage"]) == ("done", 1.0, 6, 6, 1, None, "done")
     m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
     assert (m["status"], m["revision"], m["pending_images"]) == ("ready", 1, 0)
     assert m["last_job_id"] == job["id"]
+    # the revision says what its camera geometry gives, whatever became of it
+    geometry = m["geometry"]
+    assert geometry["images"] == 6 and geometry["status"] in ("accepted", "refused", "none")
+    if geometry["status"] != "none":
+        assert 0 < geometry["placed"] <= 6 and geometry["self_check"]["images"] > 0
 
     # The packed revision is the images' positions in a frame at their centroid.
     first = MapData.load(ctx.settings.packed_map_dir(map_id, 1))
@@ -402,13 +407,12 @@ def _built_six_image_map(c, shots) -> tuple[str, str, dict[int, str]]:
 
 def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
         module_client, shots, tmp_path, monkeypatch):
-    """The build's pair and block phases (plans, then batches on the workers) hand the
-    packing every pair and block it needs: packed with them, no pair is matched and no block
-    adjusted in the packing, and the map is the map the packing builds by doing it all
-    itself (blocks of three cameras here, so that six images make two)."""
+    """The build's pair phase (a plan, then batches on the workers) hands the packing every
+    pair it needs: packed with them, no pair is matched in the packing, and the map is the
+    map the packing builds by matching them all itself."""
     from vloc.app.jobs import tasks
     from vloc.workers.core import tiepairs
-    from vloc.workers.core.geometry import pairs, reconstruct
+    from vloc.workers.core.geometry import pairs
 
     map_id, url, files = _built_six_image_map(module_client, shots)
     ties = tmp_path / "ties"
@@ -422,42 +426,33 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
         tasks.match_tie_pairs(str(ties), {i: ids[i] for i in pair}, [pair], k)
     assert len(list(ties.glob(tiepairs.RESULTS_GLOB))) == len(plan["pairs"])
 
-    monkeypatch.setattr(reconstruct, "MAX_BLOCK", 3)
-    n_blocks = tasks.plan_blocks(url, map_id, str(ties), [files[i] for i in ids[:2]])
-    assert n_blocks == 2
-    assert sum(tasks.adjust_block(str(ties), b) for b in range(n_blocks)) > 0
-
-    matched_here, adjusted_here = [], []
-    real, real_block = pairs.match_pair, reconstruct.adjust_block
+    matched_here = []
+    real = pairs.match_pair
     monkeypatch.setattr(pairs, "match_pair",
                         lambda *a, **k: matched_here.append(a[:2]) or real(*a, **k))
-    monkeypatch.setattr(reconstruct, "adjust_block",
-                        lambda *a, **k: adjusted_here.append(1) or real_block(*a, **k))
     tasks.pack_map(url, map_id, 90, str(tmp_path / "apart"), image_files=files,
                    tie_dir=str(ties), lens_files=[files[i] for i in ids[:2]])
-    assert matched_here == [] and adjusted_here == []
+    assert matched_here == []
     tasks.pack_map(url, map_id, 91, str(tmp_path / "here"), image_files=files,
                    lens_files=[files[i] for i in ids[:2]])
     assert sorted(matched_here) == sorted(tuple(p) for p in plan["pairs"])
-    assert len(adjusted_here) == n_blocks
     apart, here = MapData.load(tmp_path / "apart"), MapData.load(tmp_path / "here")
-    assert (apart.geometry is None) == (here.geometry is None)
-    if here.geometry is not None:
-        np.testing.assert_array_equal(apart.geometry.centres, here.geometry.centres)
+    assert apart.geometry is not None and here.geometry is not None
+    np.testing.assert_array_equal(apart.geometry.centres, here.geometry.centres)
+    np.testing.assert_array_equal(apart.geometry.points["sift"], here.geometry.points["sift"])
+    assert apart.geometry.self_check == here.geometry.self_check
     np.testing.assert_array_equal(apart.positions, here.positions)
 
 
 def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, tmp_path,
                                                           monkeypatch):
-    """A build that fails keeps its tie-point folder; the retry's tie points, pair batches
-    and blocks found there complete are not computed again, and those a changed plan or
-    changed inputs have made stale are."""
+    """A build that fails keeps its tie-point folder; the retry's tie points and pair
+    batches found there complete are not computed again, and those a changed plan, changed
+    inputs or an older results format have made stale are."""
     from vloc.app.jobs import tasks
-    from vloc.workers.core import blocks, mapbuild, tiepairs
-    from vloc.workers.core.geometry import reconstruct
+    from vloc.workers.core import mapbuild, tiepairs
 
     map_id, url, files = _built_six_image_map(module_client, shots)
-    monkeypatch.setattr(reconstruct, "MAX_BLOCK", 3)
     ties = tmp_path / "ties"
     ties.mkdir()
 
@@ -469,17 +464,14 @@ def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, t
         batches = [pairs[k:k + 2] for k in range(0, len(pairs), 2)]
         verified = [tasks.match_tie_pairs(str(ties), {i: ids[i] for p in b for i in p}, b, k)
                     for k, b in enumerate(batches)]
-        n = tasks.plan_blocks(url, map_id, str(ties), list(files.values())[:2])
-        placed = [tasks.adjust_block(str(ties), b) for b in range(n)]
-        return counts, verified, placed
+        return counts, verified
 
     first = attempt()
-    assert min(first[0]) > 0 and sum(first[1]) > 0 and len(first[2]) == 2
-    kept = [*ties.glob("*.kp.npy"), *ties.glob(tiepairs.RESULTS_GLOB),
-            *ties.glob(blocks.RESULTS_GLOB)]
+    assert min(first[0]) > 0 and sum(first[1]) > 0
+    kept = [*ties.glob("*.kp.npy"), *ties.glob(tiepairs.RESULTS_GLOB)]
     stamps = {p: p.stat().st_mtime_ns for p in kept}
 
-    calls = {"tie": 0, "pair": 0, "block": 0}
+    calls = {"tie": 0, "pair": 0}
 
     def counted(name, real):
         def call(*a, **k):
@@ -490,17 +482,21 @@ def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, t
     monkeypatch.setattr(mapbuild, "extract_tie_points",
                         counted("tie", mapbuild.extract_tie_points))
     monkeypatch.setattr(tiepairs, "match_pair", counted("pair", tiepairs.match_pair))
-    monkeypatch.setattr(blocks, "adjust_block", counted("block", blocks.adjust_block))
     assert attempt() == first
-    assert calls == {"tie": 0, "pair": 0, "block": 0}
+    assert calls == {"tie": 0, "pair": 0}
     assert {p: p.stat().st_mtime_ns for p in kept} == stamps
 
-    # a block whose inputs changed is adjusted again
-    (ties / blocks.INPUT.format(1)).write_bytes((ties / blocks.INPUT.format(0)).read_bytes())
-    assert tasks.adjust_block(str(ties), 1) == first[2][0] and calls["block"] == 1
+    # a batch the plane geometry's build left (pixels and homographies, no format) is
+    # matched again, to the same pairs
+    batch = sorted(ties.glob(tiepairs.RESULTS_GLOB))[0]
+    with np.load(batch) as z:
+        a, b = z["a"], z["b"]
+    np.savez(batch, a=a, b=b, verified=np.zeros(len(a), bool), counts=np.zeros(0, np.int64),
+             pa=np.zeros((0, 2)), pb=np.zeros((0, 2)), homographies=np.zeros((0, 3, 3)))
+    assert attempt() == first and calls["pair"] == len(a)
     # results matched under another plan index other images: they go
     tiepairs.save_plan(ties, sorted(files)[1:])
     assert not list(ties.glob(tiepairs.RESULTS_GLOB))
-    assert attempt() == first and calls["pair"] > 0
+    assert attempt() == first and calls["pair"] > len(a)
     # every file was written under a temporary name and renamed: none is left half written
     assert not list(ties.glob(".*"))

@@ -1,4 +1,4 @@
-"""map_geometry: the map cameras and every stored keypoint on the ground, at map build."""
+"""map_geometry: the map cameras and every stored keypoint's 3-D point, at map build."""
 
 from __future__ import annotations
 
@@ -42,16 +42,24 @@ def _survey_map(seed: int = 0):
 
 
 @pytest.mark.parametrize("focal_px", [F_TRUE, None], ids=["exif", "assumed"])
-def test_map_geometry_places_every_keypoint_on_the_ground(focal_px):
-    # None assumes a 65 degree lens (251 px) where the truth is 60 degrees (277 px)
+def test_map_geometry_gives_every_keypoint_its_3d_point(focal_px):
+    # None assumes a 65 degree lens (251 px) where the truth is 60 degrees (277 px): the
+    # hills and buildings under the survey tell the reconstruction
     s, data = _survey_map()
     geo = map_geometry(data, focal_px=focal_px)
     assert geo is not None and geo.reconstructed.all()
-    ground = np.asarray(geo.ground["sift"])
-    assert ground.shape == (len(data.sift_keypoints), 2)
+    assert geo.intrinsics.f == pytest.approx(F_TRUE, rel=1e-3)
+    points = np.asarray(geo.points["sift"])
+    assert points.shape == (len(data.sift_keypoints), 3) and points.dtype == np.float32
     truth = s.points[np.concatenate(s.point_ids)]
-    err = np.linalg.norm(ground - truth, axis=1)
-    assert np.median(err) < 0.5 and err.max() < 2.0
+    err = np.linalg.norm(points - truth, axis=1)
+    # keypoints no other image sees have no reconstructed tie point near them
+    assert np.isfinite(err).mean() > 0.8
+    assert np.nanmedian(err) < 0.5
+    # the map localised its own images before its geometry was trusted
+    check = geo.self_check
+    assert check["trusted"] and check["images"] == len(s.centres)
+    assert check["median_m"] < 1.0 < check["floor_median_m"]
 
 
 def test_map_geometry_of_unrelated_textures_is_none():
@@ -76,7 +84,7 @@ def test_assemble_map_without_geometry():
                   features=feats, origin=ORIGIN, focal_px=F_TRUE)
     assert assemble_map(**kwargs, geometry=False).geometry is None
     built = assemble_map(**kwargs)
-    assert built.geometry is not None and "sift" in built.geometry.ground
+    assert built.geometry is not None and sorted(built.geometry.points) == ["sift"]
 
 
 def test_assemble_map_reports_the_seconds_of_each_stage():
@@ -96,26 +104,37 @@ def test_assemble_map_reports_the_seconds_of_each_stage():
     assert "geometry" not in timings
 
 
+def _stored(s, n=80):
+    """The SIFT a map stores of each image: ``n`` of its keypoints, drawn at random; the
+    survey's keypoints are its tie points."""
+    rng = np.random.default_rng(0)
+    rows = [np.sort(rng.choice(len(k), n, replace=False)) for k in s.keypoints]
+    few = [SiftFeatures(k[r], d[r])
+           for k, d, r in zip(s.keypoints, s.image_descriptors, rows, strict=True)]
+    ties = [SiftFeatures(k, d) for k, d in zip(s.keypoints, s.image_descriptors, strict=True)]
+    return few, ties, rows
+
+
 def test_tie_points_reconstruct_a_map_its_stored_sift_cannot_tie():
     s, _ = _survey_map(3)
-    # the stored SIFT: a handful of keypoints per image, too few to tie neighbours together
-    few = [SiftFeatures(k[:6], d[:6]) for k, d in zip(s.keypoints, s.image_descriptors,
-                                                      strict=True)]
+    # the stored SIFT: 80 keypoints an image, too few shared to verify a pair, enough to
+    # localise an image against three neighbours together
+    few, ties, rows = _stored(s)
     lat, lon = ORIGIN.to_wgs84(s.positions[:, 0], s.positions[:, 1])
     kwargs = dict(names=[f"m{i}" for i in range(len(few))], lats=lat, lons=lon,
                   alts=list(s.altitudes), origin=ORIGIN, focal_px=F_TRUE)
     bare = assemble_map(**kwargs, features=[ImageFeatures({}, f) for f in few])
     assert bare.geometry is None
-    ties = [SiftFeatures(k, d) for k, d in zip(s.keypoints, s.image_descriptors, strict=True)]
     tied = assemble_map(**kwargs, features=[ImageFeatures({}, f, tie=t)
                                             for f, t in zip(few, ties, strict=True)])
     geo = tied.geometry
-    assert geo is not None and geo.reconstructed.all()
-    # the stored keypoints (not the tie points) are the ones placed on the ground
-    ground = np.asarray(geo.ground["sift"])
-    assert ground.shape == (6 * len(few), 2)
-    truth = s.points[np.concatenate([ids[:6] for ids in s.point_ids])]
-    assert np.median(np.linalg.norm(ground - truth, axis=1)) < 0.5
+    assert geo is not None and geo.reconstructed.all() and geo.self_check["trusted"]
+    # the stored keypoints (not the tie points) are the ones given 3-D points
+    points = np.asarray(geo.points["sift"])
+    assert points.shape == (80 * len(few), 3)
+    truth = s.points[np.concatenate([ids[r] for ids, r in zip(s.point_ids, rows,
+                                                                strict=True)])]
+    assert np.nanmedian(np.linalg.norm(points - truth, axis=1)) < 0.5
     with pytest.raises(ValueError, match="tie points"):
         map_geometry(tied, tie_points=ties[:-1])
 
@@ -165,14 +184,12 @@ def test_tie_points_on_disk_tie_the_same_map_with_a_few_files_open(tmp_path):
     # A map of 50,000 images failed to pack with "Too many open files": every image's tie
     # points were mapped at once, and each mapped array holds a file descriptor.
     s, _ = _survey_map(3)
-    ties = [SiftFeatures(k, d) for k, d in zip(s.keypoints, s.image_descriptors, strict=True)]
+    few, ties, _ = _stored(s)
     for i, t in enumerate(ties):
         save_tie_points(t, tmp_path / str(i))
     lat, lon = ORIGIN.to_wgs84(s.positions[:, 0], s.positions[:, 1])
     kwargs = dict(names=[f"m{i}" for i in range(len(ties))], lats=lat, lons=lon,
                   alts=list(s.altitudes), origin=ORIGIN, focal_px=F_TRUE)
-    few = [SiftFeatures(k[:6], d[:6]) for k, d in zip(s.keypoints, s.image_descriptors,
-                                                      strict=True)]
     in_memory = assemble_map(**kwargs, features=[ImageFeatures({}, f, tie=t)
                                                  for f, t in zip(few, ties, strict=True)])
     files = [TiePointFiles.find(tmp_path / str(i)) for i in range(len(ties))]
@@ -189,4 +206,5 @@ def test_tie_points_on_disk_tie_the_same_map_with_a_few_files_open(tmp_path):
     assert want is not None and want.reconstructed.all()
     np.testing.assert_array_equal(got.centres, want.centres)
     np.testing.assert_array_equal(got.rotations, want.rotations)
-    np.testing.assert_array_equal(got.ground["sift"], want.ground["sift"])
+    np.testing.assert_array_equal(got.points["sift"], want.points["sift"])
+    assert got.self_check == want.self_check

@@ -27,10 +27,18 @@ def _map(rng: np.random.Generator) -> MapData:
 
 def _geometry(data: MapData) -> MapGeometry:
     rotations = np.stack([nadir_rotation(0.1), nadir_rotation(0.2), np.full((3, 3), np.nan)])
-    centres = np.array([[0.0, 0.0, 30.0], [10.0, 0.0, 31.0], [np.nan] * 3])
-    geo = MapGeometry(rotations, centres, Intrinsics(250.0, 160.0, 120.0), ground_alt=270.0,
-                      residual_px=0.4, gps_rms=0.8)
-    geo.add_ground("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets))
+    centres = np.array([[0.0, 0.0, 310.0], [10.0, 0.0, 311.0], [np.nan] * 3])
+    geo = MapGeometry(rotations, centres, Intrinsics(250.0, 159.5, 119.5), k1=-0.01,
+                      residual_px=0.4, gps_rms=0.8, gps_rms_v=2.5)
+    # each keypoint of image 0 on a tie point 30 m below it (image 1 has none)
+    offsets = np.asarray(data.sift_offsets)
+    kp0 = np.asarray(data.sift_keypoints)[offsets[0]:offsets[1], :2].astype(np.float64)
+    xyz = centres[0] + (30.0 * geo.rays(kp0)) @ rotations[0]
+    nothing = (np.zeros((0, 2)), np.zeros((0, 3)))
+    geo.add_points("sift", np.asarray(data.sift_keypoints), offsets,
+                   [(kp0, xyz), nothing, nothing])
+    geo.self_check = {"images": 2, "registered": 1.0, "median_m": 0.7, "sigma_m": 2.0,
+                      "trusted": True}
     return geo
 
 
@@ -41,16 +49,19 @@ def test_save_load_keeps_geometry(tmp_path, mmap):
     back = MapData.load(data.save(tmp_path / "map"), mmap=mmap)
     geo = back.geometry
     assert geo is not None
-    assert isinstance(geo.ground["sift"], np.memmap) is mmap
+    assert isinstance(geo.points["sift"], np.memmap) is mmap
     np.testing.assert_array_equal(geo.rotations, data.geometry.rotations)
     np.testing.assert_array_equal(geo.centres, data.geometry.centres)
-    assert geo.intrinsics == Intrinsics(250.0, 160.0, 120.0)
-    assert (geo.ground_alt, geo.residual_px, geo.gps_rms) == (270.0, 0.4, 0.8)
-    # the ground positions stay row-aligned with the keypoints
-    ground = np.asarray(geo.ground["sift"])
-    assert ground.shape == (len(back.sift_keypoints), 2)
-    np.testing.assert_array_equal(ground, data.geometry.ground["sift"])
-    assert np.isfinite(ground[:5]).all() and np.isnan(ground[5:]).all()
+    assert geo.intrinsics == Intrinsics(250.0, 159.5, 119.5)
+    assert (geo.k1, geo.residual_px, geo.gps_rms, geo.gps_rms_v) == (-0.01, 0.4, 0.8, 2.5)
+    assert geo.self_check == data.geometry.self_check
+    # the 3-D points stay row-aligned with the keypoints: image 0's five 30 m below its
+    # camera, image 2's (no camera) unknown
+    points = np.asarray(geo.points["sift"])
+    assert points.shape == (len(back.sift_keypoints), 3)
+    np.testing.assert_array_equal(points, data.geometry.points["sift"])
+    np.testing.assert_allclose(points[:5, 2], 280.0, atol=1e-3)
+    assert np.isnan(points[5:]).all()
     assert back.names == data.names and back.revision == 2
 
 

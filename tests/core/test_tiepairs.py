@@ -11,7 +11,7 @@ from tests.core.geometry.scene import survey
 from vloc.workers.core import tiepairs
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.geometry import build_geometry, match_pair, tie_pairs, tie_reach
-from vloc.workers.core.geometry.pairs import keep_some, match_pairs
+from vloc.workers.core.geometry.pairs import PairMatches, match_pairs
 from vloc.workers.core.mapbuild import local_frame, save_tie_points
 from vloc.workers.core.sift import SiftFeatures
 
@@ -53,27 +53,16 @@ def test_a_pair_matches_the_same_whoever_matches_it_and_whatever_came_before(sur
     cv2.setRNGSeed(99)
     np.random.default_rng().random(10)
     again = match_pair(0, 1, kp[0], desc[0], kp[1], desc[1])
-    assert first is not None and len(first.pa) > 30     # every inlier: the draw comes later
-    np.testing.assert_array_equal(first.pa, again.pa)
-    np.testing.assert_array_equal(first.homography, again.homography)
-    # indices of a 50,000-image map seed OpenCV too (its seed is a 32-bit integer)
-    assert match_pair(49_998, 49_999, kp[0], desc[0], kp[1], desc[1]) is not None
-
-
-def test_each_pair_keeps_a_few_tie_points_drawn_in_the_pairs_order(surveyed):
-    s, *_ = surveyed
-    kp, desc = s.keypoints, s.image_descriptors
-    pairs = [match_pair(a, b, kp[a], desc[a], kp[b], desc[b]) for a, b in ((0, 1), (1, 2))]
-    few = pairs[0].__class__(0, 2, pairs[0].pa[:12], pairs[0].pb[:12], pairs[0].homography)
-    kept = keep_some([pairs[0], few, pairs[1]], np.random.default_rng(0), 30)
-    assert [len(p.pa) for p in kept] == [30, 12, 30]
-    np.testing.assert_array_equal(kept[1].pa, few.pa)        # fewer than 30: all kept
-    # the slow obvious reference: one generator, a draw for each pair that has more
-    rng = np.random.default_rng(0)
-    for full, got in ((pairs[0], kept[0]), (pairs[1], kept[2])):
-        rows = np.sort(rng.choice(len(full.pa), size=30, replace=False))
-        np.testing.assert_array_equal(got.pa, full.pa[rows])
-        np.testing.assert_array_equal(got.pb, full.pb[rows])
+    assert first is not None and (first.a, first.b) == (0, 1)
+    np.testing.assert_array_equal(first.matches, again.matches)
+    assert first.config == again.config
+    # the verified matches are keypoint indices, and exactly the points both images see
+    _, ia, ib = np.intersect1d(s.point_ids[0], s.point_ids[1], return_indices=True)
+    assert first.matches.dtype == np.int64
+    assert sorted(map(tuple, first.matches.tolist())) == sorted(zip(ia.tolist(), ib.tolist(), strict=True))
+    # indices of a 50,000-image map seed COLMAP too (its seed is a 31-bit integer)
+    far = match_pair(49_998, 49_999, kp[0], desc[0], kp[1], desc[1])
+    assert far is not None and len(far) == len(first)
 
 
 def test_batches_give_the_pairs_and_the_geometry_of_one_process(surveyed, tmp_path):
@@ -91,20 +80,20 @@ def test_batches_give_the_pairs_and_the_geometry_of_one_process(surveyed, tmp_pa
     assert set(known) == set(planned)
     assert verified == sum(p is not None for p in known.values()) >= len(xy)
     serial = match_pairs(s.keypoints, s.image_descriptors, xy, max_distance=tie_reach(xy))
-    assert [(p.a, p.b) for p in serial] == sorted(k for k, p in known.items() if p is not None)
-    apart = keep_some([p for _, p in sorted(known.items()) if p is not None],
-                      np.random.default_rng(0))
+    apart = [p for _, p in sorted(known.items()) if p is not None]
+    assert [(p.a, p.b) for p in serial] == [(p.a, p.b) for p in apart]
     for p, q in zip(serial, apart, strict=True):
-        np.testing.assert_array_equal(p.pa, q.pa)
-        np.testing.assert_array_equal(p.pb, q.pb)
-        np.testing.assert_array_equal(p.homography, q.homography)
+        np.testing.assert_array_equal(p.matches, q.matches)
+        assert p.config == q.config
     # the geometry built from the batches' pairs is the one built by matching them here
     alt = np.asarray(s.altitudes)
-    here = build_geometry(s.keypoints, s.image_descriptors, xy, alt, s.K)
-    apart = build_geometry(s.keypoints, s.image_descriptors, xy, alt, s.K, known_pairs=known)
+    here = build_geometry(s.keypoints, s.image_descriptors, xy, alt, s.K.f)
+    apart = build_geometry(s.keypoints, s.image_descriptors, xy, alt, s.K.f, known_pairs=known)
     assert here is not None and apart is not None
-    np.testing.assert_array_equal(here.centres, apart.centres)
-    np.testing.assert_array_equal(here.rotations, apart.rotations)
+    np.testing.assert_array_equal(here[0].centres, apart[0].centres)
+    np.testing.assert_array_equal(here[0].rotations, apart[0].rotations)
+    for a, b in zip(here[1].points, apart[1].points, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_pairs_with_missing_tie_points_are_left_to_the_packing(surveyed, tmp_path):
@@ -141,3 +130,43 @@ def test_an_empty_batch_round_trips(tmp_path):
                                                            tiepairs.PLAN_FILE]
     (tmp_path / ".pairs-000001.npz").write_bytes(b"cut short")
     assert tiepairs.load_results(tmp_path, [7, 8]) == {(0, 1): None}
+
+
+def test_results_round_trip_with_their_indices_and_configurations(tmp_path):
+    done = [(0, 1, PairMatches(0, 1, np.array([[3, 5], [7, 2], [0, 9]], np.int64), 2)),
+            (0, 2, None),
+            (1, 2, PairMatches(1, 2, np.array([[4, 4]], np.int64), 6))]
+    tiepairs.save_results(done, tmp_path / "pairs-000000.npz")
+    back = tiepairs.read_results(tmp_path / "pairs-000000.npz")
+    assert [(a, b, p is None) for a, b, p in back] == [(0, 1, False), (0, 2, True),
+                                                        (1, 2, False)]
+    for (_, _, want), (_, _, got) in zip(done, back, strict=True):
+        if want is not None:
+            assert (got.a, got.b, got.config) == (want.a, want.b, want.config)
+            np.testing.assert_array_equal(got.matches, want.matches)
+
+
+def test_results_of_another_format_are_ignored_and_matched_again(surveyed, tmp_path):
+    """A failed build of the plane geometry left results of its own format (pixels and a
+    homography per pair, no version): the retry reads none of them, and its batches match
+    their pairs again."""
+    s, lat, lon, xy = surveyed
+    stems = _write_ties(s, tmp_path)
+    planned = tiepairs.plan(lat, lon, list(s.altitudes))
+    ids = list(range(len(xy)))
+    tiepairs.save_plan(tmp_path, ids)
+    old = tmp_path / "pairs-000000.npz"
+    np.savez(old, a=np.array([0]), b=np.array([1]), verified=np.array([True]),
+             counts=np.array([2]), pa=np.zeros((2, 2)), pb=np.ones((2, 2)),
+             homographies=np.eye(3)[None])
+    assert tiepairs.read_results(old) == []
+    assert tiepairs.load_results(tmp_path, ids) == {}
+    np.savez(old, format=np.array(3), a=np.array([0]), b=np.array([1]),
+             verified=np.array([False]), counts=np.zeros(0, np.int64),
+             matches=np.zeros((0, 2), np.int64), configs=np.zeros(0, np.int64))
+    assert tiepairs.load_results(tmp_path, ids) == {}   # a later format, neither
+    batch = planned[:3]
+    assert tiepairs.match_batch({i: stems[i] for p in batch for i in p}, batch, old) > 0
+    known = tiepairs.load_results(tmp_path, ids)
+    assert sorted(known) == batch
+    assert all(p is None or p.matches.shape[1] == 2 for p in known.values())

@@ -305,7 +305,7 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     report = {} if report is None else report
     built = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
                            focal_px, seed=seed, known_pairs=known_pairs,
-                           known_tiles=known_tiles)
+                           known_tiles=known_tiles, times=data.captured_at)
     if built is None:
         report.update(status="none", images=n,
                       reason="structure from motion placed too few cameras consistently "

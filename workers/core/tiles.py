@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_limits
 
 from .geometry import sfm
 from .geometry.pairs import PairMatches
-from .geometry.sfm import TileModel, spatial_tiles, tile_key, tile_models, tile_pairs
+from .geometry.sfm import TileModel, spatial_tiles, tags, tile_key, tile_models, tile_pairs
 from .mapbuild import load_tie_points
 from .tiepairs import read_results, save_results
 
@@ -33,19 +33,19 @@ RESULTS_GLOB = "tile-?????.npz"
 
 def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
          altitudes: np.ndarray, focal_px: float | None, stems: list[str], *,
-         seed: int = 0) -> int:
+         times: np.ndarray | None = None, seed: int = 0) -> int:
     """Write what each tile's reconstruction needs into ``folder``; returns the number of
     tiles (0 for a map reconstructed whole, which the packing does itself).
 
     ``verified`` are the map's verified pairs (map indices), ``stems[i]`` where image
-    ``i``'s tie points were written (:func:`~workers.core.mapbuild.save_tie_points`)."""
+    ``i``'s tie points were written (:func:`~workers.core.mapbuild.save_tie_points`),
+    ``times`` the capture times (s, NaN unknown)."""
     positions = np.asarray(positions, np.float64)
     tiles = spatial_tiles(positions, sfm.MAX_TILE)
     if len(tiles) < 2:
         return 0
     folder = Path(folder)
-    np.savez(folder / PLAN_FILE, positions=positions,
-             altitudes=np.asarray(altitudes, np.float64),
+    np.savez(folder / PLAN_FILE, tags=tags(positions, altitudes, times),
              focal=np.array(np.nan if focal_px is None else float(focal_px)),
              seed=np.array(int(seed)), stems=np.array(stems, dtype=str),
              tiles=np.concatenate(tiles),
@@ -62,12 +62,11 @@ def reconstruct(folder: str | Path, tile: int) -> int:
     build's, by :func:`~workers.core.geometry.sfm.tile_key`) is kept."""
     folder = Path(folder)
     with np.load(folder / PLAN_FILE) as z:
-        positions, altitudes = z["positions"], z["altitudes"]
+        gps = z["tags"]
         focal = float(z["focal"])
         seed, stems = int(z["seed"]), [str(s) for s in z["stems"]]
         inside = z["tiles"][z["offsets"][tile]:z["offsets"][tile + 1]]
     focal_px = None if not np.isfinite(focal) else focal
-    gps = np.column_stack([positions, altitudes])
     pairs = [p for _, _, p in read_results(folder / INPUT.format(tile)) if p is not None]
     key = tile_key(inside, pairs, gps, focal_px, seed)
     out = folder / RESULT.format(tile)

@@ -72,8 +72,7 @@ class Terrain:
     buildings: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
 
     def ground(self, xy: np.ndarray) -> np.ndarray:
-        """Altitude (n,) of the terrain under each east/north (n, 2), buildings' hills
-        excluded."""
+        """Altitude (n,) of the ground, hills included, under each east/north (n, 2)."""
         z = np.full(len(xy), GROUND_ALT)
         for x, y, h, r in self.hills:
             z += h * np.exp(-((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2) / (2 * r * r))
@@ -105,8 +104,12 @@ class Terrain:
 
 def hilly(lo: np.ndarray, hi: np.ndarray) -> Terrain:
     """Two hills (8 m and 5 m) and three buildings (6 to 14 m) within ``lo``..``hi``."""
-    span = np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
-    at = lambda u, v: np.asarray(lo, np.float64) + span * [u, v]  # noqa: E731
+    lo = np.asarray(lo, np.float64)
+    span = np.asarray(hi, np.float64) - lo
+
+    def at(u: float, v: float) -> np.ndarray:
+        return lo + span * [u, v]
+
     hills = np.array([[*at(0.3, 0.4), 8.0, 0.15 * span.max()],
                       [*at(0.75, 0.7), 5.0, 0.1 * span.max()]])
     buildings = []

@@ -152,12 +152,74 @@ def test_align_to_gps_keeps_a_model_near_level_when_the_gps_altitudes_drift():
     assert (~inliers).sum() == 0 or off[~inliers].min() > off[inliers].max()
 
 
-def test_align_to_gps_needs_three_cameras_that_span_a_plane():
+def test_align_to_gps_needs_three_cameras():
     rng = np.random.default_rng(5)
     centres, rec, right = _cameras(rng, n=3)
     assert align_to_gps(rec[:2], right[:2], centres[:2], rng=rng) is None
-    line = np.column_stack([np.arange(6.0), 2 * np.arange(6.0), np.zeros(6)])
-    flat = np.tile([1.0, 0.0, 0.0], (6, 1))
-    assert align_to_gps(line, flat, line + 5.0, rng=rng) is None
     sim, inliers = align_to_gps(rec, right, centres, rng=rng)
     assert inliers.all() and math.isclose(sim.scale, TRUTH.scale, rel_tol=1e-6)
+
+
+def test_a_straight_line_of_cameras_is_aligned_by_their_level_rows():
+    """A straight street or a single flight line: the centres leave the rotation about the
+    line open, the cameras' level rows (across the line here) close it."""
+    from scipy.spatial.transform import Rotation
+
+    gps = np.column_stack([np.arange(0.0, 100.0, 10.0), np.zeros(10), np.full(10, 300.0)])
+    rot = Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix()
+    rec = (gps - [10.0, 20.0, 30.0]) @ rot / 0.2  # the model: turned, shifted, x5
+    right = np.tile([0.0, -1.0, 0.0], (10, 1)) @ rot  # image rows across the line
+    sim, inliers = align_to_gps(rec, right, gps, rng=np.random.default_rng(0))
+    assert inliers.all()
+    np.testing.assert_allclose(sim.apply(rec), gps, atol=0.01)
+    # the rows level: the model turned right about the line, or half a turn further (which
+    # rows alone cannot tell; the cameras' axes do: the next test)
+    np.testing.assert_allclose((right @ sim.rotation.T)[:, 2], 0.0, atol=1e-3)
+
+
+def test_a_line_of_cameras_comes_out_upright():
+    """Upside down, a street walk keeps every row level and every centre on its tag: the
+    cameras' images pointing down (not up) choose between the two."""
+    from scipy.spatial.transform import Rotation
+
+    n = 8
+    gps = np.column_stack([np.zeros(n), np.arange(n) * 1.5, np.full(n, 1.6)])
+    # walking north, looking north-east and 5 degrees down: image rows level, image down
+    # pointing mostly down
+    look = np.radians(45.0)
+    z = np.array([np.sin(look) * np.cos(0.087), np.cos(look) * np.cos(0.087), -0.087])
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R_world = np.stack([x, y, z])  # rows: the camera's axes in the world
+    assert y[2] < -0.9
+    for seed in range(4):
+        rot = Rotation.from_rotvec(np.random.default_rng(seed).normal(0, 1, 3)).as_matrix()
+        rec = gps @ rot * 3.0 + 7.0
+        axes = np.stack([R_world @ rot] * n)
+        sim, _ = align_to_gps(rec, axes[:, 0, :], gps, axes=axes,
+                              rng=np.random.default_rng(seed))
+        world = sim.apply_to_rotations(axes)
+        assert (world[:, 1, 2] < -0.9).all(), seed  # the image's down points down
+        np.testing.assert_allclose(sim.apply(rec), gps, atol=0.01)
+
+
+def test_drifting_altitudes_do_not_tilt_a_lawnmower_survey():
+    """GPS altitudes drifting 100 m over the flight: with the capture times the drift is
+    told from a tilt (the legs run back and forth in time), and the model stays level."""
+    rows, cols = 4, 6
+    xy = np.array([[c * 20.0 if r % 2 == 0 else (cols - 1 - c) * 20.0, r * 30.0]
+                   for r in range(rows) for c in range(cols)])
+    truth = np.column_stack([xy, np.full(len(xy), 400.0)])
+    times = 4.0 * np.arange(len(xy))
+    gps = truth.copy()
+    gps[:, 2] += 100.0 * times / times[-1]
+    right = np.tile([1.0, 0.0, 0.0], (len(xy), 1))  # rows along the legs: no help across
+    rec = truth * 0.5 + 3.0
+    rng = np.random.default_rng(1)
+    with_times, _ = align_to_gps(rec, right, gps, times=times, rng=rng)
+    np.testing.assert_allclose(with_times.apply(rec)[:, 2] - 400.0,
+                               np.full(len(xy), with_times.apply(rec)[0, 2] - 400.0),
+                               atol=0.5)  # level (a constant offset is the drift's start)
+    without, _ = align_to_gps(rec, right, gps, rng=np.random.default_rng(1))
+    assert np.ptp(without.apply(rec)[:, 2]) > 30.0  # the drift tilts a model without times

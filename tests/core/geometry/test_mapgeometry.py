@@ -14,6 +14,7 @@ from vloc.workers.core.geometry.camera import Intrinsics, nadir_rotation, projec
 from vloc.workers.core.geometry.mapgeometry import (
     DEPTH_NEIGHBOURS,
     DEPTH_RADIUS_PX,
+    EXACT_PX,
     MapGeometry,
 )
 from vloc.workers.core.geometry.sfm import Structure
@@ -40,9 +41,10 @@ def _pixels(geo, i, X):
 
 
 def _reference_points(geo, keypoints, offsets, seen):
-    """The slow obvious reference of add_points: per keypoint, the tie points of its image
-    within DEPTH_RADIUS_PX, the DEPTH_NEIGHBOURS nearest of them, their median depth, and
-    the point at that depth on the keypoint's ray (undistorted by iteration)."""
+    """The slow obvious reference of add_points: per keypoint, the 3-D point of a tie point
+    of its image within EXACT_PX; else the tie points within DEPTH_RADIUS_PX, the
+    DEPTH_NEIGHBOURS nearest of them, their median depth, and the point at that depth on the
+    keypoint's ray (undistorted by iteration)."""
     out = np.full((len(keypoints), 3), np.nan)
     for i in range(len(offsets) - 1):
         R, C = geo.rotations[i], geo.centres[i]
@@ -53,6 +55,9 @@ def _reference_points(geo, keypoints, offsets, seen):
             d = [(math.dist(keypoints[row, :2], p), k) for k, p in enumerate(px)]
             near = sorted(x for x in d if x[0] <= DEPTH_RADIUS_PX)[:DEPTH_NEIGHBOURS]
             if not near:
+                continue
+            if near[0][0] <= EXACT_PX:
+                out[row] = xyz[near[0][1]]
                 continue
             depth = float(np.median([(xyz[k] - C) @ R[2] for _, k in near]))
             u = (keypoints[row, 0] - K.cx) / K.f
@@ -87,7 +92,7 @@ def _scene(rng, geo):
     return np.concatenate(keypoints).astype(np.float32), np.array(offsets), seen
 
 
-@pytest.mark.parametrize("k1", [0.0, -0.08])
+@pytest.mark.parametrize("k1", [0.0, -0.02])
 def test_add_points_against_a_slow_reference(k1):
     rng = np.random.default_rng(0)
     geo = _geometry(k1)
@@ -101,10 +106,12 @@ def test_add_points_against_a_slow_reference(k1):
     # image 1 has no camera; some keypoints of the others lie far from every tie point
     assert np.isnan(points[offsets[1]:offsets[2]]).all()
     assert 0 < np.isnan(points[:offsets[1], 0]).sum() < 30
-    # keypoints on tie points get exactly their 3-D points ...
+    # keypoints on tie points get exactly their 3-D points, other tie points near or not
     for i in (0, 2):
-        np.testing.assert_allclose(points[offsets[i]:offsets[i] + 10], seen[i][1][:10],
-                                   atol=2e-3)
+        px, xyz = seen[i]
+        gaps = np.linalg.norm(px[:10, None] - px[None], axis=2)
+        assert (np.sort(gaps, axis=1)[:, 1] <= DEPTH_RADIUS_PX).any()  # some have neighbours
+        np.testing.assert_allclose(points[offsets[i]:offsets[i] + 10], xyz[:10], atol=2e-3)
     # ... and every other point lies on its own keypoint's ray
     for i in (0, 2):
         rows = np.arange(offsets[i], offsets[i + 1])
@@ -132,6 +139,28 @@ def test_add_points_known_answer_on_a_nadir_camera():
     seen[0] = (tie_px[:2], ground[:2])
     geo.add_points("orb", kp, np.array([0, 4, 4, 4]), seen)
     assert np.isnan(geo.points["orb"]).all()
+
+
+def test_add_points_meets_the_plane_of_an_image_that_sees_one():
+    # a nadir camera 50 m over level ground (200 m) whose tie points all lie on it: a
+    # keypoint far from every tie point meets that ground; over relief it gets no point
+    geo = _geometry()
+    rng = np.random.default_rng(3)
+    R, C = geo.rotations[0], geo.centres[0]
+    tie_px = np.column_stack([rng.uniform(0, 140, 30), rng.uniform(0, 100, 30)])
+    ground = C + (50.0 * geo.rays(tie_px)) @ R
+    np.testing.assert_allclose(ground[:, 2], 200.0)
+    kp = np.array([[300.0, 220.0, 1, 0], [159.5, 119.5, 1, 0]], np.float32)
+    nothing = (np.zeros((0, 2)), np.zeros((0, 3)))
+    geo.add_points("sift", kp, np.array([0, 2, 2, 2]), [(tie_px, ground), nothing, nothing])
+    # 140.5 and 100.5 px from the centre, f = 100 px, 50 m down; heading 0: y is south
+    np.testing.assert_allclose(geo.points["sift"],
+                               [[10.0 + 70.25, 20.0 - 50.25, 200.0], [10.0, 20.0, 200.0]],
+                               atol=1e-3)
+    hills = ground.copy()
+    hills[:, 2] += rng.uniform(-10.0, 10.0, len(hills))  # a fifth of the depth
+    geo.add_points("sift", kp, np.array([0, 2, 2, 2]), [(tie_px, hills), nothing, nothing])
+    assert np.isnan(geo.points["sift"]).all()
 
 
 def test_rays_known_answer():

@@ -75,15 +75,6 @@ def test_reconstruct_finds_the_focal_length_without_exif_over_relief():
     _check_exact(s, st)
 
 
-def test_reconstruct_keeps_the_refined_focal_length_where_the_exif_is_wrong():
-    # an EXIF focal length 25 % short: the mapper runs again with it held, and the refined
-    # run, placing as many cameras, stands
-    s = survey(np.random.default_rng(2))
-    st = _reconstruct(s, focal_px=0.75 * F_TRUE)
-    assert st.intrinsics.f == pytest.approx(F_TRUE, rel=2e-3)
-    _check_exact(s, st)
-
-
 def test_reconstruct_through_gps_noise():
     # any heading: the cameras' level right axes pin both of the model's tilts
     s = survey(np.random.default_rng(3), rows=3, cols=4, headings="random")

@@ -76,11 +76,16 @@ def image_heading(R: np.ndarray) -> float:
 
 
 def compass_heading_deg(R: np.ndarray) -> float:
-    """The direction the top of the image points, as a compass bearing (degrees from north,
-    clockwise), for a camera looking roughly down."""
-    # The image's up direction is -y of the camera; on the ground that is -R[1, :2].
-    up_e, up_n = -R[1, 0], -R[1, 1]
-    return math.degrees(math.atan2(up_e, up_n)) % 360.0
+    """The camera's heading as a compass bearing (degrees from north, clockwise): where the
+    top of the image points, for a camera looking more down than ahead (a survey's); where
+    it looks, for one looking more ahead than down (a phone's, a robot's)."""
+    if -R[2, 2] < math.cos(math.radians(45.0)):
+        # looking ahead: the viewing direction (+z of the camera) on the ground
+        east, north = R[2, 0], R[2, 1]
+    else:
+        # looking down: the image's up direction (-y of the camera) on the ground
+        east, north = -R[1, 0], -R[1, 1]
+    return math.degrees(math.atan2(east, north)) % 360.0
 
 
 def project(R: np.ndarray, C: np.ndarray, K: Intrinsics, X: np.ndarray) -> np.ndarray:

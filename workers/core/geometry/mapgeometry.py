@@ -44,8 +44,13 @@ image's 3-D points, where they lie within this share of their depth from that pl
 survey's view of open ground); elsewhere (streets, buildings) it gets no point."""
 
 NADIR_SPREAD_DEG: float = 15.0
-"""Maps whose cameras all look within this of their mean direction (a survey flown with a
-fixed gimbal, nadir or oblique) get a prior on a frame's viewing direction."""
+"""Maps whose cameras all look within this of their mean direction, more down than ahead (a
+survey flown with a fixed gimbal), get a prior on a frame's viewing direction; a street
+walked one way, whose cameras look one way too, does not: a frame may turn there."""
+
+EXACT_PX: float = 1.0
+"""A stored keypoint this close to a reconstructed tie point (working-resolution pixels) is
+that tie point, and takes its 3-D point."""
 
 FORMAT = 2
 """Version of the saved geometry: 2 is the structure-from-motion geometry with 3-D points;
@@ -109,6 +114,8 @@ class MapGeometry:
         axes = R[:, 2, :]
         mean = axes.mean(axis=0)
         mean /= np.linalg.norm(mean)
+        if -mean[2] < np.cos(np.radians(45.0)):
+            return None
         angles = np.degrees(np.arccos(np.clip(axes @ mean, -1.0, 1.0)))
         if np.percentile(angles, 95) > NADIR_SPREAD_DEG:
             return None
@@ -118,11 +125,11 @@ class MapGeometry:
                    seen: list[tuple[np.ndarray, np.ndarray]]) -> None:
         """Give the keypoints of local-feature set ``kind`` their 3-D points.
 
-        A stored keypoint takes the median depth of the reconstructed tie points nearest it
-        in its image (:data:`DEPTH_RADIUS_PX`, :data:`DEPTH_NEIGHBOURS`) along its own ray:
-        exact where it is one of them, a local interpolation of the surface elsewhere. One
-        with none near it meets the plane of its image's points where the image sees one
-        (:data:`FLAT_VIEW`).
+        A stored keypoint on a reconstructed tie point of its image (:data:`EXACT_PX`) takes
+        that tie point's 3-D point; one near some takes their median depth along its own ray
+        (:data:`DEPTH_RADIUS_PX`, :data:`DEPTH_NEIGHBOURS`), a local interpolation of the
+        surface; one with none near it meets the plane of its image's points where the image
+        sees one (:data:`FLAT_VIEW`).
 
         Parameters
         ----------
@@ -156,6 +163,8 @@ class MapGeometry:
                 z[~ok] = _plane_depths(np.asarray(xyz, np.float64), R, C, rays[~ok], depth)
             done = np.isfinite(z)
             out[a:b][done] = (C + (z[done, None] * rays[done]) @ R).astype(np.float32)
+            same = dist[:, 0] <= EXACT_PX
+            out[a:b][same] = np.asarray(xyz, np.float64)[near[same, 0]].astype(np.float32)
         self.points[kind] = out
 
     def rays(self, pixels: np.ndarray) -> np.ndarray:

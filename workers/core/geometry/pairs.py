@@ -44,7 +44,7 @@ class PairMatches:
 
 
 def candidate_pairs(positions: np.ndarray, *, max_distance: float,
-                    neighbours: int = 12) -> list[tuple[int, int]]:
+                    neighbours: int = 16) -> list[tuple[int, int]]:
     """Pairs ``(a, b)``, ``a < b``, of map images worth matching, ascending: each image with
     those of its ``neighbours`` GPS-nearest that lie closer than ``max_distance`` (m)."""
     n = len(positions)

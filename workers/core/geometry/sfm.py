@@ -136,7 +136,7 @@ def colmap_camera(focal_px: float | None):
 
 def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                 positions: np.ndarray, altitudes: np.ndarray, focal_px: float | None, *,
-                seed: int = 0,
+                seed: int = 0, times: np.ndarray | None = None,
                 known_tiles: dict[str, list[TileModel] | None] | None = None,
                 ) -> Structure | None:
     """The map's cameras and 3-D points from its tie points and verified pairs.
@@ -159,6 +159,9 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
         EXIF focal length at the working resolution; None where unknown.
     seed : int
         Seeds COLMAP and the alignment's RANSAC: the same inputs give the same map.
+    times : (N,) float ndarray, optional
+        Capture times (s, NaN unknown): the GPS altitudes may drift in time
+        (:func:`.align.align_to_gps`).
     known_tiles : dict, optional
         Tiles reconstructed elsewhere (:func:`tile_models`), by :func:`tile_key`; the
         others are reconstructed here.
@@ -169,7 +172,7 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
         None where fewer than three cameras are placed consistently with their GPS.
     """
     positions = np.asarray(positions, np.float64)
-    gps = np.column_stack([positions, np.asarray(altitudes, np.float64)])
+    gps = tags(positions, altitudes, times)
     if len(pairs) == 0 or len(positions) < 3:
         return None
     tiles = spatial_tiles(positions, MAX_TILE)
@@ -188,6 +191,16 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     return _structure([m for _, m in found], len(positions), gps)
 
 
+def tags(positions: np.ndarray, altitudes: np.ndarray,
+         times: np.ndarray | None = None) -> np.ndarray:
+    """(N, 4) east, north, altitude and capture time (NaN unknown) of the map images: what
+    the alignment reads of each."""
+    n = len(positions)
+    t = np.full(n, np.nan) if times is None else np.asarray(times, np.float64)
+    return np.column_stack([np.asarray(positions, np.float64),
+                            np.asarray(altitudes, np.float64), t])
+
+
 def tile_pairs(pairs: list[PairMatches], inside: np.ndarray) -> list[PairMatches]:
     """The pairs with both images in the tile ``inside`` (map indices), by (a, b)."""
     member = set(np.asarray(inside).tolist())
@@ -197,7 +210,8 @@ def tile_pairs(pairs: list[PairMatches], inside: np.ndarray) -> list[PairMatches
 
 def tile_key(inside: np.ndarray, pairs: list[PairMatches], gps: np.ndarray,
              focal_px: float | None, seed: int) -> str:
-    """What a tile's reconstruction depends on, hashed: its images, their GPS, their pairs
+    """What a tile's reconstruction depends on, hashed: its images, their tags (:func:`tags`),
+    their pairs
     (:func:`tile_pairs`), the focal length and the seed. A tile reconstructed elsewhere
     (:mod:`workers.core.tiles`) is taken up where its key is the one the packing finds."""
     inside = np.ascontiguousarray(inside, np.int64)
@@ -215,7 +229,8 @@ def tile_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches], gps: 
                 focal_px: float | None, inside: np.ndarray, *,
                 seed: int = 0) -> list[TileModel] | None:
     """COLMAP's models of the tile ``inside`` (map indices), aligned to their GPS; their
-    images are map indices. ``keypoints`` and ``gps`` are the whole map's, read by index."""
+    images are map indices. ``keypoints`` and ``gps`` (:func:`tags`) are the whole map's,
+    read by index."""
     inside = np.asarray(inside, np.int64)
     index = np.full(len(gps), -1)
     index[inside] = np.arange(len(inside))
@@ -292,9 +307,9 @@ def _by_centrality(found: list[tuple[np.ndarray, TileModel]],
         if keep.sum() == 0:
             continue
         out.append(TileModel(m.images[keep], m.rotations[keep], m.centres[keep],
-                          [o for o, y in zip(m.observations, keep, strict=True) if y],
-                          [p for p, y in zip(m.points, keep, strict=True) if y],
-                          m.camera, m.residual_px))
+                             [o for o, y in zip(m.observations, keep, strict=True) if y],
+                             [p for p, y in zip(m.points, keep, strict=True) if y],
+                             m.camera, m.residual_px))
     return out
 
 
@@ -306,12 +321,14 @@ def _reconstruct_tile(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
         database = Path(tmp) / "database.db"
         _write_database(database, keypoints, pairs, focal_px)
-        best = _run(database, Path(tmp), gps, refine=True, seed=seed)
-        if focal_px is not None and not _good(best, focal_px, len(gps)):
-            held = _run(database, Path(tmp), gps, refine=False, seed=seed)
-            if _count(held) > _count(best):
-                best = held
-    return best
+        refined = _run(database, Path(tmp), gps, refine=True, seed=seed)
+        if focal_px is None or _good(refined, focal_px, len(gps)):
+            return refined
+        held = _run(database, Path(tmp), gps, refine=False, seed=seed)
+    if _focal_strays(refined, focal_px):
+        # a focal length it does not trust: the held run, unless it places far fewer
+        return held if _count(held) >= 0.8 * _count(refined) else refined
+    return held if _count(held) > _count(refined) else refined
 
 
 @dataclass
@@ -413,7 +430,8 @@ def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> TileModel | None
         return None
     images_a = np.asarray(images, np.int64)
     rotations_a, centres_a = np.asarray(rotations), np.asarray(centres)
-    found = align_to_gps(centres_a, rotations_a[:, 0, :], gps[images_a],
+    found = align_to_gps(centres_a, rotations_a[:, 0, :], gps[images_a, :3],
+                         axes=rotations_a, times=gps[images_a, 3],
                          sigma_h=GPS_SIGMA_H, sigma_v=GPS_SIGMA_V, rng=rng)
     if found is None:
         return None
@@ -439,11 +457,17 @@ def _count(models: list[TileModel] | None) -> int:
 def _good(models: list[TileModel] | None, focal_px: float, n: int) -> bool:
     """Whether a run with refined intrinsics can stand: enough images placed, and the
     largest model's focal length near the EXIF's."""
-    if not models or _count(models) < GOOD_SHARE * n:
+    return bool(models) and _count(models) >= GOOD_SHARE * n \
+        and not _focal_strays(models, focal_px)
+
+
+def _focal_strays(models: list[TileModel] | None, focal_px: float) -> bool:
+    """Whether the largest model's focal length lies further than
+    :data:`MAX_FOCAL_CHANGE` from the EXIF's."""
+    if not models:
         return False
     largest = max(models, key=lambda m: len(m.images))
-    f = largest.camera[0] / COLMAP_SCALE
-    return abs(f / focal_px - 1.0) <= MAX_FOCAL_CHANGE
+    return abs(largest.camera[0] / COLMAP_SCALE / focal_px - 1.0) > MAX_FOCAL_CHANGE
 
 
 def _structure(models: list[TileModel], n: int, gps: np.ndarray) -> Structure | None:
@@ -468,7 +492,7 @@ def _structure(models: list[TileModel], n: int, gps: np.ndarray) -> Structure | 
     if placed.sum() < 3:
         return None
     f, cx, cy, k = models[0].camera
-    d = centres[placed] - gps[placed]
+    d = centres[placed] - gps[placed, :3]
     has_alt = np.isfinite(d[:, 2])
     return Structure(
         rotations, centres,
