@@ -146,7 +146,9 @@ def plan_tiles(database_url: str, map_id: str, tie_dir: str,
                              [img["alt"] for img in images])
     return tiles.plan(tie_dir, [p for _, p in sorted(known.items()) if p is not None], xy,
                       alt, typical_focal_px(_readers(lens_files or [])),
-                      [tie_stem(tie_dir, img["id"]) for img in images])
+                      [tie_stem(tie_dir, img["id"]) for img in images],
+                      times=np.array([np.nan if img["captured_at"] is None
+                                      else img["captured_at"] for img in images]))
 
 
 def reconstruct_tile(tie_dir: str, tile: int) -> int:
