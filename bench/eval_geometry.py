@@ -35,7 +35,6 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 from vloc.clients.world import generate_world  # noqa: E402
 from vloc.workers.core.evaluate import evaluate  # noqa: E402
 from vloc.workers.core.experiment import load_experiment  # noqa: E402
-from vloc.workers.core.mapbuild import geometry_report  # noqa: E402
 from vloc.workers.core.report import results_dict  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "datasets"
@@ -68,8 +67,7 @@ def run_case(name: str, folder: Path, split: dict, starts: int, skip: int) -> di
     t0 = time.perf_counter()
     exp = load_experiment(folder, **split)
     build_s = time.perf_counter() - t0
-    geo = exp.map_data.geometry
-    report = geometry_report(geo, len(exp.map_data)) if geo is not None else {"status": "none"}
+    report = exp.geometry or {"status": "none"}
     results = evaluate(exp.map_data, exp.queries, exp.truth, modes=["hybrid", "sift"],
                        configs=["default"], starts=starts, skip=skip)
     modes = results_dict(results)["modes"]

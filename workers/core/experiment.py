@@ -7,7 +7,7 @@ image's own tag.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,21 +29,25 @@ class Experiment:
     queries: list[QueryFrame]
     truth: np.ndarray  # (n, 2) east/north of the query frames in the map frame
     photometric: str
+    geometry: dict = field(default_factory=dict)
+    """What became of the map's camera geometry (:func:`.mapbuild.geometry_report`)."""
 
 
 def _timestamp(img: DatasetImage) -> float | None:
     return None if img.captured_at is None else img.captured_at.timestamp()
 
 
-def build_map(images: list[DatasetImage], frames, *, map_id: str = "") -> MapData:
-    """Extract every feature of the map images and pack the map."""
+def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
+              report: dict | None = None) -> MapData:
+    """Extract every feature of the map images and pack the map; ``report`` is filled with
+    what became of its camera geometry."""
     feats = [replace(extract_image_features(f), tie=extract_tie_points(im.path.read_bytes()))
              for im, f in zip(images, frames, strict=True)]
     focal = typical_focal_px([im.path.read_bytes for im in images])
     return assemble_map(names=[im.name for im in images], lats=[im.lat for im in images],
                         lons=[im.lon for im in images], alts=[im.alt for im in images],
                         features=feats, captured_at=[_timestamp(im) for im in images],
-                        map_id=map_id, focal_px=focal)
+                        map_id=map_id, focal_px=focal, report=report)
 
 
 def truth_positions(images: list[DatasetImage], map_data: MapData) -> np.ndarray:
@@ -61,7 +65,9 @@ def load_experiment(folder: str | Path, *, rule: str = "pass", map_pass: int | N
 
     ds = load_dataset(folder)
     map_images, query_images = split(ds, rule, map_pass=map_pass, query_pass=query_pass)
-    map_data = build_map(map_images, load_frames(map_images), map_id=ds.folder.name)
+    report: dict = {}
+    map_data = build_map(map_images, load_frames(map_images), map_id=ds.folder.name,
+                         report=report)
     frames = load_frames(query_images)
     if photometric != "none":
         frames = [prepare(apply_variant(f.colour, photometric, rng=variant_rng(seed, i)))
@@ -69,7 +75,7 @@ def load_experiment(folder: str | Path, *, rule: str = "pass", map_pass: int | N
     queries = [QueryFrame(f, _timestamp(im), key=i)
                for i, (f, im) in enumerate(zip(frames, query_images, strict=True))]
     return Experiment(ds, map_images, query_images, map_data, queries,
-                      truth_positions(query_images, map_data), photometric)
+                      truth_positions(query_images, map_data), photometric, report)
 
 
 def frame_metadata(exp: Experiment, kinds: tuple[str, ...], *, gps_accuracy: float | None = None,
