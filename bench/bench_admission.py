@@ -22,8 +22,6 @@ import argparse
 import asyncio
 import os
 import platform
-import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -37,34 +35,15 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
+
+from bench_service import ADMIN_KEY, start_server  # noqa: E402
 
 from tests.app.imagery import map_and_queries  # noqa: E402
 
-ADMIN_KEY = "bench-admin-key-0123456789abcdef"
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
 BOUND_FACTOR = 3
 MIB = 2**20
-
-
-def start_server(data_dir: Path, workers: int) -> tuple[subprocess.Popen, str]:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = {**os.environ, "VLOC_DATA_DIR": str(data_dir), "VLOC_WORKERS": str(workers),
-           "VLOC_ADMIN_KEY": ADMIN_KEY, "VLOC_LOG_LEVEL": "WARNING"}
-    env.pop("VLOC_DATABASE_URL", None)
-    proc = subprocess.Popen([sys.executable, "-m", "vloc.clients.cli", "serve", "--port",
-                             str(port)], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                            stderr=(data_dir.parent / "server.log").open("wb"))
-    base = f"http://127.0.0.1:{port}"
-    for _ in range(600):
-        try:
-            if httpx.get(base + "/readyz", timeout=1).status_code == 200:
-                return proc, base
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    raise RuntimeError("the server did not start")
 
 
 def rss_mib(pid: int, field: str = "VmRSS") -> float:
@@ -119,7 +98,7 @@ def main() -> None:
 
     frame = big_jpeg(int(args.frame_mb * 1e6), 1)
     with tempfile.TemporaryDirectory() as tmp:
-        proc, base = start_server(Path(tmp) / "data", args.workers)
+        proc, base = start_server(Path(tmp) / "data", args.workers, max_pending_frames=None)
         try:
             samples: list[float] = []
             stop = threading.Event()

@@ -27,11 +27,9 @@ import json
 import os
 import platform
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
-import time
 import uuid
 from pathlib import Path
 
@@ -41,19 +39,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from bench_service import ADMIN_KEY, build_map, level  # noqa: E402
+from bench_service import ADMIN_KEY, build_map, free_port, level, wait_ready  # noqa: E402
 
 from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
 
 POSTGRES = os.environ.get("VLOC_TEST_POSTGRES_URL",
                           "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 REDIS = os.environ.get("VLOC_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_ray(log: Path, cpus: int) -> tuple[subprocess.Popen, str]:
@@ -89,15 +81,10 @@ def start_server(tmp: Path, env: dict, processes: int) -> tuple[subprocess.Popen
          str(processes)], cwd=REPO, env=environ, stdout=subprocess.DEVNULL,
         stderr=log.open("wb"), start_new_session=True)
     base = f"http://127.0.0.1:{port}"
-    for _ in range(900):
-        if proc.poll() is not None:
-            raise SystemExit(f"the server exited; see {log}")
-        try:
-            if httpx.get(base + "/readyz", timeout=1).status_code == 200:
-                return proc, base
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
+    if wait_ready(proc, base, tries=900):
+        return proc, base
+    if proc.poll() is not None:
+        raise SystemExit(f"the server exited; see {log}")
     stop_group(proc)
     raise SystemExit(f"the server did not start; see {log}")
 

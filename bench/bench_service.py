@@ -42,25 +42,44 @@ from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
 ADMIN_KEY = "bench-admin-key-0123456789abcdef"
 
 
-def start_server(data_dir: Path, workers: int) -> tuple[subprocess.Popen, str]:
+def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+        return s.getsockname()[1]
+
+
+def wait_ready(proc: subprocess.Popen, base: str, tries: int = 600) -> bool:
+    """Whether the server at ``base`` answers ``/readyz`` within ``tries`` polls 0.2 s apart;
+    False as soon as its process exits."""
+    for _ in range(tries):
+        if proc.poll() is not None:
+            return False
+        try:
+            if httpx.get(base + "/readyz", timeout=1).status_code == 200:
+                return True
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    return False
+
+
+def start_server(data_dir: Path, workers: int, *, max_pending_frames: int | None = 1000,
+                 ) -> tuple[subprocess.Popen, str]:
+    """``vloc serve`` on a free port, on SQLite in ``data_dir``, its log beside it; once
+    ready, the process and the base URL. ``max_pending_frames=None`` keeps the server's
+    own limit."""
+    port = free_port()
     env = {**os.environ, "VLOC_DATA_DIR": str(data_dir), "VLOC_WORKERS": str(workers),
-           "VLOC_ADMIN_KEY": ADMIN_KEY, "VLOC_LOG_LEVEL": "WARNING",
-           "VLOC_MAX_PENDING_FRAMES": "1000"}
+           "VLOC_ADMIN_KEY": ADMIN_KEY, "VLOC_LOG_LEVEL": "WARNING"}
+    if max_pending_frames is not None:
+        env["VLOC_MAX_PENDING_FRAMES"] = str(max_pending_frames)
     env.pop("VLOC_DATABASE_URL", None)
     proc = subprocess.Popen([sys.executable, "-m", "vloc.clients.cli", "serve", "--port", str(port)],
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                             stderr=(data_dir.parent / "server.log").open("wb"))
     base = f"http://127.0.0.1:{port}"
-    for _ in range(600):
-        try:
-            if httpx.get(base + "/readyz", timeout=1).status_code == 200:
-                return proc, base
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
+    if wait_ready(proc, base):
+        return proc, base
     proc.kill()
     raise SystemExit("the server did not start; see " + str(data_dir.parent / "server.log"))
 

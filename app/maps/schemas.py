@@ -49,7 +49,7 @@ class MapSelfCheck(BaseModel):
     median_m: float | None = Field(None, description="Median distance (m): the map "
                                                      "localises to about this")
     within_5m: float | None = Field(None, description="Share placed within 5 m")
-    floor_median_m: float = Field(description="Median distance of the checked images from "
+    floor_median_m: float | None = Field(description="Median distance of the checked images from "
                                               "their nearest other map image (m): the best "
                                               "a position from the map's images alone does")
     trusted: bool = Field(description="Whether frames' fixes use the geometry: it beats "

@@ -1,4 +1,5 @@
-"""Fixtures of the client tests: a small geotagged data set, and the real app in process.
+"""Fixtures of the client tests: a small geotagged data set, the real app in process, and
+the SDK client with a map built on it.
 
 The data set is a seeded random texture seen from above: map images (pass 1) and query
 frames (pass 2) are 320x240 crops at known positions, JPEG with EXIF GPS, listed in a
@@ -16,12 +17,16 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 import pytest
 
 from vloc.workers.core.exif import encode_jpeg_with_gps
+
+if TYPE_CHECKING:
+    from vloc.clients.sdk import Client
 
 ADMIN_KEY = "client-test-admin-key-0123456789"
 LAT0, LON0 = 41.0345, -83.3057
@@ -136,6 +141,24 @@ def app_client(tmp_path_factory) -> Iterator:
     app = create_app(service_settings(tmp_path_factory.mktemp("data")))
     with TestClient(app) as tc:
         yield tc
+
+
+@pytest.fixture(scope="module")
+def vloc(app_client) -> Client:
+    """The blocking SDK client on ``app_client``, as the admin, without retries."""
+    from vloc.clients.sdk.testing import in_process_client
+
+    return in_process_client(app_client, admin_key=ADMIN_KEY, retry=0)
+
+
+@pytest.fixture(scope="module")
+def built_map(vloc, shots) -> str:
+    """The id of a map built from the map shots, one per test module."""
+    maps, _ = shots
+    m = vloc.create_map("built")
+    vloc.upload_images(m.id, [(s.name, s.jpeg) for s in maps])
+    vloc.wait_for_job(vloc.build_map(m.id).id, timeout=120)
+    return m.id
 
 
 def _free_port() -> int:

@@ -49,20 +49,6 @@ from vloc.clients.sdk.testing import in_process_client
 # -- fixtures --------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def vloc(app_client) -> Client:
-    return in_process_client(app_client, admin_key=ADMIN_KEY, retry=0)
-
-
-@pytest.fixture(scope="module")
-def built_map(vloc, shots) -> str:
-    maps, _ = shots
-    m = vloc.create_map("built")
-    vloc.upload_images(m.id, [(s.name, s.jpeg) for s in maps])
-    vloc.wait_for_job(vloc.build_map(m.id).id, timeout=120)
-    return m.id
-
-
 @pytest.fixture
 def session(vloc, built_map) -> Session:
     s = vloc.create_session(built_map, mode="hybrid", params=FAST, seed=3)

@@ -9,8 +9,7 @@ from pathlib import Path
 import pytest
 
 from tests.clients.conftest import ADMIN_KEY, FAST
-from vloc.clients.sdk import AsyncClient, Client, Localization, Pose
-from vloc.clients.sdk.testing import in_process_client
+from vloc.clients.sdk import AsyncClient, Localization, Pose
 
 FORMS = ("path", "str", "bytes", "pair")
 
@@ -20,20 +19,6 @@ def _as(form: str, jpeg: bytes, folder: Path, name: str):
     path = folder / name
     path.write_bytes(jpeg)
     return {"path": path, "str": str(path), "bytes": jpeg, "pair": (name, jpeg)}[form]
-
-
-@pytest.fixture(scope="module")
-def vloc(app_client) -> Client:
-    return in_process_client(app_client, admin_key=ADMIN_KEY, retry=0)
-
-
-@pytest.fixture(scope="module")
-def built_map(vloc, shots) -> str:
-    maps, _ = shots
-    m = vloc.create_map("image forms")
-    vloc.upload_images(m.id, [(s.name, s.jpeg) for s in maps])
-    vloc.wait_for_job(vloc.build_map(m.id).id, timeout=120)
-    return m.id
 
 
 @pytest.mark.parametrize("form", FORMS)

@@ -9,9 +9,8 @@ import asyncio
 import pytest
 
 from tests.app.test_session_lifetime import _age
-from tests.clients.conftest import ADMIN_KEY, FAST
+from tests.clients.conftest import FAST
 from vloc.clients.sdk import (
-    Client,
     Forbidden,
     Gone,
     NotFound,
@@ -21,21 +20,6 @@ from vloc.clients.sdk import (
     StreamError,
 )
 from vloc.clients.sdk._stream import closed_error
-from vloc.clients.sdk.testing import in_process_client
-
-
-@pytest.fixture(scope="module")
-def vloc(app_client) -> Client:
-    return in_process_client(app_client, admin_key=ADMIN_KEY, retry=0)
-
-
-@pytest.fixture(scope="module")
-def built_map(vloc, shots) -> str:
-    maps, _ = shots
-    m = vloc.create_map("stream endings")
-    vloc.upload_images(m.id, [(s.name, s.jpeg) for s in maps])
-    vloc.wait_for_job(vloc.build_map(m.id).id, timeout=120)
-    return m.id
 
 
 def _on_loop(app_client, coro):

@@ -16,7 +16,7 @@ from vloc.workers.core.image import WORK_SIZE
 from vloc.workers.core.localisers.refine import refine_sift
 from vloc.workers.core.mapbuild import map_geometry
 from vloc.workers.core.mapdata import MapData
-from vloc.workers.core.selfcheck import self_check
+from vloc.workers.core.selfcheck import self_check, trusted
 from vloc.workers.core.sift import SiftFeatures
 
 
@@ -152,11 +152,32 @@ def test_self_check_samples_a_large_map_evenly(surveyed, monkeypatch):
         np.testing.assert_array_equal(got.keypoints, k)
 
 
-def test_self_check_of_a_map_too_small_or_without_cameras_is_none(surveyed):
+def test_self_check_of_a_senseless_geometry_or_one_without_cameras_is_none(surveyed):
     s, data, geo = surveyed
+    # four images checked against their three others: cameras that see nothing of them
     four = _map(survey(np.random.default_rng(32), rows=1, cols=4))
     rotations = np.stack([np.eye(3)] * 4)
     small = replace(geo, rotations=rotations, centres=np.zeros((4, 3)), self_check={})
-    assert self_check(four, small) is None and small.self_check == {}
+    assert self_check(four, small) is None
+    assert small.self_check["images"] == 4 and small.self_check["registered"] == 0.0
+    assert small.self_check["trusted"] is False
     nothing = replace(geo, centres=np.full_like(geo.centres, np.nan), self_check={})
-    assert self_check(data, nothing) is None and nothing.self_check == {}
+    assert self_check(data, nothing) is None
+    assert (nothing.self_check["images"], nothing.self_check["trusted"]) == (0, False)
+
+
+@pytest.mark.parametrize(("figures", "gps_rms", "want"), [
+    (dict(registered=0.9, median_m=2.0, floor_median_m=28.0), 3.0, True),
+    (dict(registered=0.9, median_m=30.0, floor_median_m=28.0), 3.0, False),   # no better
+    (dict(registered=0.3, median_m=2.0, floor_median_m=28.0), 3.0, False),    # too few
+    (dict(registered=0.9, median_m=None, floor_median_m=28.0), 3.0, False),
+    # a dense map: 0.7 m against a 0.6 m floor, inside its tags' own noise (1.5 x 0.8 m)
+    (dict(registered=1.0, median_m=0.7, floor_median_m=0.6), 0.8, True),
+    (dict(registered=1.0, median_m=1.3, floor_median_m=0.6), 0.8, False),
+    # the slack stops at 3 m however loose the tags
+    (dict(registered=1.0, median_m=3.5, floor_median_m=0.6), 10.0, False),
+    (dict(registered=1.0, median_m=2.9, floor_median_m=0.6), 10.0, True),
+    (dict(registered=1.0, median_m=0.7, floor_median_m=0.6), float("nan"), False),
+])
+def test_trust_known_answers(figures, gps_rms, want):
+    assert trusted(figures, gps_rms) is want

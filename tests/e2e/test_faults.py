@@ -9,11 +9,13 @@ import contextlib
 import json
 import os
 import signal
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 
 import httpx
 import pytest
 from sqlalchemy import create_engine, text
-from websockets.asyncio.client import connect
+from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
 from tests.app.imagery import map_and_queries
@@ -120,12 +122,34 @@ def test_killed_server_reports_every_accepted_frame_and_never_reuses_a_seq(
     assert (session["frames_processed"], session["frames_failed"]) == (3, QUEUED)
 
 
-def test_sigterm_answers_queued_frames_streams_them_then_closes_with_1001(tmp_path):
-    maps, queries = map_and_queries(10)
+@dataclass
+class Drain:
+    """A SIGTERM with frames queued as a client saw it: the seqs its frames were given,
+    the messages streamed to it, the stream's close code and the seconds from the SIGTERM
+    to that close; and the server's exit status."""
+    server: Server
+    sid: str
+    accepted: list[int]
+    streamed: list[dict]
+    close_code: int | None
+    took: float
+    returncode: int
+
+
+HoldWorkers = Callable[[ClientConnection, set[int]], Awaitable[list[dict]]]
+
+
+def _sigterm_with_frames_queued(tmp_path, n_images: int, hold: HoldWorkers | None = None,
+                                ) -> Drain:
+    """A one-worker server, a session with its stream open and its worker stopped, a frame
+    queued per query image, then SIGTERM. ``hold(ws, workers)`` runs right after the SIGTERM
+    with the workers stopped and returns the messages it read; then the workers go on and
+    the stream is read to its close."""
+    maps, queries = map_and_queries(n_images)
     server = start_server(tmp_path / "data", workers=1)
     admin = {"Authorization": f"Bearer {server.admin_key()}"}
 
-    async def scenario(server: Server):
+    async def scenario() -> tuple[str, list[int], list[dict], int | None, float]:
         async with httpx.AsyncClient(base_url=server.base_url, headers=admin,
                                      timeout=60) as http:
             sid, token = await _session(http, await _build_map(http, maps))
@@ -138,24 +162,32 @@ def test_sigterm_answers_queued_frames_streams_them_then_closes_with_1001(tmp_pa
                     accepted = [(await _post(http, sid, token, q.jpeg)).json()["seq"]
                                 for q in queries]
                     server.process.send_signal(signal.SIGTERM)
+                    stopped = asyncio.get_running_loop().time()
+                    got = await hold(ws, workers) if hold else []
                 finally:
                     _signal_all(workers, signal.SIGCONT)
-                got = []
                 with contextlib.suppress(ConnectionClosed):
                     async for raw in ws:
                         got.append(json.loads(raw))
-                return sid, accepted, got, ws.close_code
+                took = asyncio.get_running_loop().time() - stopped
+                return sid, accepted, got, ws.close_code, took
 
     try:
-        sid, accepted, got, code = asyncio.run(scenario(server))
+        outcome = asyncio.run(scenario())
         returncode = server.process.wait(60)
     finally:
         if server.process.poll() is None:
             server.process.kill()
-    assert returncode in (0, -signal.SIGTERM)
-    assert accepted == list(range(len(queries)))
-    assert [(m["type"], m["seq"]) for m in got] == [("pose", seq) for seq in accepted]
-    assert code == 1001
+    return Drain(server, *outcome, returncode)
+
+
+def test_sigterm_answers_queued_frames_streams_them_then_closes_with_1001(tmp_path):
+    drain = _sigterm_with_frames_queued(tmp_path, 10)
+    server, sid, accepted = drain.server, drain.sid, drain.accepted
+    assert drain.returncode in (0, -signal.SIGTERM)
+    assert accepted == list(range(len(accepted)))
+    assert [(m["type"], m["seq"]) for m in drain.streamed] == [("pose", s) for s in accepted]
+    assert drain.close_code == 1001
     log = server.stderr_path.read_text()
     assert '"msg": "vloc stopped"' in log and "Traceback" not in log
     db = create_engine(f"sqlite:///{server.data_dir / 'vloc.sqlite3'}")
@@ -170,43 +202,17 @@ def test_a_drain_longer_than_ten_seconds_answers_every_frame_while_the_backlog_s
         tmp_path):
     """The drain follows the backlog: its workers are held for 6 s twice, with one frame
     answered in between, and every frame is still streamed before 1001."""
-    maps, queries = map_and_queries(6)
-    server = start_server(tmp_path / "data", workers=1)
-    admin = {"Authorization": f"Bearer {server.admin_key()}"}
 
-    async def scenario(server: Server):
-        async with httpx.AsyncClient(base_url=server.base_url, headers=admin,
-                                     timeout=60) as http:
-            sid, token = await _session(http, await _build_map(http, maps))
-            url = f"{server.ws_url}/v1/sessions/{sid}/stream?token={token}"
-            async with connect(url) as ws:
-                assert json.loads(await ws.recv())["type"] == "hello"
-                workers = pool_workers(server.process.pid)
-                _signal_all(workers, signal.SIGSTOP)
-                try:
-                    accepted = [(await _post(http, sid, token, q.jpeg)).json()["seq"]
-                                for q in queries]
-                    server.process.send_signal(signal.SIGTERM)
-                    stopped = asyncio.get_running_loop().time()
-                    await asyncio.sleep(6)  # a slow backlog: nothing answered for 6 s
-                    _signal_all(workers, signal.SIGCONT)
-                    got = [json.loads(await asyncio.wait_for(ws.recv(), 30))]
-                    _signal_all(workers, signal.SIGSTOP)
-                    await asyncio.sleep(6)  # and 6 s more
-                finally:
-                    _signal_all(workers, signal.SIGCONT)
-                with contextlib.suppress(ConnectionClosed):
-                    async for raw in ws:
-                        got.append(json.loads(raw))
-                took = asyncio.get_running_loop().time() - stopped
-                return accepted, got, ws.close_code, took
+    async def hold(ws: ClientConnection, workers: set[int]) -> list[dict]:
+        await asyncio.sleep(6)  # a slow backlog: nothing answered for 6 s
+        _signal_all(workers, signal.SIGCONT)
+        got = [json.loads(await asyncio.wait_for(ws.recv(), 30))]
+        _signal_all(workers, signal.SIGSTOP)
+        await asyncio.sleep(6)  # and 6 s more
+        return got
 
-    try:
-        accepted, got, code, took = asyncio.run(scenario(server))
-        returncode = server.process.wait(60)
-    finally:
-        if server.process.poll() is None:
-            server.process.kill()
-    assert returncode in (0, -signal.SIGTERM)
-    assert [(m["type"], m["seq"]) for m in got] == [("pose", seq) for seq in accepted]
-    assert code == 1001 and took > 12
+    drain = _sigterm_with_frames_queued(tmp_path, 6, hold)
+    assert drain.returncode in (0, -signal.SIGTERM)
+    assert [(m["type"], m["seq"]) for m in drain.streamed] == [("pose", s)
+                                                               for s in drain.accepted]
+    assert drain.close_code == 1001 and drain.took > 12

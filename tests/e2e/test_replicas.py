@@ -11,13 +11,13 @@ import os
 import signal
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-from websockets.asyncio.client import connect
+from websockets.asyncio.client import ClientConnection, connect
 
 from tests.app.imagery import map_and_queries
 from tests.conftest import REDIS_URL, postgres_schema_url, require_redis
@@ -94,6 +94,15 @@ async def _post(http: httpx.AsyncClient, sid: str, token: str, jpeg: bytes) -> h
         "Authorization": f"Bearer {token}", "Content-Type": "image/jpeg"})
 
 
+@contextlib.asynccontextmanager
+async def _stream(server: Server, sid: str, token: str) -> AsyncIterator[ClientConnection]:
+    """The session's pose stream on ``server``, past its hello."""
+    url = f"{server.ws_url}/v1/sessions/{sid}/stream?token={token}"
+    async with connect(url, max_size=2**22) as ws:
+        assert json.loads(await ws.recv())["type"] == "hello"
+        yield ws
+
+
 async def _settled(http: httpx.AsyncClient, sid: str, n: int) -> list[dict]:
     """The session's stored outcomes once there are ``n`` of them."""
     for _ in range(600):
@@ -114,9 +123,7 @@ def test_frames_alternated_between_replicas_keep_their_order_and_stream_on_the_o
         async with httpx.AsyncClient(base_url=a.base_url, timeout=120) as ha, \
                 httpx.AsyncClient(base_url=b.base_url, timeout=120) as hb:
             # The stream is held by b, which has not seen the session yet.
-            url = f"{b.ws_url}/v1/sessions/{sid}/stream?token={token}"
-            async with connect(url, max_size=2**22) as ws:
-                assert json.loads(await ws.recv())["type"] == "hello"
+            async with _stream(b, sid, token) as ws:
                 seqs = []
                 for i, q in enumerate(queries[:6]):
                     r = await _post(ha if i % 2 == 0 else hb, sid, token, q.jpeg)
@@ -196,9 +203,7 @@ def test_frames_a_dead_replica_left_queued_are_settled_by_a_live_one(replicas, s
         async with httpx.AsyncClient(base_url=b.base_url, timeout=60) as hb:
             read = (await hb.get(f"/v1/sessions/{sid}", headers=_admin())).json()
             seq = read["last_seq"] + 1_000
-            url = f"{b.ws_url}/v1/sessions/{sid}/stream?token={token}"
-            async with connect(url, max_size=2**22) as ws:
-                assert json.loads(await ws.recv())["type"] == "hello"
+            async with _stream(b, sid, token) as ws:
                 with db.begin() as conn:  # what a replica named "gone" left behind
                     conn.execute(text(
                         "INSERT INTO frames (session_id, seq, received_at, status, owner) "
@@ -242,41 +247,39 @@ def test_a_replica_killed_with_a_seq_reserved_stalls_the_other_for_under_a_secon
 
     async def scenario():
         async with httpx.AsyncClient(base_url=a.base_url, timeout=60) as ha, \
-                httpx.AsyncClient(base_url=b.base_url, timeout=60) as hb:
-            url = f"{b.ws_url}/v1/sessions/{sid}/stream?token={token}"
-            async with connect(url, max_size=2**22) as ws:
-                assert json.loads(await ws.recv())["type"] == "hello"
-                lock = db.connect()
-                tx = lock.begin()
-                lock.execute(text("LOCK TABLE frames IN EXCLUSIVE MODE"))
-                posted_to_a = asyncio.create_task(_post(ha, sid, token, queries[0].jpeg))
-                for _ in range(300):  # until a has its seq and waits to record the frame
-                    if await blocked_writers():
-                        break
-                    await asyncio.sleep(0.05)
-                else:
-                    raise AssertionError("replica a never reached the database")
-                a.process.send_signal(signal.SIGKILL)
-                a.process.wait(10)
-                tx.rollback()
-                lock.close()
-                released = time.monotonic()
-                with contextlib.suppress(httpx.TransportError):
-                    await posted_to_a
-                codes, arrivals, seqs = [], [], []
+                httpx.AsyncClient(base_url=b.base_url, timeout=60) as hb, \
+                _stream(b, sid, token) as ws:
+            lock = db.connect()
+            tx = lock.begin()
+            lock.execute(text("LOCK TABLE frames IN EXCLUSIVE MODE"))
+            posted_to_a = asyncio.create_task(_post(ha, sid, token, queries[0].jpeg))
+            for _ in range(300):  # until a has its seq and waits to record the frame
+                if await blocked_writers():
+                    break
+                await asyncio.sleep(0.05)
+            else:
+                raise AssertionError("replica a never reached the database")
+            a.process.send_signal(signal.SIGKILL)
+            a.process.wait(10)
+            tx.rollback()
+            lock.close()
+            released = time.monotonic()
+            with contextlib.suppress(httpx.TransportError):
+                await posted_to_a
+            codes, arrivals, seqs = [], [], []
 
-                async def listen():
-                    while len(arrivals) < 15:
-                        msg = json.loads(await asyncio.wait_for(ws.recv(), 60))
-                        arrivals.append(time.monotonic())
-                        seqs.append(msg["seq"])
+            async def listen():
+                while len(arrivals) < 15:
+                    msg = json.loads(await asyncio.wait_for(ws.recv(), 60))
+                    arrivals.append(time.monotonic())
+                    seqs.append(msg["seq"])
 
-                listener = asyncio.create_task(listen())
-                for i in range(15):  # 5 frames a second for 3 s
-                    r = await _post(hb, sid, token, queries[1 + i % 8].jpeg)
-                    codes.append(r.status_code)
-                    await asyncio.sleep(0.2)
-                await listener
+            listener = asyncio.create_task(listen())
+            for i in range(15):  # 5 frames a second for 3 s
+                r = await _post(hb, sid, token, queries[1 + i % 8].jpeg)
+                codes.append(r.status_code)
+                await asyncio.sleep(0.2)
+            await listener
         return released, codes, arrivals, seqs
 
     try:

@@ -337,7 +337,7 @@ def geometry_report(geo, n: int) -> dict:
             "focal_px": float(geo.intrinsics.f), "residual_px": _finite(geo.residual_px),
             "gps_rms_m": _finite(geo.gps_rms), "gps_rms_vertical_m": _finite(geo.gps_rms_v),
             "self_check": {k: (_finite(v) if isinstance(v, float) else v)
-                           for k, v in check.items()}}
+                           for k, v in check.items()} if check.get("images") else None}
 
 
 def _finite(x: float | None) -> float | None:

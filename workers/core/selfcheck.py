@@ -35,8 +35,31 @@ NEIGHBOURS: int = 4
 MIN_REGISTERED: float = 0.4
 """A geometry that registers fewer than this share of the checked images is refused."""
 
+GPS_SLACK: float = 1.5
+"""A geometry is trusted where its images' median error is under the nearest-image floor, or
+under this many times the placed cameras' RMS distance from their GPS tags (the noise of the
+check's own yardstick) where that is larger, ..."""
+
+MAX_SLACK_M: float = 3.0
+"""... though never above this (m) for that reason."""
+
 SIGMA_FLOOR: float = 2.0
 """Least standard deviation (m) a registration is fused with."""
+
+
+def trusted(figures: dict, gps_rms: float) -> bool:
+    """Whether a map's self-check figures (:func:`self_check`) earn its geometry trust: it
+    registers at least :data:`MIN_REGISTERED` of its images, and their median error is under
+    the nearest-image floor or, where larger, :data:`GPS_SLACK` times the cameras' GPS RMS
+    (at most :data:`MAX_SLACK_M`).
+
+    The images' own GPS tags are the yardstick, so the check cannot measure below their
+    noise: a dense map (the robot world's images lie 0.6 m apart; its GPS tags are 0.8 m
+    RMS off) is judged against that noise."""
+    if figures["registered"] < MIN_REGISTERED or figures.get("median_m") is None:
+        return False
+    slack = min(GPS_SLACK * gps_rms, MAX_SLACK_M) if math.isfinite(gps_rms) else 0.0
+    return bool(figures["median_m"] < max(figures["floor_median_m"], slack))
 
 
 def self_check(data: MapData, geometry: MapGeometry, *, seed: int = 0) -> MapGeometry | None:
@@ -51,7 +74,10 @@ def self_check(data: MapData, geometry: MapGeometry, *, seed: int = 0) -> MapGeo
     positions = np.asarray(data.positions)
     placed = np.flatnonzero(geometry.reconstructed)
     n = len(positions)
-    if len(placed) == 0 or n < NEIGHBOURS + 1:
+    k = min(NEIGHBOURS, n - 1)
+    if len(placed) == 0 or k < 1:
+        geometry.self_check = {"images": 0, "registered": 0.0, "floor_mean_m": math.nan,
+                               "floor_median_m": math.nan, "trusted": False}
         return None
     sample = placed[np.linspace(0, len(placed) - 1, min(SAMPLE, len(placed))).round()
                     .astype(np.int64)]
@@ -59,9 +85,9 @@ def self_check(data: MapData, geometry: MapGeometry, *, seed: int = 0) -> MapGeo
     previous, data.geometry = data.geometry, geometry
     try:
         errors, floors = [], []
-        _, near = data.tree.query(positions[sample], k=NEIGHBOURS + 1)
+        _, near = data.tree.query(positions[sample], k=k + 1)
         for i, nb in zip(sample.tolist(), near, strict=True):
-            others = np.array([j for j in nb.tolist() if j != i][:NEIGHBOURS])
+            others = np.array([j for j in nb.tolist() if j != i][:k])
             floors.append(float(np.min([np.hypot(*(positions[j] - positions[i]))
                                         for j in others])))
             fix = refine_sift(data.sift(i), data, others, np.ones(len(others)),
@@ -77,11 +103,9 @@ def self_check(data: MapData, geometry: MapGeometry, *, seed: int = 0) -> MapGeo
     if len(errors_a):
         figures.update(mean_m=float(errors_a.mean()), median_m=float(np.median(errors_a)),
                        within_5m=float(np.mean(errors_a <= 5.0)))
-    trusted = (figures["registered"] >= MIN_REGISTERED and len(errors_a) > 0
-               and figures["median_m"] < figures["floor_median_m"])
-    figures["trusted"] = bool(trusted)
+    figures["trusted"] = ok = trusted(figures, geometry.gps_rms)
     figures["sigma_m"] = (max(SIGMA_FLOOR, 1.25 * figures["median_m"]) if len(errors_a)
                           else math.nan)
     geometry.self_check = figures
-    return geometry if trusted else None
+    return geometry if ok else None
 
