@@ -141,10 +141,15 @@ def world(kind: str, *, seed: int, passes: tuple[str, ...], frames: int,
     return folder
 
 
-def experiment(folder: Path, map_pass: int, query_pass: int) -> Experiment:
-    """Map from one pass, queries from another (the map positioned by its EXIF GPS)."""
+def experiment(folder: Path, map_pass: int, query_pass: int, *,
+               config: str = "weiss2008") -> Experiment:
+    """Map from one pass, queries from another (the map positioned by its EXIF GPS), with
+    camera geometry only where the filter configuration ``config`` refines with it."""
+    from vloc.workers.core.pf.config import config_from_params
+
     t = time.perf_counter()
-    exp = load_experiment(folder, rule="pass", map_pass=map_pass, query_pass=query_pass)
+    exp = load_experiment(folder, rule="pass", map_pass=map_pass, query_pass=query_pass,
+                          geometry=config_from_params({"config": config}).refine.enabled)
     log(f"  map pass {map_pass} ({len(exp.map_images)} images), query pass {query_pass} "
         f"({len(exp.queries)} frames) loaded in {time.perf_counter() - t:.1f} s")
     return exp

@@ -91,7 +91,7 @@ def run_pairs(args: argparse.Namespace) -> list[dict]:
             for map_pass, query_pass in pass_pairs[: args.pairs]:
                 label = f"set {ds} {train}->{test} (pass {map_pass}->{query_pass})"
                 c.log(label)
-                exp = c.experiment(folder, map_pass, query_pass)
+                exp = c.experiment(folder, map_pass, query_pass, config=args.config)
                 res = evaluate(exp.map_data, exp.queries, exp.truth, modes=list(MODES),
                                configs=[args.config], starts=args.starts, seed=args.seed,
                                skip=args.skip, progress=c.progress_printer(label))
