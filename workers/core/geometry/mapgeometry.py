@@ -69,6 +69,14 @@ class MapGeometry:
     models: int = 1
     points: dict[str, np.ndarray] = field(default_factory=dict)
     self_check: dict = field(default_factory=dict)
+    # what every frame's registration asks of the map's cameras, worked out once
+    _memo: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __setattr__(self, name: str, value) -> None:
+        # new cameras: what was worked out from the old ones no longer holds
+        if name in ("rotations", "centres"):
+            self.__dict__.get("_memo", {}).clear()
+        super().__setattr__(name, value)
 
     @classmethod
     def from_structure(cls, structure) -> MapGeometry:
@@ -98,6 +106,11 @@ class MapGeometry:
     def altitude_range(self) -> tuple[float, float]:
         """Plausible altitudes of a frame's camera: the map cameras', widened by half their
         span and at least 20 m either way."""
+        if "altitudes" not in self._memo:
+            self._memo["altitudes"] = self._altitude_range()
+        return self._memo["altitudes"]
+
+    def _altitude_range(self) -> tuple[float, float]:
         z = np.asarray(self.centres)[self.reconstructed, 2]
         if len(z) == 0:
             return (0.0, 0.0)
@@ -108,6 +121,11 @@ class MapGeometry:
         """The map cameras' mean viewing direction and its spread (degrees, at least 5)
         where they all look within :data:`NADIR_SPREAD_DEG` of it; None otherwise (a
         street-level map, a survey that turns its camera)."""
+        if "view" not in self._memo:
+            self._memo["view"] = self._view_prior()
+        return self._memo["view"]
+
+    def _view_prior(self) -> tuple[np.ndarray, float] | None:
         R = np.asarray(self.rotations)[self.reconstructed]
         if len(R) < 3:
             return None

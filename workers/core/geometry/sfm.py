@@ -186,9 +186,8 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
         found += [(inside, m) for m in models or []]
     if not found:
         return None
-    if len(tiles) > 1:
-        found = [(None, m) for m in _by_centrality(found, positions)]
-    return _structure([m for _, m in found], len(positions), gps)
+    placed = _by_centrality(found, positions) if len(tiles) > 1 else [m for _, m in found]
+    return _structure(placed, len(positions), gps)
 
 
 def tags(positions: np.ndarray, altitudes: np.ndarray,
