@@ -19,8 +19,9 @@ $(RUNTIME): pyproject.toml docker/requirements.lock
 	@echo "setting up $(VENV): the runtime dependencies (first run only, a few minutes)"
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	@$(PIP) install --upgrade pip
-	@# no bytecode for all of SciPy and OpenCV up front: Python writes it for what it imports
-	@$(PIP) install --no-compile -c docker/requirements.lock -e .
+	@# with bytecode: where Python may not write it (PYTHONDONTWRITEBYTECODE), every process
+	@# (server, worker, test) would otherwise compile SciPy, FastAPI and the rest from source
+	@$(PIP) install -c docker/requirements.lock -e .
 	@touch $@
 
 $(DEV): $(RUNTIME)
@@ -32,9 +33,11 @@ $(DEV): $(RUNTIME)
 demo: $(RUNTIME)
 	@$(BIN)/vloc demo
 
-## test: the whole test suite (PostgreSQL/Redis tests skip when those are absent)
+## test: the whole test suite (PostgreSQL/Redis tests skip when those are absent), run by
+## TEST_WORKERS processes in parallel; tests sharing an app, a server or Ray stay together
+TEST_WORKERS ?= 3
 test: $(DEV)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 ## bench: stage timings and the paper experiments (long; writes bench/results/)
 bench: $(DEV)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -32,9 +33,78 @@ def seneca_dir() -> Path:
 # PostgreSQL and Redis tests skip when the server is unreachable, except under
 # VLOC_REQUIRE_SERVICES=1 (CI), where an unreachable server fails them.
 
-POSTGRES_URL = os.environ.get("VLOC_TEST_POSTGRES_URL",
-                              "postgresql+psycopg://postgres@127.0.0.1:5432/test")
-REDIS_URL = os.environ.get("VLOC_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
+# -- parallel runs (pytest-xdist): each worker process has its own databases ---------------
+#
+# A worker (``PYTEST_XDIST_WORKER`` = gw0, gw1, ...) works in its own PostgreSQL database,
+# ``<database>_gw0`` beside the one configured (made on first use), and its own Redis
+# database number (1 + its index). Ports are free ones the operating system picks, and data
+# folders are under pytest's per-worker temporary directory.
+
+WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
+"""This process's pytest-xdist worker name, or "" in a run without workers."""
+
+RAY_GROUP = "ray"
+"""The tests that start or join a Ray cluster: one worker runs all of them, in turn, so that
+the machine never runs two clusters at once (:func:`pytest_collection_modifyitems`)."""
+
+
+def _for_worker_postgres(url: str) -> str:
+    from sqlalchemy.engine import make_url
+
+    if not WORKER:
+        return url
+    parsed = make_url(url)
+    return parsed.set(database=f"{parsed.database}_{WORKER}").render_as_string(
+        hide_password=False)
+
+
+def _for_worker_redis(url: str) -> str:
+    from urllib.parse import urlsplit, urlunsplit
+
+    if not WORKER:
+        return url
+    parts = urlsplit(url)
+    return urlunsplit(parts._replace(path=f"/{1 + int(WORKER.removeprefix('gw'))}"))
+
+
+BASE_POSTGRES_URL = os.environ.get("VLOC_TEST_POSTGRES_URL",
+                                   "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+POSTGRES_URL = _for_worker_postgres(BASE_POSTGRES_URL)
+REDIS_URL = _for_worker_redis(os.environ.get("VLOC_TEST_REDIS_URL",
+                                             "redis://127.0.0.1:6379/0"))
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Groups for pytest-xdist's ``--dist loadgroup`` (``make test``): the tests that share a
+    module- or session-wide fixture instance (an app with a built map, a live server, a
+    browser) run on one worker, so that it is made once, not once per worker; the tests that
+    use Ray run on one worker; every other test goes wherever a worker is free."""
+    for item in items:
+        if item.get_closest_marker("xdist_group") is not None:
+            continue
+        group = _shared_fixture_group(item)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+
+
+def _shared_fixture_group(item) -> str | None:
+    if "ray_cluster" in item.fixturenames:
+        return RAY_GROUP
+    defs = getattr(item, "_fixtureinfo", None)
+    if defs is None:
+        return None
+    # the module-wide fixtures this test uses, and the parameters they were made with
+    shared = []
+    for name in item.fixturenames:
+        chain = defs.name2fixturedefs.get(name)
+        if not chain or chain[-1].scope != "module":
+            continue
+        params = getattr(item, "callspec", None)
+        shared.append(f"{name}={params.params[name]}" if params and name in params.params
+                      else name)
+    if not shared:
+        return None
+    return item.module.__name__ + "[" + ",".join(sorted(shared)) + "]"
 
 
 def _service_missing(what: str, exc: Exception) -> None:
@@ -44,9 +114,32 @@ def _service_missing(what: str, exc: Exception) -> None:
     pytest.skip(message + "; set VLOC_REQUIRE_SERVICES=1 to make this a failure")
 
 
+_worker_database_made = False
+
+
+def _make_worker_database() -> None:
+    """Create this worker's database (:data:`POSTGRES_URL`) beside the configured one, once."""
+    global _worker_database_made
+    if _worker_database_made or POSTGRES_URL == BASE_POSTGRES_URL:
+        return
+    import psycopg
+    from sqlalchemy.engine import make_url
+
+    base = make_url(BASE_POSTGRES_URL).set(drivername="postgresql")
+    name = make_url(POSTGRES_URL).database
+    with psycopg.connect(base.render_as_string(hide_password=False), autocommit=True,
+                         connect_timeout=3) as conn:
+        exists = conn.execute("SELECT 1 FROM pg_database WHERE datname = %s",
+                              (name,)).fetchone()
+        if not exists:
+            # another worker may make it between the two statements
+            with contextlib.suppress(psycopg.errors.DuplicateDatabase):
+                conn.execute(f'CREATE DATABASE "{name}"')
+    _worker_database_made = True
+
+
 def postgres_schema_url(base_url: str = POSTGRES_URL):
     """A context manager: a fresh schema in the test database, as a URL that uses it."""
-    import contextlib
     import uuid
 
     import psycopg
@@ -58,6 +151,8 @@ def postgres_schema_url(base_url: str = POSTGRES_URL):
         plain = url.set(drivername="postgresql").render_as_string(hide_password=False)
         schema = f"vloc_test_{uuid.uuid4().hex[:12]}"
         try:
+            if base_url == POSTGRES_URL:
+                _make_worker_database()
             conn = psycopg.connect(plain, autocommit=True, connect_timeout=3)
         except psycopg.OperationalError as exc:
             _service_missing(f"PostgreSQL at {url.host}:{url.port}", exc)

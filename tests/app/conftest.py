@@ -23,6 +23,9 @@ from vloc.app.sessions.models import LocalisationSession
 ADMIN_KEY = "test-admin-key-0123456789abcdef"
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
 PROBLEM = "application/problem+json"
+UNKNOWN_ID = "5b0f2d4e-1c3a-4e8b-9d7f-2a6c8e0b4f13"
+"""A well-formed id that names nothing (fixed, so that every test process collects the same
+test ids)."""
 FAST = {"n_particles": 60}
 """Session parameters that keep a filter step cheap in tests."""
 

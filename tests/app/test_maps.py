@@ -11,7 +11,15 @@ import numpy as np
 import pytest
 from sqlalchemy import delete, select
 
-from tests.app.conftest import ADMIN, ADMIN_KEY, PROBLEM, jpeg_files, snapshot, wait_job
+from tests.app.conftest import (
+    ADMIN,
+    ADMIN_KEY,
+    PROBLEM,
+    UNKNOWN_ID,
+    jpeg_files,
+    snapshot,
+    wait_job,
+)
 from tests.app.imagery import plain_jpeg, png, png_bomb
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
 from vloc.workers.core.features import DESCRIPTOR_NAMES
@@ -92,7 +100,7 @@ def test_admin_routes_need_the_admin_key(module_client, method, path):
 @pytest.mark.parametrize(("method", "path"), [
     ("get", "/v1/maps/{id}"), ("delete", "/v1/maps/{id}"), ("get", "/v1/maps/{id}/images"),
     ("post", "/v1/maps/{id}/build"), ("get", "/v1/jobs/{id}")])
-@pytest.mark.parametrize("ident", [str(uuid.uuid4()), "not-a-uuid", "1"])
+@pytest.mark.parametrize("ident", [UNKNOWN_ID, "not-a-uuid", "1"])
 def test_unknown_ids_are_404(module_client, method, path, ident):
     before = snapshot(module_client)
     r = getattr(module_client, method)(path.format(id=ident), headers=ADMIN)

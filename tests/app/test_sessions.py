@@ -7,7 +7,7 @@ import uuid
 import pytest
 from starlette.websockets import WebSocketDisconnect
 
-from tests.app.conftest import ADMIN, FAST, PROBLEM, jpeg_files, snapshot
+from tests.app.conftest import ADMIN, FAST, PROBLEM, UNKNOWN_ID, jpeg_files, snapshot
 from tests.app.imagery import plain_jpeg, png, png_bomb
 from tests.app.test_maps import corrupt_png, new_map
 
@@ -120,7 +120,7 @@ def test_session_auth_rules(service):
     assert c.get(f"/v1/sessions/{other}", headers=ADMIN).status_code == 200
 
 
-@pytest.mark.parametrize("ident", [str(uuid.uuid4()), "not-a-uuid"])
+@pytest.mark.parametrize("ident", [UNKNOWN_ID, "not-a-uuid"])
 def test_unknown_session_is_404(service, ident):
     c = service.client
     before = snapshot(c)
