@@ -5,6 +5,7 @@ reach the frames."""
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
@@ -13,6 +14,7 @@ import sys
 import threading
 import venv
 from datetime import UTC, datetime
+from pathlib import Path
 
 import pytest
 
@@ -290,3 +292,110 @@ def test_the_light_client_installs_with_the_mavlink_extra(tmp_path):
     assert helped.returncode == 0 and "GPS_INPUT" in helped.stdout
     frozen = subprocess.run([py, "-m", "pip", "freeze"], capture_output=True, text=True)
     assert "opencv" not in frozen.stdout.lower() and "numpy" not in frozen.stdout.lower()
+
+
+# -- a real flight: seneca-uav ---------------------------------------------------------------
+
+LEG = [f"IMG_{n:04d}.jpg" for n in range(548, 558)]
+"""A straight leg of pass 2 (bearing about 55 degrees, 5 s between images)."""
+LEG_HEADING, LEG_ALTITUDE, LEG_VELOCITY = 55.0, 282.0, (4.7, 3.3)
+DOCS = REPO_ROOT / "docs" / "devices"
+
+
+def _seneca_truth(seneca_dir: Path) -> dict[str, dict]:
+    with open(seneca_dir / "ground_truth.csv", newline="") as fh:
+        return {r["filename"]: r for r in csv.DictReader(fh)}
+
+
+def _near_leg(truth: dict[str, dict], radius_m: float = 40.0) -> list[str]:
+    """The pass-1 images within ``radius_m`` of the leg: a small map that covers it."""
+    from vloc.workers.core.geo import GeoOrigin
+
+    leg = [truth[n] for n in LEG]
+    origin = GeoOrigin(float(leg[0]["lat"]), float(leg[0]["lon"]), 0.0)
+
+    def en(rows):
+        e, n = origin.to_local([float(r["lat"]) for r in rows], [float(r["lon"]) for r in rows])
+        return list(zip(e, n, strict=True))
+
+    ours = en(leg)
+    return [r["filename"] for r, p in zip(truth.values(), en(list(truth.values())), strict=True)
+            if r["pass"] == "1" and min(math.dist(p, q) for q in ours) < radius_m]
+
+
+@pytest.mark.dataset
+def test_a_seneca_leg_reaches_the_autopilot_as_its_poses(live_server, seneca_dir, autopilot,
+                                                          tmp_path):
+    truth = _seneca_truth(seneca_dir)
+    images = seneca_dir / "images"
+    with Client(live_server, admin_key=ADMIN_KEY) as vloc:
+        m = vloc.create_map("seneca leg")
+        vloc.upload_images(m.id, [images / n for n in _near_leg(truth)])
+        vloc.wait_for_job(vloc.build_map(m.id).id, timeout=600)
+        s = vloc.create_session(m.id, seed=5)
+    folder = tmp_path / "leg"
+    folder.mkdir()
+    for n in LEG:
+        (folder / n).write_bytes((images / n).read_bytes())
+    autopilot.state.heading_deg, autopilot.state.altitude_m = LEG_HEADING, LEG_ALTITUDE
+    autopilot.state.velocity_en = LEG_VELOCITY
+    log = tmp_path / "bridge.jsonl"
+    run = subprocess.run(
+        [sys.executable, "-m", "vloc.clients.cli", "mavlink", str(folder), "--mavlink",
+         autopilot.address, "--server", live_server, "--session", s.id, "--token", s.token,
+         "--fps", "1", "--frame-interval", "5", "--max-age", "30", "--log", str(log)],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    poses = _server_poses(live_server, s.id)
+    pairs = check_messages(autopilot, records, poses)
+    tracking = [p for p in poses.values() if p.status == "tracking"]
+    assert len(pairs) == len(tracking) >= 5
+    assert all(p.altitude_m == LEG_ALTITUDE for p in poses.values())
+    assert all(r["metadata"]["heading_deg"] == pytest.approx(LEG_HEADING) for r in records)
+    # against the truth: what the autopilot was told, and what it was told of its accuracy
+    from vloc.workers.core.geo import GeoOrigin
+
+    frame_of = {r["seq"]: r["frame"] for r in records if "seq" in r}
+    errors = []
+    for msg, pose in pairs:
+        t = truth[frame_of[pose.seq]]
+        origin = GeoOrigin(float(t["lat"]), float(t["lon"]), 0.0)
+        e, n = origin.to_local([msg.fields["lat"] / 1e7], [msg.fields["lon"] / 1e7])
+        errors.append(math.hypot(e[0], n[0]))
+    print(f"seneca leg: {len(pairs)} GPS_INPUT of {len(poses)} frames; error to the truth "
+          f"median {sorted(errors)[len(errors) // 2]:.1f} m, max {max(errors):.1f} m")
+    assert sorted(errors)[len(errors) // 2] < 25.0
+    if os.environ.get("VLOC_WRITE_SCREENSHOTS") == "1":
+        _plot_leg(pairs, truth, frame_of, DOCS / "mavlink-seneca.png")
+
+
+def _plot_leg(pairs, truth, frame_of, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from vloc.workers.core.geo import GeoOrigin
+
+    first = truth[LEG[0]]
+    origin = GeoOrigin(float(first["lat"]), float(first["lon"]), 0.0)
+    te, tn = origin.to_local([float(truth[n]["lat"]) for n in LEG],
+                             [float(truth[n]["lon"]) for n in LEG])
+    me, mn = origin.to_local([m.fields["lat"] / 1e7 for m, _ in pairs],
+                             [m.fields["lon"] / 1e7 for m, _ in pairs])
+    fig, ax = plt.subplots(figsize=(5.2, 4.0), dpi=80)
+    ax.plot(te, tn, "k.-", lw=1, label="GPS of the images (truth)")
+    for (msg, _), x, y in zip(pairs, me, mn, strict=True):
+        ax.add_patch(plt.Circle((x, y), msg.fields["horiz_accuracy"], color="tab:red",
+                                alpha=0.12, lw=0))
+    ax.plot(me, mn, "o", color="tab:red", ms=4, label="GPS_INPUT the autopilot got")
+    ax.set_aspect("equal")
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_title("seneca-uav, one leg through vloc mavlink", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
