@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
                  "Where was each image taken? One answer per image, nothing stored."),
     "session": ("vloc.clients.commands.session", "session_group",
                 "Sessions: create, show, delete, reset, initial pose, send frames, watch poses."),
+    "mavlink": ("vloc.clients.commands.mavlink", "mavlink_cmd",
+                "A MAVLink autopilot: camera frames to a session, its poses back as GPS_INPUT."),
     "replay": ("vloc.clients.commands.replay", "replay_cmd",
                "Simulated devices: play a dataset into a running server, print the error table."),
     "navigate": ("vloc.clients.commands.navigate", "navigate_cmd",

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from fastapi import FastAPI, Request
-from fastapi.responses import RedirectResponse
+from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 STATIC_DIR = Path(__file__).with_name("static")
@@ -29,5 +29,10 @@ def install(app: FastAPI) -> None:
         settings = request.app.state.ctx.settings
         return {"tile_url": settings.viewer_tile_url,
                 "tile_attribution": settings.viewer_tile_attribution}
+
+    @app.get(PREFIX + "/device", include_in_schema=False)
+    def _device_page() -> FileResponse:
+        """The page a phone localises itself from (docs/devices/phone.md)."""
+        return FileResponse(STATIC_DIR / "device.html")
 
     app.mount(PREFIX, StaticFiles(directory=STATIC_DIR, html=True), name="ui")

@@ -38,8 +38,8 @@ def unavailable(reason: str) -> None:
     pytest.skip(reason)
 
 
-def launch_browser() -> Iterator[object]:
-    """Yield a Playwright ``Browser`` on the system's Chromium."""
+def launch_browser(args: tuple[str, ...] = ()) -> Iterator[object]:
+    """Yield a Playwright ``Browser`` on the system's Chromium (``args``: its flags)."""
     try:
         from playwright.sync_api import Error, sync_playwright
     except ImportError:
@@ -49,7 +49,7 @@ def launch_browser() -> Iterator[object]:
         unavailable("no Chromium found (apt-get install chromium, or set VLOC_CHROMIUM)")
     with sync_playwright() as pw:
         try:
-            browser = pw.chromium.launch(executable_path=path, headless=True)
+            browser = pw.chromium.launch(executable_path=path, headless=True, args=list(args))
         except Error as exc:
             unavailable(f"Chromium at {path} does not start: {exc}")
         try:

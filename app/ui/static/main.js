@@ -6,6 +6,7 @@
 // `vloc.token.<secret>`: never in a URL, which servers and proxies log.
 
 import { $, api, imageLayer, liveLayer, plan, state } from "./common.js";
+import "./device-link.js";
 import { followSessions, watch } from "./live.js";
 import { refreshMaps } from "./maps.js";
 import { replayLayer } from "./replays.js";
