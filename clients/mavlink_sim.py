@@ -6,7 +6,8 @@ last, and sends what an ArduPilot or PX4 vehicle streams to a companion computer
 ``HEARTBEAT`` once a second, ``ATTITUDE`` and ``GLOBAL_POSITION_INT`` at ``rate_hz``, from
 the state the caller sets (heading, altitude, velocity). :meth:`drop_link` and
 :meth:`restore_link` close and reopen its socket on the same port, as a radio link that
-fades or an autopilot that reboots.
+fades or an autopilot that reboots. :meth:`external_nav` reads the local-frame estimates it
+got as an autopilot's EKF takes them: a position from its origin, and a noise.
 
     python -m vloc.clients.mavlink_sim --port 14550     # prints what it receives
 """
@@ -31,6 +32,47 @@ class Received:
     fields: dict
     at: float
     wall: float
+
+
+@dataclass(frozen=True)
+class ExternalNav:
+    """A ``VISION_POSITION_ESTIMATE`` or ``ODOMETRY`` as the autopilot takes it.
+
+    ``lat``, ``lon``: its north and east metres from the EKF origin (the last
+    ``SET_GPS_GLOBAL_ORIGIN`` before it), on the WGS84 ellipsoid. ``cov_ne``: the
+    north-east covariance (nn, ne, ee), m^2, as PX4's EKF2 reads it. ``pos_err_m`` and
+    ``ang_err_rad``: the two noises ArduPilot reduces the covariance to, the roots of the
+    sums of the x, y, z and of the roll, pitch, yaw variances (0 when the covariance is
+    flagged unknown by a NaN first element; NaN where any of those is NaN, which ArduPilot
+    reports as an internal error).
+    """
+
+    type: str
+    north: float
+    east: float
+    lat: float
+    lon: float
+    cov_ne: tuple[float, float, float]
+    pos_err_m: float
+    ang_err_rad: float
+    reset_counter: int
+    usec: int
+    wall: float
+
+
+def _external_nav(r: Received, origin: tuple[float, float]) -> ExternalNav:
+    from vloc.workers.core.geo import GeoOrigin
+
+    f = r.fields
+    cov = f["covariance"] if r.type == "VISION_POSITION_ESTIMATE" else f["pose_covariance"]
+    pos_err = ang_err = 0.0
+    if not math.isnan(cov[0]):
+        pos_err = math.sqrt(cov[0] + cov[6] + cov[11])
+        ang_err = math.sqrt(cov[15] + cov[18] + cov[20])
+    lat, lon = GeoOrigin(*origin).to_wgs84(f["y"], f["x"])
+    return ExternalNav(r.type, f["x"], f["y"], float(lat), float(lon),
+                       (cov[0], cov[1], cov[6]), pos_err, ang_err, f["reset_counter"],
+                       f["usec"] if "usec" in f else f["time_usec"], r.wall)
 
 
 @dataclass
@@ -106,6 +148,18 @@ class SimulatedAutopilot:
     def received(self, kind: str | None = None) -> list[Received]:
         with self._lock:
             return [r for r in self._received if kind is None or r.type == kind]
+
+    def external_nav(self) -> list[ExternalNav]:
+        """The local-frame estimates received after an EKF origin, as the EKF takes them
+        (see :class:`ExternalNav`); those before any origin have no place and are left
+        out."""
+        origin, out = None, []
+        for r in self.received():
+            if r.type == "SET_GPS_GLOBAL_ORIGIN":
+                origin = (r.fields["latitude"] / 1e7, r.fields["longitude"] / 1e7)
+            elif r.type in ("VISION_POSITION_ESTIMATE", "ODOMETRY") and origin is not None:
+                out.append(_external_nav(r, origin))
+        return out
 
     def wait_for(self, kind: str, count: int, timeout: float) -> list[Received]:
         """The first ``count`` messages of ``kind``, once they came; TimeoutError if not

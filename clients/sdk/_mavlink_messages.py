@@ -100,32 +100,46 @@ def _yaw_rad(pose: Pose) -> float:
     return math.nan if heading is None else math.radians((heading + 180.0) % 360.0 - 180.0)
 
 
+UNKNOWN_YAW_VARIANCE = math.pi ** 2 / 3
+"""The variance of a heading that may be anything (uniform over the circle), rad^2."""
+
+
 def vision_position_estimate(pose: Pose, *, usec: int, reset_counter: int = 0
                              ) -> dict[str, Any] | None:
     """``VISION_POSITION_ESTIMATE`` in the map's local frame as NED (x north, y east, metres
     from the map's origin); None unless the pose tracks.
 
     The covariance is the upper triangle of (x, y, z, roll, pitch, yaw), row-major: the
-    pose's horizontal covariance; z, roll, pitch and yaw, which the images do not measure
-    (yaw: where they gave none), get NaN variances so that nothing reads them as certain.
+    pose's horizontal covariance; z, roll and pitch, which the images do not measure, get
+    0, and yaw the variance of the images' heading (:data:`UNKNOWN_YAW_VARIANCE` where they
+    gave none, with ``yaw`` NaN). Every diagonal element is a number because ArduPilot
+    reads the matrix as two sums, ``sqrt(var x + var y + var z)`` as the position's noise
+    and ``sqrt(var roll + var pitch + var yaw)`` as the attitude's: one NaN would make the
+    estimate's noise NaN, and a large z variance would drown the horizontal one (the
+    altitude comes from the barometer, docs/devices/mavlink.md).
     """
     if pose.status != "tracking":
         return None
     north, east, nn, ne, ee = _ned(pose)
-    cov = [math.nan] * 21
+    cov = [0.0] * 21
     cov[0], cov[1], cov[6] = nn, ne, ee
-    for i in (2, 3, 4, 5, 7, 8, 9, 10, 12, 13, 14, 16, 17, 19):
-        cov[i] = 0.0
     yaw = _yaw_rad(pose)
-    if not math.isnan(yaw):
-        cov[20] = math.radians(pose.heading_sigma_deg or 15.0) ** 2
+    cov[20] = UNKNOWN_YAW_VARIANCE if math.isnan(yaw) else \
+        math.radians(pose.heading_sigma_deg or 15.0) ** 2
     return {"usec": usec, "x": north, "y": east, "z": 0.0, "roll": 0.0, "pitch": 0.0,
             "yaw": yaw, "covariance": cov, "reset_counter": reset_counter}
 
 
 def odometry(pose: Pose, *, usec: int, reset_counter: int = 0) -> dict[str, Any] | None:
     """``ODOMETRY`` (MAVLink 2) with the position in the local NED frame and no velocity
-    (NaN, as the message allows for unknown values); None unless the pose tracks."""
+    (NaN, as the message allows for unknown values); None unless the pose tracks.
+
+    ``z`` and what the images do not measure are NaN, variances included: PX4's EKF2,
+    which this message is for, takes the horizontal position and its x and y variances
+    alone when told to (``EKF2_EV_CTRL`` 1) and nothing NaN reaches it. ArduPilot reduces
+    this covariance as :func:`vision_position_estimate` says, z's NaN included: for it,
+    ``VISION_POSITION_ESTIMATE``.
+    """
     if pose.status != "tracking":
         return None
     north, east, nn, ne, ee = _ned(pose)

@@ -80,6 +80,12 @@ def test_local_estimates_are_north_east_down_with_the_pose_covariance():
     assert (v["x"], v["y"], v["reset_counter"]) == (-30.0, 12.0, 2)
     assert (v["covariance"][0], v["covariance"][1], v["covariance"][6]) == (25.0, 2.0, 16.0)
     assert v["yaw"] == pytest.approx(math.radians(55.0))
+    # ArduPilot's two noises from the diagonal: the horizontal one, the heading's sigma
+    diagonal = [v["covariance"][i] for i in (0, 6, 11, 15, 18, 20)]
+    assert diagonal == pytest.approx([25.0, 16.0, 0.0, 0.0, 0.0, math.radians(2.0) ** 2])
+    blind = vision_position_estimate(_pose(heading_source="device"), usec=5)
+    assert math.isnan(blind["yaw"]) and not any(map(math.isnan, blind["covariance"]))
+    assert blind["covariance"][20] == pytest.approx(math.pi ** 2 / 3)
     o = odometry(_pose(heading_source=None, heading_deg=None), usec=5)
     assert (o["x"], o["y"]) == (-30.0, 12.0) and math.isnan(o["q"][0])
     assert math.isnan(o["vx"]) and o["pose_covariance"][0] == 25.0
@@ -253,6 +259,76 @@ def test_messages_keep_to_the_rate_the_autopilot_expects(live_server, flight, au
     assert len(arrivals) >= 2 and any(r.get("why") == "rate" for r in records)
     # at most max_rate_hz: the sends are 1 / 2 s apart at least (less the loopback's jitter)
     assert min(b - a for a, b in zip(arrivals, arrivals[1:], strict=False)) >= 0.5 - 0.05
+
+
+@pytest.mark.parametrize("output", ["vision", "odometry"])
+def test_local_estimates_reach_the_autopilot_in_the_maps_frame(live_server, flight, shots,
+                                                                autopilot, tmp_path, output):
+    """``--output vision`` / ``odometry`` as the autopilot takes them: the EKF origin the
+    bridge set is the map's, each estimate's north-east metres from it are the pose's
+    position and near the frame's truth, and its covariance is the pose's (the 68 % circle
+    it gives is the pose's ``horizontal_accuracy_m``)."""
+    from vloc.clients.mavlink_sim import ExternalNav
+    from vloc.workers.core.accuracy import horizontal_accuracy
+    from vloc.workers.core.geo import GeoOrigin
+
+    map_id, folder = flight
+    truth = {s.name: s for s in shots[1]}
+    session_id, token = _session(live_server, map_id)
+    log = tmp_path / "bridge.jsonl"
+    run = subprocess.run(
+        [sys.executable, "-m", "vloc.clients.cli", "mavlink", str(folder), "--mavlink",
+         autopilot.address, "--server", live_server, "--session", session_id, "--token",
+         token, "--output", output, "--fps", "4", "--frame-interval", "5", "--max-rate", "10",
+         "--max-age", "30", "--log", str(log)], cwd=tmp_path, capture_output=True, text=True,
+        timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    poses = _server_poses(live_server, session_id)
+    with Client(live_server, admin_key=ADMIN_KEY) as vloc:
+        origin = vloc.get_map(map_id).origin
+    kind = {"vision": "VISION_POSITION_ESTIMATE", "odometry": "ODOMETRY"}[output]
+    got = autopilot.received(kind)
+    estimates: list[ExternalNav] = autopilot.external_nav()
+    # the origin came first (once: the link never dropped), and it is the map's own
+    origins = autopilot.received("SET_GPS_GLOBAL_ORIGIN")
+    assert len(origins) == 1 and origins[0].at < got[0].at and len(estimates) == len(got)
+    assert abs(origins[0].fields["latitude"] / 1e7 - origin.lat) <= 2e-7
+    assert abs(origins[0].fields["longitude"] / 1e7 - origin.lon) <= 2e-7
+    sent = {r["sent"]["usec" if output == "vision" else "time_usec"]: r for r in records
+            if "sent" in r}
+    assert len(sent) == len(estimates) >= 3, [r.get("why") for r in records]
+    resets, counter, tracked, gap = {}, 0, False, False
+    for r in records:
+        if r.get("status") == "tracking":
+            counter += tracked and gap  # lost, then found again: the local frame jumped
+            resets[r["seq"]] = counter
+            tracked, gap = True, False
+        elif r.get("status") is not None:
+            gap = tracked
+    errors = []
+    for est in estimates:
+        record = sent[est.usec]
+        pose = poses[record["seq"]]
+        assert pose.status == "tracking"
+        # where the autopilot puts it is where the service put it (float32 metres)
+        e, n = GeoOrigin(pose.lat, pose.lon).to_local([est.lat], [est.lon])
+        assert math.hypot(e[0], n[0]) < 0.05
+        assert (est.north, est.east) == pytest.approx((pose.y, pose.x), abs=1e-3)
+        nn, ne, ee = est.cov_ne
+        assert horizontal_accuracy([ee, ne, ne, nn]) == pytest.approx(
+            pose.horizontal_accuracy_m, rel=1e-5)
+        if output == "vision":  # ArduPilot's one noise: the horizontal spread, no NaN
+            assert est.pos_err_m == pytest.approx(math.sqrt(nn + ee), rel=1e-6)
+            assert math.isfinite(est.ang_err_rad)
+        assert est.reset_counter == resets[record["seq"]]
+        shot = truth[record["frame"]]
+        e, n = GeoOrigin(shot.lat, shot.lon).to_local([est.lat], [est.lon])
+        errors.append(math.hypot(e[0], n[0]))
+    assert sorted(errors)[len(errors) // 2] < 10.0, errors
+    for r in records:
+        if r.get("status") in ("initialising", "lost"):
+            assert "sent" not in r
 
 
 def test_without_pymavlink_the_command_names_the_extra(tmp_path):
