@@ -210,8 +210,9 @@ def parser(prog: str = "vloc-mavlink") -> argparse.ArgumentParser:
         prog=prog, description="Localise a MAVLink vehicle: frames from SOURCE go to a vloc "
         "session with the autopilot's heading, altitude and velocity; each tracking pose "
         "goes to the autopilot (GPS_INPUT, or a local-frame estimate).")
-    p.add_argument("source", help="a folder of JPEG/PNG images, a camera index (0) or a "
-                                  "stream URL (rtsp://..., needs OpenCV)")
+    p.add_argument("source", help="a folder of JPEG/PNG images; or, with OpenCV, a camera "
+                                  "index (0), a device path (/dev/video0), a stream URL "
+                                  "(rtsp://...) or a video file (played at its frame rate)")
     p.add_argument("--mavlink", required=True, metavar="ADDRESS",
                    help="the autopilot: udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or "
                         "a serial device (/dev/ttyAMA0,921600)")

@@ -24,6 +24,7 @@ from tests.clients.conftest import ADMIN_KEY, FAST  # noqa: E402
 from tests.conftest import REPO_ROOT  # noqa: E402
 from vloc.clients.mavlink_sim import SimulatedAutopilot  # noqa: E402
 from vloc.clients.sdk import Client, Pose  # noqa: E402
+from vloc.clients.sdk._frame_sources import Camera, capture_source  # noqa: E402
 from vloc.clients.sdk._mavlink_messages import (  # noqa: E402
     FIX_2D,
     FIX_3D,
@@ -329,6 +330,103 @@ def test_local_estimates_reach_the_autopilot_in_the_maps_frame(live_server, flig
     for r in records:
         if r.get("status") in ("initialising", "lost"):
             assert "sent" not in r
+
+
+# -- a camera: OpenCV's capture ----------------------------------------------------------
+
+@pytest.mark.parametrize(("source", "opened"), [
+    ("0", 0), ("2", 2), ("/dev/video0", "/dev/video0"), ("rtsp://10.0.0.5:8554/cam", None),
+    ("http://10.0.0.5:8080/video.mjpg", None), ("flight.avi", None)])
+def test_a_camera_index_opens_the_device_and_anything_else_is_a_path_or_url(
+        source, opened, monkeypatch):
+    assert capture_source(source) == (source if opened is None else opened)
+    # the argument OpenCV is given, through the camera the bridge opens
+    import cv2
+
+    asked = []
+
+    class LiveCapture:  # a live device: no length, frames as fast as it delivers them
+        def __init__(self, arg):
+            asked.append(arg)
+
+        def isOpened(self):  # noqa: N802 (OpenCV's name)
+            return True
+
+        def get(self, prop):
+            return {cv2.CAP_PROP_FPS: 30.0, cv2.CAP_PROP_FRAME_COUNT: -1.0}[prop]
+
+        def read(self):
+            return False, None
+
+        def release(self):
+            pass
+
+    monkeypatch.setattr(cv2, "VideoCapture", LiveCapture)
+    camera = Camera(source)
+    assert camera.latest(timeout=5.0) is None and camera.period is None
+    camera.close()
+    assert asked == [capture_source(source)]
+
+
+VIDEO_FPS, HOLD = 8.0, 8
+"""The flight as a video: each query shot held for HOLD frames (1 s at VIDEO_FPS)."""
+
+
+def _video(path: Path, shots) -> Path:
+    import cv2
+    import numpy as np
+
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), VIDEO_FPS, (320, 240))
+    assert out.isOpened()
+    for s in shots:
+        image = cv2.imdecode(np.frombuffer(s.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        for _ in range(HOLD):
+            out.write(image)
+    out.release()
+    return path
+
+
+def test_vloc_mavlink_samples_a_video_at_the_chosen_rate(live_server, flight, shots,
+                                                          autopilot, tmp_path):
+    """A video file goes through OpenCV's capture as a stream URL does: played at its own
+    frame rate, sampled at --fps, the newest frame each time; each pose that reaches the
+    autopilot is where the frame it was sent for shows."""
+    from vloc.workers.core.geo import GeoOrigin
+
+    map_id, _ = flight
+    _, queries = shots
+    video = _video(tmp_path / "flight.avi", queries)
+    session_id, token = _session(live_server, map_id)
+    log = tmp_path / "bridge.jsonl"
+    fps = 2.0
+    run = subprocess.run(
+        [sys.executable, "-m", "vloc.clients.cli", "mavlink", str(video), "--mavlink",
+         autopilot.address, "--server", live_server, "--session", session_id, "--token",
+         token, "--fps", str(fps), "--max-rate", "10", "--max-age", "30", "--log",
+         str(log)], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    numbers = [int(r["frame"].removeprefix("frame-")) for r in records]
+    length_s = len(queries) * HOLD / VIDEO_FPS
+    # the newest frame each time, never one twice, at --fps at most over the video's length
+    assert numbers == sorted(set(numbers)) and 4 <= len(numbers) <= length_s * fps + 2
+    steps = sorted(b - a for a, b in zip(numbers, numbers[1:], strict=False))
+    assert steps[len(steps) // 2] >= VIDEO_FPS / fps - 1
+    shown = [(n - 1) // HOLD for n in numbers]
+    assert len(set(shown)) >= 4, numbers  # it went through the video, not one part of it
+    poses = _server_poses(live_server, session_id)
+    pairs = check_messages(autopilot, records, poses)
+    assert len(pairs) >= 2, [r.get("why") for r in records]
+    shot_of = {r["seq"]: queries[(int(r["frame"][6:]) - 1) // HOLD] for r in records
+               if "seq" in r}
+    errors = []
+    for msg, pose in pairs:
+        truth = shot_of[pose.seq]
+        e, n = GeoOrigin(truth.lat, truth.lon).to_local([msg.fields["lat"] / 1e7],
+                                                        [msg.fields["lon"] / 1e7])
+        errors.append(math.hypot(e[0], n[0]))
+    # nearer the shot its frame shows than the shots are to each other (20 m)
+    assert sorted(errors)[len(errors) // 2] < 20.0, errors
 
 
 def test_without_pymavlink_the_command_names_the_extra(tmp_path):
