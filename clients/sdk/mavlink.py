@@ -247,9 +247,24 @@ def parser(prog: str = "vloc-mavlink") -> argparse.ArgumentParser:
     return p
 
 
+SECRET_OPTIONS = ("--token", "--admin-key")
+
+
+def _attached(argv: list[str]) -> list[str]:
+    """``--token VALUE`` as ``--token=VALUE``: a token is URL-safe base64, which starts
+    with ``-`` one time in 64, and argparse takes such a value only attached."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] in SECRET_OPTIONS:
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv: list[str] | None = None, *, prog: str = "vloc-mavlink",
          admin_key: str | None = None) -> int:
-    args = parser(prog).parse_args(argv)
+    args = parser(prog).parse_args(_attached(sys.argv[1:] if argv is None else argv))
     if (args.session is None) == (args.map is None):
         print(f"{prog}: give --session ID (with --token) or --map MAP_ID", file=sys.stderr)
         return 2

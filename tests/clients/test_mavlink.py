@@ -368,6 +368,19 @@ def test_a_camera_index_opens_the_device_and_anything_else_is_a_path_or_url(
     assert asked == [capture_source(source)]
 
 
+def test_the_command_line_takes_a_device_index_and_a_token_that_starts_with_a_dash():
+    from vloc.clients.sdk.mavlink import _attached, parser
+
+    # one token in 64 starts with "-" (URL-safe base64)
+    argv = ["0", "--mavlink", "udpout:127.0.0.1:14550", "--session", "s1", "--token",
+            "-Zx3_k", "--admin-key", "--k"]
+    args = parser().parse_args(_attached(argv))
+    assert (args.token, args.admin_key, args.session) == ("-Zx3_k", "--k", "s1")
+    assert capture_source(args.source) == 0
+    with pytest.raises(SystemExit):  # what argparse makes of it unattached
+        parser().parse_args(argv)
+
+
 VIDEO_FPS, HOLD = 8.0, 8
 """The flight as a video: each query shot held for HOLD frames (1 s at VIDEO_FPS)."""
 
