@@ -45,8 +45,11 @@ def free_port() -> int:
 
 
 def start_server(data_dir: Path, *, workers: int = 2, env: dict | None = None,
-                 timeout: float = 120.0, args: tuple[str, ...] = ()) -> Server:
-    port = free_port()
+                 timeout: float = 120.0, args: tuple[str, ...] = (),
+                 port: int | None = None) -> Server:
+    """``vloc serve`` on ``data_dir``, ready; on ``port`` (a free one by default): a server
+    stopped and started again on the same folder and port is, to its clients, restarted."""
+    port = port or free_port()
     stderr_path = data_dir.parent / f"server-{port}.log"
     environ = {**os.environ, "VLOC_DATA_DIR": str(data_dir), "VLOC_WORKERS": str(workers),
                "VLOC_LOG_LEVEL": "INFO", **(env or {})}
