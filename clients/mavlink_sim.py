@@ -127,6 +127,9 @@ class SimulatedAutopilot:
             self._thread.join(5.0)
             self._thread = None
         if self._conn is not None:
+            # what had arrived before the link went was received; only what comes after is lost
+            while (msg := self._conn.recv_match(blocking=False)) is not None:
+                self._record(msg)
             self._conn.close()
             self._conn = None
 
@@ -184,10 +187,14 @@ class SimulatedAutopilot:
                 self._send_streams(now)
                 next_stream = now + period
             msg = self._conn.recv_match(blocking=True, timeout=min(period, 0.05))
-            if msg is not None and msg.get_type() != "BAD_DATA":
-                with self._lock:
-                    self._received.append(Received(msg.get_type(), msg.to_dict(),
-                                                   time.monotonic(), time.time()))
+            if msg is not None:
+                self._record(msg)
+
+    def _record(self, msg) -> None:
+        if msg.get_type() != "BAD_DATA":
+            with self._lock:
+                self._received.append(Received(msg.get_type(), msg.to_dict(), time.monotonic(),
+                                               time.time()))
 
     def _send_heartbeat(self) -> None:
         m = self._mavutil.mavlink
