@@ -14,7 +14,14 @@ from tests.core.geometry.scene import (
     street,
     survey,
 )
-from vloc.workers.core.geometry.sfm import COLMAP_SCALE, reconstruct, to_colmap_pixels
+from vloc.workers.core.geometry.sfm import (
+    COLMAP_SCALE,
+    left_out_models,
+    reconstruct,
+    tags,
+    tile_models,
+    to_colmap_pixels,
+)
 
 
 def _point_errors(s: Survey, st) -> np.ndarray:
@@ -164,3 +171,30 @@ def test_reconstruct_needs_three_related_images():
     assert reconstruct(s.keypoints, two, s.positions, s.altitudes, F_TRUE) is None
     # the same pairs, matched right, reconstruct
     assert reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE) is not None
+
+
+def test_reconstruct_places_images_the_alignment_left_out_as_a_model_of_their_own():
+    """The last two rows' tags lie 200 m east of where the images are (the mapper attaching
+    a turn's banked images far from where they are, seen from the tags' side): the
+    alignment of the whole keeps the first three rows, and the last two, reconstructed on
+    their own, come back aligned to their own tags."""
+    s = survey(np.random.default_rng(9), rows=5, cols=4)
+    away = np.arange(len(s)) >= 12
+    gps = s.positions.copy()
+    gps[away, 0] += 200.0
+    st = _reconstruct(s, positions=gps)
+    assert st.placed.all() and st.models == 2
+    np.testing.assert_allclose(st.centres[~away], s.centres[~away], atol=0.05)
+    np.testing.assert_allclose(st.centres[away, :2], gps[away], atol=0.05)
+    shifted = [st.points[i] - s.truth(i, st.observations[i]) for i in np.flatnonzero(away)]
+    assert np.abs(np.concatenate(shifted) - [200.0, 0.0, 0.0]).max() < 0.1
+
+
+def test_left_out_models_need_three_tied_images_none_of_the_models_place():
+    s = survey(np.random.default_rng(10), rows=2, cols=3)
+    pairs = exact_pairs(s)
+    gps = tags(s.positions, s.altitudes)
+    first = tile_models(s.keypoints, pairs, gps, F_TRUE, np.arange(4))
+    assert left_out_models(s.keypoints, pairs, gps, F_TRUE, first) == []
+    rest = left_out_models(s.keypoints, pairs, gps, F_TRUE, first[:0])
+    assert sorted(np.concatenate([m.images for m in rest]).tolist()) == list(range(6))

@@ -187,7 +187,42 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     if not found:
         return None
     placed = _by_centrality(found, positions) if len(tiles) > 1 else [m for _, m in found]
+    placed += left_out_models(keypoints, pairs, gps, focal_px, placed, seed=seed,
+                              known_tiles=known_tiles)
     return _structure(placed, len(positions), gps)
+
+
+def left_out_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
+                    gps: np.ndarray, focal_px: float | None, models: list[TileModel], *,
+                    seed: int = 0,
+                    known_tiles: dict[str, list[TileModel] | None] | None = None,
+                    ) -> list[TileModel]:
+    """Models of the tied images that none of ``models`` places, reconstructed again on
+    their own, each aligned to its own GPS.
+
+    Where a survey turns, its images are banked and see the ground obliquely: they tie
+    strongly to one another and weakly to the level images around them, and the mapper
+    either leaves them out or, from a handful of chance matches across the fields, attaches
+    them far from where they are (seneca-uav's IMG_0451-0456, 30 to 200 m off, dropped by
+    the alignment). Reconstructed apart from the rest, the five that tie to one another make
+    a model of their own that lies within 2.5 m of their GPS, and the frames over that turn
+    register instead of falling back on a position between map images. ``keypoints``,
+    ``pairs`` and ``gps`` (:func:`tags`) are the whole map's; ``known_tiles`` as in
+    :func:`reconstruct`.
+    """
+    placed = np.zeros(len(gps), bool)
+    tied = np.zeros(len(gps), bool)
+    for m in models:
+        placed[m.images] = True
+    for p in pairs:
+        tied[[p.a, p.b]] = True
+    left = np.flatnonzero(tied & ~placed)
+    if len(left) < 3:
+        return []
+    key = tile_key(left, pairs, gps, focal_px, seed)
+    if known_tiles is not None and key in known_tiles:
+        return list(known_tiles[key] or [])
+    return tile_models(keypoints, pairs, gps, focal_px, left, seed=seed) or []
 
 
 def tags(positions: np.ndarray, altitudes: np.ndarray,
