@@ -13,14 +13,14 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 
 from vloc.app.deps import Ctx, DbSession, SettingsDep, require_admin
-from vloc.app.engine import EngineClosed, WorkerDied
+from vloc.app.engine import EngineClosed, WorkerDied, run_task
 from vloc.app.imagecheck import check_image, kind_of_content_type
 from vloc.app.jobs.service import start_build
 from vloc.app.limits import read_body
 from vloc.app.maps import service
 from vloc.app.maps.coverage import Coverage, covering_maps
 from vloc.app.maps.dependencies import ImageVerifier, MapDep, parse_id
-from vloc.app.maps.localize import DEFAULT_PRIOR_SIGMA_M, check_prior, localize_in_worker
+from vloc.app.maps.localize import DEFAULT_PRIOR_SIGMA_M, check_prior
 from vloc.app.maps.models import MapImage
 from vloc.app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
 from vloc.app.problems import Problem
@@ -29,6 +29,7 @@ from vloc.app.sessions.dependencies import FrameMetadataDep
 from vloc.app.sessions.pose import pose_fields
 from vloc.app.sessions.schemas import MAX_INITIAL_SIGMA_M, InitialPose, Localization
 from vloc.app.sessions.service import check_initial_pose, map_frame
+from vloc.app.tasks import localize as tasks
 from vloc.app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_captured_at, check_text
 from vloc.workers.core.localisers import validate_params
 
@@ -209,9 +210,9 @@ async def localize_image(
         raise Problem(500, str(exc), kind="bad-params") from None
     params.pop("seed", None)
     try:
-        result = await asyncio.wait_for(asyncio.wrap_future(ctx.engine.call(
-            localize_in_worker, folder, data, mode=mode, params=params,
-            seed=seed, prior=prior, metadata=metadata, max_pixels=ctx.settings.max_pixels)),
+        result = await asyncio.wait_for(run_task(
+            ctx.engine, tasks.localize_image, folder, data, mode=mode, params=params,
+            seed=seed, prior=prior, metadata=metadata, max_pixels=ctx.settings.max_pixels),
             ctx.settings.frame_wait_timeout_s)
     except TimeoutError:
         raise Problem(504, "no answer within "

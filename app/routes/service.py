@@ -13,13 +13,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from vloc.app.background import BackgroundRunner
 from vloc.app.config import Settings
 from vloc.app.db import utcnow
-from vloc.app.engine import Engine
+from vloc.app.engine import Engine, run_task
 from vloc.app.maps.models import ImageSift, Map, MapImage
 from vloc.app.problems import Problem, not_found
-from vloc.app.routes import tasks
 from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
 from vloc.app.routes.odometry import OdometryRow
 from vloc.app.routes.schemas import RouteDetail
+from vloc.app.tasks import routes as tasks
 
 log = logging.getLogger(__name__)
 
@@ -188,9 +188,8 @@ class RouteRunner(BackgroundRunner):
 
     async def run(self, route_id: uuid.UUID) -> None:
         try:
-            await asyncio.wrap_future(self.engine.call(
-                tasks.build_route, self.settings.resolved_database_url,
-                str(route_id)))
+            await run_task(self.engine, tasks.build_route,
+                           self.settings.resolved_database_url, str(route_id))
         except asyncio.CancelledError:
             await asyncio.to_thread(self._fail, route_id, "cancelled by shutdown")
             raise

@@ -372,7 +372,7 @@ def test_a_frame_that_pillow_cannot_identify_has_a_clean_detail(module_client):
 
 
 def test_tie_points_are_extracted_to_files_and_unreadable_images_say_so(tmp_path, shots):
-    from vloc.app.jobs.tasks import extract_ties
+    from vloc.app.tasks.build import extract_ties
     from vloc.workers.core.mapbuild import extract_tie_points, load_tie_points
 
     image = tmp_path / "map.jpg"
@@ -410,7 +410,7 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
     """The build's pair phase (a plan, then batches on the workers) hands the packing every
     pair it needs: packed with them, no pair is matched in the packing, and the map is the
     map the packing builds by matching them all itself."""
-    from vloc.app.jobs import tasks
+    from vloc.app.tasks import build as tasks
     from vloc.workers.core import tiepairs
     from vloc.workers.core.geometry import pairs
 
@@ -449,7 +449,7 @@ def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, t
     """A build that fails keeps its tie-point folder; the retry's tie points and pair
     batches found there complete are not computed again, and those a changed plan, changed
     inputs or an older results format have made stale are."""
-    from vloc.app.jobs import tasks
+    from vloc.app.tasks import build as tasks
     from vloc.workers.core import mapbuild, tiepairs
 
     map_id, url, files = _built_six_image_map(module_client, shots)
