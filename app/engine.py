@@ -28,21 +28,11 @@ from vloc.workers.engine import (
     SharedEngine,
     WorkerDied,
 )
-from vloc.workers.engine.build import (
-    decode_orb,
-    decode_sift,
-    decode_vector,
-    decode_vocabulary,
-    encode_local,
-    encode_vector,
-    encode_vocabulary,
-)
 from vloc.workers.engine.messages import DEFAULT_FACTORY
 
-__all__ = ["DEFAULT_FACTORY", "Checkpoint", "Engine", "EngineClosed", "FrameDone", "FrameFailed", "Outcome",
-           "SeqRefused", "SessionSpec", "SharedEngine", "WorkerDied", "decode_orb",
-           "decode_sift", "decode_vector", "decode_vocabulary", "encode_local", "encode_vector",
-           "encode_vocabulary", "engine_for", "run_task"]
+__all__ = ["DEFAULT_FACTORY", "Checkpoint", "Engine", "EngineClosed", "FrameDone", "FrameFailed",
+           "Outcome", "SeqRefused", "SessionSpec", "SharedEngine", "WorkerDied", "engine_for",
+           "run_task"]
 
 TASKS = "vloc.app.tasks"
 """The package of the service's code that the engine runs."""

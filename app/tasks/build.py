@@ -11,7 +11,6 @@ the functions that need them.
 
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 import uuid
@@ -20,7 +19,8 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy import delete, select, update
 
-from vloc.app.engine import (
+from vloc.app.jobs.models import BuildJob, BuildStage
+from vloc.app.maps.codecs import (
     decode_orb,
     decode_sift,
     decode_vector,
@@ -28,16 +28,11 @@ from vloc.app.engine import (
     encode_vector,
     encode_vocabulary,
 )
-from vloc.app.jobs.models import BuildJob, BuildStage
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
-from vloc.app.sessions.pose import write_image_ids
+from vloc.app.maps.revisions import write_image_ids, write_timings
 from vloc.app.tasks.database import sessions
 
 log = logging.getLogger(__name__)
-
-TIMINGS_FILE = "build_timings.json"
-"""Seconds each stage of packing a revision took, beside the revision."""
-
 
 _BATCH = 500
 """Rows read at a time when a map's stored features are packed."""
@@ -318,9 +313,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     with stage(timings, "saving"):
         data.save(folder)
         write_image_ids(folder, [img["id"] for img in images])
-    (Path(folder) / TIMINGS_FILE).write_text(json.dumps(
-        {name: {"wall_s": wall, "cpu_s": cpu} for name, (wall, cpu) in timings.items()},
-        indent=1))
+    write_timings(folder, timings)
     o = data.origin
     return {"origin": (o.lat, o.lon, o.alt), "image_ids": [img["id"] for img in images],
             "geometry": report or None,

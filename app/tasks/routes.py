@@ -15,7 +15,7 @@ import numpy as np
 from sqlalchemy import delete, select
 
 from vloc.app.db import utcnow
-from vloc.app.engine import decode_sift, decode_vector
+from vloc.app.maps.codecs import decode_sift, decode_vector
 from vloc.app.maps.models import ImageGlobalFeature, ImageSift, Map, MapImage
 from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
 from vloc.app.tasks.database import sessions

@@ -13,6 +13,7 @@ from sqlalchemy import delete, select
 
 from tests.app.conftest import ADMIN, ADMIN_KEY, PROBLEM, jpeg_files, snapshot, wait_job
 from tests.app.imagery import plain_jpeg, png, png_bomb
+from vloc.app.maps.codecs import decode_vocabulary
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
 from vloc.workers.core.features import DESCRIPTOR_NAMES
 from vloc.workers.core.features.orb import extract_orb
@@ -20,7 +21,6 @@ from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.image import load_frame
 from vloc.workers.core.mapdata import MapData
 from vloc.workers.core.sift import extract_sift
-from vloc.workers.engine.build import decode_vocabulary
 
 
 def new_map(client, name: str = "a map") -> str:

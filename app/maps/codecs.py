@@ -1,7 +1,7 @@
-"""The byte layouts of features as the database stores them.
+"""The byte layouts of features as the maps' tables store them (:mod:`app.maps.models`):
+little-endian float32 vectors, keypoints and centroids, uint8 descriptors.
 
-The build tasks that read and write the database belong to the service
-(:mod:`app.tasks`); the engine only runs them, so it never imports the web layer.
+The build tasks (:mod:`app.tasks`) write them and read them back in the workers.
 """
 
 from __future__ import annotations
