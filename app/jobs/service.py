@@ -25,7 +25,7 @@ from vloc.app.jobs.models import BuildJob, BuildStage, JobStatus
 from vloc.app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapStatus
 from vloc.app.maps.service import image_path
 from vloc.app.metrics import Metrics
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 from vloc.app.tasks import build as tasks
 
 log = logging.getLogger(__name__)
@@ -54,9 +54,9 @@ def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
     the build would pack the same revision again."""
     if db.scalar(select(func.count(BuildJob.id)).where(
             BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
-        raise Problem(409, "a build of this map is already running", kind="map-busy")
+        raise Problem(409, "a build of this map is already running", kind=ProblemKind.MAP_BUSY)
     if not db.scalar(select(func.count(MapImage.id)).where(MapImage.map_id == map_.id)):
-        raise Problem(409, "the map has no images to build from", kind="map-empty")
+        raise Problem(409, "the map has no images to build from", kind=ProblemKind.MAP_EMPTY)
     if not force and map_.status == MapStatus.READY and map_.revision > 0 \
             and not db.scalar(select(func.count(MapImage.id))
                               .outerjoin(ImageSift, ImageSift.image_id == MapImage.id)
@@ -66,7 +66,7 @@ def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
                                          ImageOrb.image_id.is_(None)))):
         raise Problem(409, f"revision {map_.revision} already holds every image of the map; "
                       "add or delete images first, or pass force=true to pack it again",
-                      kind="map-up-to-date",
+                      kind=ProblemKind.MAP_UP_TO_DATE,
                       revision=map_.revision)
     job = BuildJob(map_id=map_.id, status=JobStatus.QUEUED, progress=0.0)
     db.add(job)

@@ -12,7 +12,7 @@ from vloc.app.deps import Ctx, DbSession
 from vloc.app.engine import EngineClosed, WorkerDied, run_task
 from vloc.app.maps.models import Map
 from vloc.app.maps.service import Verifier
-from vloc.app.problems import Problem, not_found
+from vloc.app.problems import Problem, ProblemKind, not_found
 from vloc.app.tasks.images import inspect_image
 
 VERIFY_TIMEOUT_S = 120.0
@@ -46,7 +46,7 @@ async def get_verifier(ctx: Ctx) -> Verifier:
                        for blob in blobs]
         except (WorkerDied, EngineClosed) as exc:
             raise Problem(503, f"image check unavailable: {exc}",
-                          kind="engine-unavailable") from None
+                          kind=ProblemKind.ENGINE_UNAVAILABLE) from None
         out: list[str | None] = []
         for fut in futures:
             try:
@@ -56,7 +56,7 @@ async def get_verifier(ctx: Ctx) -> Verifier:
                 out.append(str(exc))
             except (WorkerDied, EngineClosed, TimeoutError) as exc:
                 raise Problem(503, f"image check unavailable: {exc}",
-                              kind="engine-unavailable") from None
+                              kind=ProblemKind.ENGINE_UNAVAILABLE) from None
         return out
 
     return verify

@@ -6,7 +6,7 @@ The route (``POST /v1/maps/{id}/localize``) checks the request and the map, then
 
 from __future__ import annotations
 
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 
 MODES = ("sift", "global", "hybrid")
 """The localisers one image can use: the particle filter's, for one step."""
@@ -20,10 +20,10 @@ def check_prior(lat: float | None, lon: float | None, sigma_m: float | None
     if lat is None and lon is None:
         if sigma_m is not None:
             raise Problem(422, "prior_sigma_m needs prior_lat and prior_lon",
-                          kind="bad-prior", field="prior_sigma_m")
+                          kind=ProblemKind.BAD_PRIOR, field="prior_sigma_m")
         return None
     if lat is None or lon is None:
         missing = "prior_lat" if lat is None else "prior_lon"
-        raise Problem(422, "prior_lat and prior_lon come together", kind="bad-prior",
+        raise Problem(422, "prior_lat and prior_lon come together", kind=ProblemKind.BAD_PRIOR,
                       field=missing)
     return lat, lon, sigma_m if sigma_m is not None else DEFAULT_PRIOR_SIGMA_M

@@ -23,7 +23,7 @@ from vloc.app.maps.dependencies import ImageVerifier, MapDep, parse_id
 from vloc.app.maps.localize import DEFAULT_PRIOR_SIGMA_M, check_prior
 from vloc.app.maps.models import MapImage
 from vloc.app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 from vloc.app.sessions.admission import revision_missing
 from vloc.app.sessions.dependencies import FrameMetadataDep
 from vloc.app.sessions.pose import pose_fields
@@ -96,7 +96,7 @@ def get_image_file(map_: MapDep, db: DbSession, settings: SettingsDep,
     image = service.get_image(db, map_=map_, image_id=image_id)
     path = service.image_path(settings, image)
     if not path.is_file():
-        raise Problem(404, f"the file of image {image_id} is missing", kind="not-found")
+        raise Problem(404, f"the file of image {image_id} is missing", kind=ProblemKind.NOT_FOUND)
     # content-addressed: the file of an image id never changes
     return FileResponse(path, media_type=image.content_type,
                         headers={"Cache-Control": "private, max-age=86400"})
@@ -127,7 +127,7 @@ async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: Image
                      ) -> ImageUploadResult:
     """Add geotagged images: GPS from EXIF, or ``lat``/``lon`` fields for one file."""
     if (lat is None) != (lon is None):
-        raise Problem(422, "give both lat and lon, or neither", kind="bad-position")
+        raise Problem(422, "give both lat and lon, or neither", kind=ProblemKind.BAD_POSITION)
     position = None
     if lat is not None:
         position = service.GivenPosition(lat, lon, alt, aware(captured_at))
@@ -189,12 +189,12 @@ async def localize_image(
     declared = kind_of_content_type(request.headers.get("content-type"))
     if declared is None:
         raise Problem(415, "send the image as the raw body with Content-Type image/jpeg or "
-                      "image/png", kind="unsupported-media-type")
+                      "image/png", kind=ProblemKind.UNSUPPORTED_MEDIA_TYPE)
     captured = check_captured_at(captured_at)
     prior = check_prior(prior_lat, prior_lon, prior_sigma_m)
     if map_.revision == 0:
         raise Problem(409, "the map has not been built yet; POST /v1/maps/{id}/build",
-                      kind="map-not-built")
+                      kind=ProblemKind.MAP_NOT_BUILT)
     map_id, revision = str(map_.id), map_.revision
     folder = str(ctx.settings.packed_map_dir(map_id, revision))
     if not Path(folder).is_dir():
@@ -207,7 +207,7 @@ async def localize_image(
     try:
         params = validate_params(mode, {})
     except ValueError as exc:  # the server's own defaults: not the caller's fault
-        raise Problem(500, str(exc), kind="bad-params") from None
+        raise Problem(500, str(exc), kind=ProblemKind.BAD_PARAMS) from None
     params.pop("seed", None)
     try:
         result = await asyncio.wait_for(run_task(
@@ -216,13 +216,13 @@ async def localize_image(
             ctx.settings.frame_wait_timeout_s)
     except TimeoutError:
         raise Problem(504, "no answer within "
-                      f"{ctx.settings.frame_wait_timeout_s:g} s", kind="estimate-timeout") \
+                      f"{ctx.settings.frame_wait_timeout_s:g} s", kind=ProblemKind.ESTIMATE_TIMEOUT) \
             from None
     except ValueError as exc:
-        raise Problem(422, str(exc), kind="bad-image") from None
+        raise Problem(422, str(exc), kind=ProblemKind.BAD_IMAGE) from None
     except (KeyError, RuntimeError, WorkerDied, EngineClosed) as exc:
         raise Problem(503, f"the engine could not localise the image: {exc}",
-                      kind="engine-unavailable") from None
+                      kind=ProblemKind.ENGINE_UNAVAILABLE) from None
     fields = pose_fields(result["estimate"], map_id=map_id, map_revision=revision,
                          map_folder=folder, metadata=metadata,
                          decode_ms=result["decode_ms"],
