@@ -99,7 +99,8 @@ GEOPOSE = ("The pose as an OGC GeoPose 1.0 Basic-Quaternion: position (lat, lon,
 
 class PoseFields(BaseModel):
     """What a pose says of where the camera is: a session's estimate
-    (:class:`PoseEstimate`) and a single image's (:class:`Localization`).
+    (:class:`PoseEstimate`) and a single image's
+    (:class:`~vloc.app.localize.schemas.Localization`).
 
     The fields are declared here once: the table ``pose_estimates`` is generated from them
     (:mod:`app.sessions.pose`), and an estimate's fields of the same name are copied into
@@ -180,14 +181,6 @@ class PoseEstimate(PoseFields):
     latency_ms: float = Field(description="Frame arrival to estimate back in the API")
     navigation: NavigationState | None = Field(
         None, description="For a session that follows a route; null otherwise")
-
-
-class Localization(PoseFields):
-    """Where a single image was taken (``POST /v1/maps/{id}/localize``)."""
-
-    type: Literal["localization"] = "localization"
-    captured_at: datetime | None
-    latency_ms: float = Field(description="Request arrival to answer, in the API")
 
 
 def heading_quaternion(heading_deg: float) -> Quaternion:

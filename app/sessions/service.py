@@ -17,7 +17,6 @@ from vloc.app.db import new_id, utcnow
 from vloc.app.engine import WorkerDied
 from vloc.app.maps.models import Map
 from vloc.app.problems import Problem, ProblemKind, not_found
-from vloc.app.routes.service import navigation_path
 from vloc.app.security import hash_secret, new_token
 from vloc.app.sessions import pose, store
 from vloc.app.sessions.admission import revision_missing
@@ -32,6 +31,7 @@ from vloc.app.sessions.schemas import (
     SessionRead,
     SessionStats,
 )
+from vloc.app.teach.service import navigation_path
 from vloc.workers.core.geo import GeoOrigin
 
 LATENCY_WINDOW = 1000

@@ -7,7 +7,7 @@ checks both). :func:`vloc.app.engine.run_task` runs the functions of this packag
 any other.
 
 - :mod:`.build`: a map's build, image by image, then the packing of a revision;
-- :mod:`.routes`: a taught route's build;
+- :mod:`.teach`: a taught route's build;
 - :mod:`.localize`: one image localised against a packed revision;
 - :mod:`.images`: an upload decoded in full, to check it.
 """

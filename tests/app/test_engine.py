@@ -8,7 +8,7 @@ from concurrent.futures import Future
 import pytest
 
 from vloc.app.engine import run_task
-from vloc.app.maps.localize import check_prior
+from vloc.app.localize.service import check_prior
 from vloc.app.tasks.images import inspect_image
 
 

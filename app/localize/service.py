@@ -1,7 +1,8 @@
 """Where was this one image taken? A synchronous, sessionless localisation.
 
 The route (``POST /v1/maps/{id}/localize``) checks the request and the map, then runs
-:func:`vloc.app.tasks.localize.localize_image` on the least busy worker of the engine.
+:func:`vloc.app.tasks.localize.localize_image` on the least busy worker of the engine; this
+module checks what the request gives of the filter's start.
 """
 
 from __future__ import annotations

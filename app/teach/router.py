@@ -9,9 +9,9 @@ from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
 from vloc.app.deps import Ctx, DbSession, SettingsDep, require_admin
 from vloc.app.maps.dependencies import MapDep
 from vloc.app.problems import Problem, ProblemKind
-from vloc.app.routes import service
-from vloc.app.routes.odometry import parse_odometry
-from vloc.app.routes.schemas import RouteDetail, RouteRead
+from vloc.app.teach import service
+from vloc.app.teach.odometry import parse_odometry
+from vloc.app.teach.schemas import RouteDetail, RouteRead
 from vloc.app.validation import check_text
 
 router = APIRouter(prefix="/v1/maps/{map_id}/routes", tags=["routes"],

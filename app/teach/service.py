@@ -16,10 +16,10 @@ from vloc.app.db import utcnow
 from vloc.app.engine import Engine, run_task
 from vloc.app.maps.models import ImageSift, Map, MapImage
 from vloc.app.problems import Problem, ProblemKind, not_found
-from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
-from vloc.app.routes.odometry import OdometryRow
-from vloc.app.routes.schemas import RouteDetail
-from vloc.app.tasks import routes as tasks
+from vloc.app.tasks import teach as tasks
+from vloc.app.teach.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
+from vloc.app.teach.odometry import OdometryRow
+from vloc.app.teach.schemas import RouteDetail
 
 log = logging.getLogger(__name__)
 

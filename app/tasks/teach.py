@@ -17,8 +17,8 @@ from sqlalchemy import delete, select
 from vloc.app.db import utcnow
 from vloc.app.maps.codecs import decode_sift, decode_vector
 from vloc.app.maps.models import ImageGlobalFeature, ImageSift, Map, MapImage
-from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
 from vloc.app.tasks.database import sessions
+from vloc.app.teach.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
 
 
 def build_route(database_url: str, route_id: str) -> dict:
