@@ -26,6 +26,11 @@ from vloc.app.sessions.service import check_initial_pose, map_frame
 from vloc.app.tasks import localize as tasks
 from vloc.app.validation import check_captured_at
 from vloc.workers.core.localisers import validate_params
+from vloc.workers.core.modes import FILTER_MODES
+
+ONE_STEP_MODES = tuple(reversed(FILTER_MODES))
+"""The particle filter's modes, as this route has always listed them: its default (sift)
+first."""
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(require_admin)])
 
@@ -44,7 +49,7 @@ router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(requi
                  "image/png": {"schema": {"type": "string", "format": "binary"}}}}})
 async def localize_image(
     request: Request, map_: MapDep, ctx: Ctx, metadata: FrameMetadataDep,
-    mode: Literal["sift", "global", "hybrid"] = Query(
+    mode: Literal[ONE_STEP_MODES] = Query(
         "sift", description="The measurement of the one filter step"),
     prior_lat: float | None = Query(None, ge=-90, le=90, allow_inf_nan=False,
                                     description="Prior position, WGS84; with prior_lon"),

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from vloc.app.problems import Problem, ProblemKind
 
-MODES = ("sift", "global", "hybrid")
-"""The localisers one image can use: the particle filter's, for one step."""
 DEFAULT_PRIOR_SIGMA_M = 25.0
 
 

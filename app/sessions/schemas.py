@@ -10,6 +10,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 
 from vloc.workers.core.estimate import Status
+from vloc.workers.core.modes import MODES
 
 MAX_SEQ = 2**63 - 1
 """The largest frame sequence number: the database stores it as a signed 64-bit integer."""
@@ -217,7 +218,7 @@ class SessionRead(BaseModel):
     id: uuid.UUID
     map_id: uuid.UUID
     map_revision: int
-    mode: Literal["hybrid", "global", "sift", "hierarchical", "retrieval"]
+    mode: Literal[MODES]
     params: dict[str, Any]
     seed: int
     created_at: datetime

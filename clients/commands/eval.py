@@ -10,9 +10,9 @@ from pathlib import Path
 
 import click
 
-from ._common import parse_params
+from vloc.workers.core.modes import MODES
 
-MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
+from ._common import parse_params
 
 
 def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
@@ -30,7 +30,7 @@ def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
 @click.option("--query-pass", type=int, help="Pass number replayed as the query sequence.")
 @click.option("--split", "rule", type=click.Choice(["pass", "alternate"]), default="pass",
               show_default=True, help="Split by pass, or alternate images (even map, odd query).")
-@click.option("--modes", default="hybrid,global,sift,hierarchical,retrieval", show_default=True,
+@click.option("--modes", default=",".join(MODES), show_default=True,
               help="Comma-separated localisers to run.")
 @click.option("--config", "configs", default="default", show_default=True,
               help="Comma-separated filter configurations (default, weiss2008).")

@@ -18,8 +18,7 @@ from vloc.clients.commands._common import (
     reports_errors,
     server_options,
 )
-
-MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
+from vloc.workers.core.modes import MODES
 
 
 def _modes(value: str) -> list[str]:
