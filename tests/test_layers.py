@@ -46,7 +46,8 @@ def _offences(folder: str, forbidden: tuple[str, ...], *, allowed: tuple[str, ..
 @pytest.mark.parametrize(("folder", "forbidden", "allowed"), [
     ("workers/core", ("workers.engine", "app", "clients"), ()),
     ("workers/engine", ("app", "clients"), ()),
-    ("app", ("workers.engine",), ("app/engine.py",)),
+    ("app", ("workers.engine", "workers.core.evaluation"), ("app/engine.py",)),
+    ("workers/engine", ("workers.core.evaluation",), ()),
     # a revision does what it did when it was written: it imports none of the live code
     ("migrations/versions", ("app", "workers", "clients", "migrations"), ()),
 ])
@@ -63,6 +64,28 @@ def test_the_check_finds_an_offending_import(tmp_path, monkeypatch):
 
 
 WEB = ("fastapi", "starlette", "app.main", "app.deps", "app.server")
+
+
+def _resolved_imports(path: Path) -> set[str]:
+    """:func:`_imports` with the relative imports too, named from the repository root."""
+    package = path.relative_to(REPO_ROOT).parent.as_posix().split("/")
+    found = set(_imports(path))
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.level:
+            base = package[:len(package) - node.level + 1]
+            names = [node.module] if node.module else [a.name for a in node.names]
+            found.update(".".join([*base, name]) for name in names)
+    return found
+
+
+def test_the_core_s_algorithms_do_not_import_its_evaluation():
+    """workers/core/evaluation measures the algorithms; nothing else in the core uses it."""
+    offences = [f"{p.relative_to(REPO_ROOT)} imports {m}"
+                for p in sorted((REPO_ROOT / "workers" / "core").rglob("*.py"))
+                if "evaluation" not in p.relative_to(REPO_ROOT).parts
+                for m in sorted(_resolved_imports(p))
+                if m == "workers.core.evaluation" or m.startswith("workers.core.evaluation.")]
+    assert offences == []
 
 
 def _web_imports(folder: str) -> list[str]:

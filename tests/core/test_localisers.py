@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vloc.workers.core.estimate import Status
-from vloc.workers.core.evaluate import choose_starts, evaluate
+from vloc.workers.core.evaluation.evaluate import choose_starts, evaluate
 from vloc.workers.core.features import shortlist
 from vloc.workers.core.features.shortlist import PlaceCodes
 from vloc.workers.core.geo import GeoOrigin
