@@ -3,7 +3,7 @@
 particle filter over the map, started around the prior position when one is given. Nothing
 is stored. The map and the step are the ones a session's worker uses
 (:func:`~vloc.workers.core.mapdata.open_map`,
-:func:`~vloc.workers.core.localisers.stepping.step_image`).
+:func:`~vloc.workers.core.stepping.step_image`).
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ def localize_image(folder: str, data: bytes, *, mode: str, params: dict, seed: i
     """
     from vloc.workers.core.image import ImageError
     from vloc.workers.core.localisers import make_localiser
-    from vloc.workers.core.localisers.stepping import step_image
     from vloc.workers.core.mapdata import open_map
+    from vloc.workers.core.stepping import step_image
 
     map_data = open_map(folder)
     localiser = make_localiser(mode, map_data, params, seed=seed)

@@ -438,7 +438,7 @@ def test_step_image_decodes_steps_and_records_and_refuses_bytes_that_do_not_deco
     import cv2
 
     from vloc.workers.core.image import ImageError
-    from vloc.workers.core.localisers.stepping import step_image
+    from vloc.workers.core.stepping import step_image
 
     class Once:
         def __init__(self):

@@ -90,7 +90,7 @@ class WorkerState:
 
     def _step(self, task: FrameTask, localiser) -> FrameDone | FrameFailed:
         from vloc.workers.core.image import ImageError
-        from vloc.workers.core.localisers.stepping import step_image
+        from vloc.workers.core.stepping import step_image
 
         try:
             record = step_image(localiser, task.data, max_pixels=self.max_pixels,

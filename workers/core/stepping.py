@@ -2,16 +2,22 @@
 
 A session's worker and the one-shot localisation of a single image both go through
 :func:`step_image`, so a frame is decoded, stepped and reported the same way whichever asked.
+It imports no localiser: the one it steps comes from the caller.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from ..image import load_frame
-from ..metadata import FrameMetadata
-from .base import Localiser
+from .image import load_frame
+from .metadata import FrameMetadata
+
+# Only for the annotation: the localisers' package imports every localiser, which a worker
+# would pay for on its first frame (a shard restarted by Ray, on its first after that).
+if TYPE_CHECKING:
+    from .localisers.base import Localiser
 
 
 @dataclass(frozen=True, slots=True)
