@@ -14,9 +14,9 @@ from vloc.app.metrics import Metrics
 if TYPE_CHECKING:
     from vloc.app.engine import Engine
     from vloc.app.jobs.service import BuildRunner
-    from vloc.app.routes.service import RouteRunner
     from vloc.app.sessions.runtime import SessionRuntime
     from vloc.app.stream.hub import LocalHub
+    from vloc.app.teach.service import RouteRunner
 
 
 @dataclass(eq=False)

@@ -14,7 +14,7 @@ from starlette.requests import HTTPConnection
 from vloc.app.config import Settings
 from vloc.app.context import AppContext
 from vloc.app.db import session_scope
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 from vloc.app.security import matches, presented_secret
 
 BEARER = {"WWW-Authenticate": 'Bearer realm="vloc"'}
@@ -58,7 +58,7 @@ DbSession = Annotated[Session, Depends(get_db)]
 
 def unauthenticated(detail: str = "credentials required: Authorization: Bearer <key>") \
         -> Problem:
-    return Problem(401, detail, kind="unauthenticated", headers=BEARER)
+    return Problem(401, detail, kind=ProblemKind.UNAUTHENTICATED, headers=BEARER)
 
 
 def check_admin(secret: str | None, ctx: AppContext) -> None:
@@ -66,7 +66,7 @@ def check_admin(secret: str | None, ctx: AppContext) -> None:
     if secret is None:
         raise unauthenticated()
     if not matches(secret, ctx.admin_key_hash):
-        raise Problem(403, "these credentials do not grant admin access", kind="forbidden")
+        raise Problem(403, "these credentials do not grant admin access", kind=ProblemKind.FORBIDDEN)
 
 
 async def require_admin(conn: HTTPConnection, ctx: Ctx, _bearer=AdminSchemes[0],

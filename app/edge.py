@@ -29,7 +29,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from vloc.app.context import AppContext
 from vloc.app.deps import check_admin, check_metrics
 from vloc.app.limits import BodyKind, body_limit, too_large
-from vloc.app.problems import Problem, not_found, problem_response
+from vloc.app.problems import Problem, ProblemKind, not_found, problem_response
 from vloc.app.security import presented_secret_from_headers
 from vloc.app.sessions.dependencies import authorise
 from vloc.app.sessions.models import LocalisationSession
@@ -209,7 +209,7 @@ _JSON_TAIL = 64
 
 def nul_problem(where: str) -> Problem:
     return Problem(422, f"{where} contains a NUL character; no name or value needs one",
-                   kind="bad-text")
+                   kind=ProblemKind.BAD_TEXT)
 
 
 def _check_url(scope: Scope) -> None:
@@ -235,7 +235,7 @@ def _content_length(scope: Scope) -> int | None:
     for key, value in scope.get("headers", ()):
         if key == b"content-length":
             if not value.isdigit():
-                raise Problem(400, "invalid Content-Length header", kind="bad-request")
+                raise Problem(400, "invalid Content-Length header", kind=ProblemKind.BAD_REQUEST)
             return int(value)
     return None
 

@@ -2,12 +2,17 @@
 the engine goes through here.
 
 :func:`engine_for` picks the engine from the settings (``VLOC_ENGINE``): the local pool of
-worker processes, or shard actors on a Ray cluster (``VLOC_RAY_ADDRESS``). The functions the
-service runs on the engine are named here by reference, and so are the messages and errors
-it reads back.
+worker processes, or shard actors on a Ray cluster (``VLOC_RAY_ADDRESS``). The service runs
+its own code on the engine with :func:`run_task`, which takes the functions of
+:mod:`vloc.app.tasks` and no other: whatever the engine runs of the service is in that one
+package, which imports no web layer. The messages and errors the service reads back are
+named here too.
 """
 
 from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
 
 from vloc.app.config import Settings
 from vloc.workers.engine import (
@@ -23,22 +28,14 @@ from vloc.workers.engine import (
     SharedEngine,
     WorkerDied,
 )
-from vloc.workers.engine.build import (
-    decode_orb,
-    decode_sift,
-    decode_vector,
-    decode_vocabulary,
-    encode_local,
-    encode_vector,
-    encode_vocabulary,
-    inspect_image,
-)
 from vloc.workers.engine.messages import DEFAULT_FACTORY
 
-__all__ = ["DEFAULT_FACTORY", "Checkpoint", "Engine", "EngineClosed", "FrameDone", "FrameFailed", "Outcome",
-           "SeqRefused", "SessionSpec", "SharedEngine", "WorkerDied", "decode_orb",
-           "decode_sift", "decode_vector", "decode_vocabulary", "encode_local", "encode_vector",
-           "encode_vocabulary", "inspect_image", "engine_for"]
+__all__ = ["DEFAULT_FACTORY", "Checkpoint", "Engine", "EngineClosed", "FrameDone", "FrameFailed",
+           "Outcome", "SeqRefused", "SessionSpec", "SharedEngine", "WorkerDied", "engine_for",
+           "run_task"]
+
+TASKS = "vloc.app.tasks"
+"""The package of the service's code that the engine runs."""
 
 
 def engine_for(settings: Settings) -> Engine:
@@ -56,6 +53,20 @@ def engine_for(settings: Settings) -> Engine:
                          instance=settings.instance_name, deployment=_deployment(settings))
     return LocalEngine(settings.worker_count, checkpoint_every=settings.checkpoint_every,
                        max_pixels=settings.max_pixels, stall_s=settings.worker_stall_s)
+
+
+def run_task(engine: Engine, task: Callable, /, *args, **kwargs) -> asyncio.Future:
+    """Run ``task(*args, **kwargs)`` on some worker of ``engine``; await the result.
+
+    ``task`` is a module-level function of :mod:`vloc.app.tasks` (the workers import it by
+    reference); anything else is refused with a TypeError, before it reaches the engine.
+    """
+    module = getattr(task, "__module__", None) or ""
+    qualname = getattr(task, "__qualname__", "")
+    if not (callable(task) and module.startswith(TASKS + ".") and "." not in qualname):
+        name = f"{module}.{qualname}" if module else repr(task)
+        raise TypeError(f"the engine runs the functions of {TASKS} only, not {name}")
+    return asyncio.wrap_future(engine.call(task, *args, **kwargs))
 
 
 def _deployment(settings: Settings) -> str:

@@ -14,7 +14,7 @@ from io import BytesIO
 
 from PIL import Image, UnidentifiedImageError
 
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 from vloc.workers.core.image import image_kind, looks_truncated
 
 CONTENT_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
@@ -65,21 +65,21 @@ def check_image(data: bytes, *, max_pixels: int, declared: str | None = None) ->
         413 more pixels than allowed.
     """
     if not data:
-        raise Problem(422, "the image is empty", kind="empty-image")
+        raise Problem(422, "the image is empty", kind=ProblemKind.EMPTY_IMAGE)
     kind = sniff(data)
     if kind is None:
-        raise Problem(422, "not a JPEG or PNG image", kind="bad-image")
+        raise Problem(422, "not a JPEG or PNG image", kind=ProblemKind.BAD_IMAGE)
     if declared is not None and kind != declared:
         raise Problem(415, f"the body is a {kind.upper()} image, but the content type says "
-                      f"{declared.upper()}", kind="content-type-mismatch")
+                      f"{declared.upper()}", kind=ProblemKind.CONTENT_TYPE_MISMATCH)
     width, height = _header_size(data, max_pixels)
     if width <= 0 or height <= 0:
-        raise Problem(422, "the image has no pixels", kind="bad-image")
+        raise Problem(422, "the image has no pixels", kind=ProblemKind.BAD_IMAGE)
     if width * height > max_pixels:
         raise Problem(413, f"an image of {width}x{height} pixels exceeds the limit of "
-                      f"{max_pixels} pixels", kind="too-many-pixels", max_pixels=max_pixels)
+                      f"{max_pixels} pixels", kind=ProblemKind.TOO_MANY_PIXELS, max_pixels=max_pixels)
     if looks_truncated(data):
-        raise Problem(422, "the image is truncated", kind="truncated-image")
+        raise Problem(422, "the image is truncated", kind=ProblemKind.TRUNCATED_IMAGE)
     return ImageHeader(kind, width, height)
 
 
@@ -94,12 +94,12 @@ def _header_size(data: bytes, max_pixels: int) -> tuple[int, int]:
                     im.verify()
                 return size
     except Image.DecompressionBombError as exc:
-        raise Problem(413, str(exc), kind="too-many-pixels", max_pixels=max_pixels) from None
+        raise Problem(413, str(exc), kind=ProblemKind.TOO_MANY_PIXELS, max_pixels=max_pixels) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
         if "truncated" in str(exc).lower() or isinstance(exc, EOFError):
-            raise Problem(422, "the image is truncated", kind="truncated-image") from None
+            raise Problem(422, "the image is truncated", kind=ProblemKind.TRUNCATED_IMAGE) from None
         raise Problem(422, f"the image header is unreadable: {_describe(exc)}",
-                      kind="bad-image") from None
+                      kind=ProblemKind.BAD_IMAGE) from None
 
 
 def _describe(exc: Exception) -> str:

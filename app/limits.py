@@ -12,7 +12,7 @@ from enum import Enum
 from starlette.requests import Request
 
 from vloc.app.config import Settings
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 
 
 class BodyKind(Enum):
@@ -22,7 +22,7 @@ class BodyKind(Enum):
 
 
 def too_large(limit: int) -> Problem:
-    return Problem(413, f"request body exceeds the limit of {limit} bytes", kind="too-large",
+    return Problem(413, f"request body exceeds the limit of {limit} bytes", kind=ProblemKind.TOO_LARGE,
                    limit=limit)
 
 

@@ -19,16 +19,17 @@ from vloc.app.engine import engine_for
 from vloc.app.health.router import router as health_router
 from vloc.app.jobs.router import router as jobs_router
 from vloc.app.jobs.service import BuildRunner, fail_interrupted
+from vloc.app.localize.router import router as localize_router
 from vloc.app.maps.router import router as maps_router
 from vloc.app.metrics import Metrics, MetricsMiddleware
-from vloc.app.routes.router import router as routes_router
-from vloc.app.routes.service import RouteRunner, fail_interrupted_routes
 from vloc.app.security import hash_secret
 from vloc.app.sessions.router import router as sessions_router
 from vloc.app.sessions.runtime import SessionRuntime
 from vloc.app.sessions.store import interrupt_left_queued
 from vloc.app.stream.hub import LocalHub
 from vloc.app.stream.router import router as stream_router
+from vloc.app.teach.router import router as routes_router
+from vloc.app.teach.service import RouteRunner, fail_interrupted_routes
 
 log = logging.getLogger("vloc.app")
 
@@ -66,8 +67,8 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
                               "GPS-tagged images. Errors are RFC 9457 problem details.")
     app.state.ctx = ctx
     problems.install(app)
-    for router in (health_router, maps_router, routes_router, jobs_router, sessions_router,
-                   stream_router):
+    for router in (health_router, maps_router, localize_router, routes_router, jobs_router,
+                   sessions_router, stream_router):
         app.include_router(router)
     openapi.install(app)
     openapi.serve_docs(app)

@@ -10,8 +10,8 @@ from vloc.app.maps.models import (
     MapImage,
     MapVocabulary,
 )
-from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode
 from vloc.app.sessions.models import Frame, LocalisationSession, Pose
+from vloc.app.teach.models import Route, RouteArc, RouteImage, RouteNode
 
 __all__ = ["Base", "BuildJob", "Frame", "ImageGlobalFeature", "ImageOrb", "ImageSift",
            "LocalisationSession", "Map", "MapImage", "MapVocabulary", "Pose", "Route", "RouteArc",

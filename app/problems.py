@@ -2,13 +2,15 @@
 
 A :class:`Problem` raised anywhere in a request (route, dependency, service, body reader)
 becomes a response with its real HTTP status; FastAPI's own validation errors and
-Starlette's 404/405 are rewritten into the same shape.
+Starlette's 404/405 are rewritten into the same shape. Its ``type`` is
+``urn:vloc:problem:<kind>`` for one of the :class:`ProblemKind` slugs, which clients branch on.
 """
 
 from __future__ import annotations
 
 import logging
 import re
+from enum import StrEnum
 from http import HTTPStatus
 
 from fastapi import FastAPI, Request
@@ -16,12 +18,85 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from vloc.app import validation_errors
-
 PROBLEM_JSON = "application/problem+json"
 TYPE_PREFIX = "urn:vloc:problem:"
 
 log = logging.getLogger(__name__)
+
+
+class ProblemKind(StrEnum):
+    """Every problem type the API answers with, the slug after ``urn:vloc:problem:``.
+
+    Clients branch on these, so the list is a contract: docs/api.md says when each occurs
+    (and with which status), and the SDK mirrors it (``vloc.clients.sdk.ProblemKind``);
+    tests keep the three the same. Grouped by the status they usually come with.
+    """
+
+    BAD_REQUEST = "bad-request"
+    UNAUTHENTICATED = "unauthenticated"
+    FORBIDDEN = "forbidden"
+    NOT_FOUND = "not-found"
+    # 409
+    DUPLICATE_SEQ = "duplicate-seq"
+    STALE_SEQ = "stale-seq"
+    SEQ_EXHAUSTED = "seq-exhausted"
+    MAP_BUSY = "map-busy"
+    MAP_EMPTY = "map-empty"
+    MAP_IN_USE = "map-in-use"
+    MAP_NOT_BUILT = "map-not-built"
+    MAP_UP_TO_DATE = "map-up-to-date"
+    NO_IMAGE_ACCEPTED = "no-image-accepted"
+    ROUTE_BUSY = "route-busy"
+    ROUTE_NOT_READY = "route-not-ready"
+    # 410
+    SESSION_EXPIRED = "session-expired"
+    # 413, 415
+    TOO_LARGE = "too-large"
+    TOO_MANY_PIXELS = "too-many-pixels"
+    TOO_MANY_FILES = "too-many-files"
+    UNSUPPORTED_MEDIA_TYPE = "unsupported-media-type"
+    CONTENT_TYPE_MISMATCH = "content-type-mismatch"
+    # 422
+    EMPTY_IMAGE = "empty-image"
+    BAD_IMAGE = "bad-image"
+    TRUNCATED_IMAGE = "truncated-image"
+    BAD_TEXT = "bad-text"
+    NO_FILES = "no-files"
+    NO_GPS = "no-gps"
+    POSITION_AMBIGUOUS = "position-ambiguous"
+    BAD_POSITION = "bad-position"
+    BAD_GPS = "bad-gps"
+    BAD_CAPTURED_AT = "bad-captured-at"
+    BAD_ODOMETRY = "bad-odometry"
+    UNKNOWN_IMAGES = "unknown-images"
+    AMBIGUOUS_IMAGES = "ambiguous-images"
+    BAD_METADATA = "bad-metadata"
+    BAD_INITIAL_POSE = "bad-initial-pose"
+    BAD_PRIOR = "bad-prior"
+    BAD_CONTROL = "bad-control"
+    BAD_PARAMS = "bad-params"
+    VALIDATION = "validation"
+    BAD_MESSAGE = "bad-message"
+    # a frame accepted with ?wait=true that gave no estimate: frame-<the failure's kind>
+    FRAME_BAD_IMAGE = "frame-bad-image"
+    FRAME_ERROR = "frame-error"
+    FRAME_NOT_STORED = "frame-not-stored"
+    FRAME_WORKER_DIED = "frame-worker-died"
+    FRAME_NOT_OPEN = "frame-not-open"
+    # 429
+    TOO_MANY_PENDING = "too-many-pending"
+    TOO_MANY_SESSIONS = "too-many-sessions"
+    OVER_FAIR_SHARE = "over-fair-share"
+    # 500, 503, 504
+    INTERNAL = "internal"
+    ENGINE_UNAVAILABLE = "engine-unavailable"
+    SESSION_UNAVAILABLE = "session-unavailable"
+    MAP_REVISION_MISSING = "map-revision-missing"
+    SHUTTING_DOWN = "shutting-down"
+    STORAGE_UNAVAILABLE = "storage-unavailable"
+    SERVER_BUSY = "server-busy"
+    NOT_READY = "not-ready"
+    ESTIMATE_TIMEOUT = "estimate-timeout"
 
 
 class Problem(Exception):
@@ -32,9 +107,9 @@ class Problem(Exception):
     status : int
     detail : str
         What went wrong with this request, for a human.
-    kind : str or None
-        A stable slug (``bad-image``, ``stale-seq``...) that becomes the ``type`` URI
-        ``urn:vloc:problem:<kind>``; None gives ``about:blank``.
+    kind : ProblemKind or None
+        Becomes the ``type`` URI ``urn:vloc:problem:<kind>``; None gives ``about:blank``.
+        A slug that is not a :class:`ProblemKind` is a ValueError.
     title : str or None
         Defaults to the HTTP reason phrase.
     headers : dict or None
@@ -42,13 +117,13 @@ class Problem(Exception):
         Extra members of the problem object (RFC 9457 section 3.2).
     """
 
-    def __init__(self, status: int, detail: str, *, kind: str | None = None,
+    def __init__(self, status: int, detail: str, *, kind: ProblemKind | None = None,
                  title: str | None = None, headers: dict[str, str] | None = None,
                  **extensions) -> None:
         super().__init__(detail)
         self.status = status
         self.detail = detail
-        self.kind = kind
+        self.kind = None if kind is None else ProblemKind(kind)
         self.title = title or HTTPStatus(status).phrase
         self.headers = headers
         self.extensions = extensions
@@ -68,7 +143,7 @@ def problem_response(problem: Problem, instance: str | None = None) -> JSONRespo
 
 
 def not_found(what: str, ident: object) -> Problem:
-    return Problem(404, f"{what} {ident} does not exist", kind="not-found")
+    return Problem(404, f"{what} {ident} does not exist", kind=ProblemKind.NOT_FOUND)
 
 
 def allowed_methods(request: Request) -> list[str] | None:
@@ -97,6 +172,7 @@ _HTTP_METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "tr
 
 def install(app: FastAPI) -> None:
     """Register the handlers that turn every error into a problem response."""
+    from vloc.app import validation_errors
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem) -> JSONResponse:
@@ -132,11 +208,11 @@ def install(app: FastAPI) -> None:
         detail = f"{where}: {first['msg']}" if where else first["msg"]
         if "suggestion" in first:
             detail += f"; did you mean {first['suggestion']}?"
-        problem = Problem(422, detail, kind="validation", errors=errors)
+        problem = Problem(422, detail, kind=ProblemKind.VALIDATION, errors=errors)
         return problem_response(problem, request.url.path)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error on %s %s", request.method, request.url.path)
         return problem_response(Problem(500, "internal error; see the server log",
-                                        kind="internal"), request.url.path)
+                                        kind=ProblemKind.INTERNAL), request.url.path)

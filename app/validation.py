@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from datetime import UTC, datetime, timedelta
 
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 
 MIN_ALT_M, MAX_ALT_M = -500.0, 10_000.0
 """Altitudes a camera on or above the ground can have (the Dead Sea shore to high flight)."""
@@ -23,10 +23,10 @@ def check_position(lat: float, lon: float, alt: float | None) -> None:
     try:
         check_lat_lon(lat, lon)
     except ValueError as exc:
-        raise Problem(422, str(exc), kind="bad-position") from None
+        raise Problem(422, str(exc), kind=ProblemKind.BAD_POSITION) from None
     if alt is not None and not (math.isfinite(alt) and MIN_ALT_M <= alt <= MAX_ALT_M):
         raise Problem(422, f"alt must be a finite number of metres in [{MIN_ALT_M:g}, "
-                      f"{MAX_ALT_M:g}], got {alt!r}", kind="bad-position")
+                      f"{MAX_ALT_M:g}], got {alt!r}", kind=ProblemKind.BAD_POSITION)
 
 
 def aware(t: datetime | None) -> datetime | None:
@@ -44,7 +44,7 @@ def check_captured_at(t: datetime | None) -> datetime | None:
     t = aware(t)
     if t is not None and not plausible_time(t):
         raise Problem(422, f"captured_at must lie between {EARLIEST:%Y-%m-%d} and one day "
-                      f"from now, got {t.isoformat()}", kind="bad-captured-at")
+                      f"from now, got {t.isoformat()}", kind=ProblemKind.BAD_CAPTURED_AT)
     return t
 
 
@@ -61,11 +61,11 @@ def check_metadata(values: dict) -> dict | None:
     try:
         metadata = FrameMetadata(**given)
     except TypeError as exc:
-        raise Problem(422, f"unknown metadata field: {exc}", kind="bad-metadata") from None
+        raise Problem(422, f"unknown metadata field: {exc}", kind=ProblemKind.BAD_METADATA) from None
     except ValueError as exc:
         # The core's messages start with the offending field's name.
         name = str(exc).split()[0]
-        raise Problem(422, str(exc), kind="bad-metadata",
+        raise Problem(422, str(exc), kind=ProblemKind.BAD_METADATA,
                       field=name if name in values else None) from None
     return metadata.to_dict() or None
 
@@ -76,5 +76,5 @@ def check_text(value: str, field: str) -> str:
     PostgreSQL cannot store NUL in text, and no name or file name needs one.
     """
     if "\x00" in value:
-        raise Problem(422, f"{field} contains a NUL character", kind="bad-text", field=field)
+        raise Problem(422, f"{field} contains a NUL character", kind=ProblemKind.BAD_TEXT, field=field)
     return value

@@ -15,7 +15,10 @@ from typing import Any
 
 from pydantic import BaseModel
 
-MISSING = {("body", "files"): ("no files in the upload (form field 'files')", "no-files")}
+from vloc.app.problems import ProblemKind
+
+MISSING = {("body", "files"): ("no files in the upload (form field 'files')",
+                               ProblemKind.NO_FILES)}
 """Missing fields with a problem kind of their own: location -> (detail, kind)."""
 
 

@@ -40,8 +40,8 @@ import ray
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from vloc.workers.core.datasets import load_dataset, load_frames, split  # noqa: E402
-from vloc.workers.core.experiment import build_map  # noqa: E402
+from vloc.workers.core.evaluation.datasets import load_dataset, load_frames, split  # noqa: E402
+from vloc.workers.core.evaluation.experiment import build_map  # noqa: E402
 from vloc.workers.engine import SessionSpec  # noqa: E402
 from vloc.workers.engine.ray_actors import MAP_STORE, MapStore, Shard  # noqa: E402
 from vloc.workers.engine.ray_engine import shard_of  # noqa: E402

@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vloc.workers.core.experiment import load_experiment  # noqa: E402
+from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
 from vloc.workers.core.localisers import make_localiser  # noqa: E402
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 from vloc.workers.core.sift import extract_sift, ratio_matches  # noqa: E402

@@ -35,8 +35,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vloc.workers.core.evaluate import choose_starts  # noqa: E402
-from vloc.workers.core.experiment import load_experiment  # noqa: E402
+from vloc.workers.core.evaluation.evaluate import choose_starts  # noqa: E402
+from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
 from vloc.workers.core.localisers import make_localiser  # noqa: E402
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 

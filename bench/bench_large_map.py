@@ -5,7 +5,7 @@ laid side by side over a few square kilometres: :mod:`large_map_world`) goes thr
 service's own build path, driven in-process on SQLite with ``--workers`` worker processes (one
 by default): images enter
 through ``app.maps.service.add_images`` (screening, full decode in the worker, files and
-rows), each image's features are extracted by ``app.jobs.tasks.extract_image`` in the worker
+rows), each image's features are extracted by ``app.tasks.build.extract_image`` in the worker
 as soon as its tile is generated (the world is generated alongside, in a second process),
 and a build job started over the API packs the revision (SIFT reduction, vocabularies,
 geometry; stage times from its ``build_timings.json``). Then, on the packed revision:
@@ -160,9 +160,9 @@ def add_tile(client, map_id: str, files: list[Path]) -> int:
 def extract_pending(ctx, map_id: str) -> int:
     """Extract the features of the map's images that have none yet, in the worker, with
     the build job's own task; returns how many."""
-    from vloc.app.jobs import tasks
     from vloc.app.maps.models import ImageOrb, ImageSift, MapImage
     from vloc.app.maps.service import image_path
+    from vloc.app.tasks import build as tasks
 
     with ctx.db_sessions() as db:
         todo = [(img.id, str(image_path(ctx.settings, img))) for img in db.scalars(

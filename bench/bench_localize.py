@@ -43,7 +43,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from bench_service import ADMIN_KEY, build_map, start_server  # noqa: E402
 
-from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 
 
 async def over_http(base: str, map_id: str, frames: list[bytes], repeats: int) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Benchmark: the memory a map build's packing holds, stage by stage.
 
 Packs a map already ingested by ``bench_large_map.py`` again, in this process, with the same
-job function the build worker runs (``app.jobs.tasks.pack_map``), and reports after each stage
+job function the build worker runs (``app.tasks.build.pack_map``), and reports after each stage
 the memory Python and NumPy have allocated (``tracemalloc``: the worker's own heap, without
 the pages of memory-mapped files, which the kernel can drop) and its peak during the stage.
 A worker's resident size (VmHWM) also counts the pages of the files it maps, such as the tie
@@ -45,8 +45,8 @@ def main() -> None:
     from sqlalchemy import create_engine, select
     from sqlalchemy.orm import Session
 
-    from vloc.app.jobs import tasks
     from vloc.app.maps.models import MapImage
+    from vloc.app.tasks import build as tasks
     from vloc.workers.core import mapbuild
 
     database = args.work / "service" / "vloc.sqlite3"

@@ -45,7 +45,7 @@ cv2.setNumThreads(1)
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 from vloc.workers.core.features import DESCRIPTOR_NAMES, DESCRIPTORS, extract_many  # noqa: E402
 from vloc.workers.core.features.descriptors import (  # noqa: E402
     describe,

@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from bench_service import ADMIN_KEY, build_map, free_port, level, wait_ready  # noqa: E402
 
-from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 
 POSTGRES = os.environ.get("VLOC_TEST_POSTGRES_URL",
                           "postgresql+psycopg://postgres@127.0.0.1:5432/test")

@@ -37,7 +37,7 @@ from websockets.asyncio.client import connect
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from vloc.workers.core.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 
 ADMIN_KEY = "bench-admin-key-0123456789abcdef"
 

@@ -33,9 +33,9 @@ sys.path.insert(0, str(ROOT))
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from vloc.clients.world import generate_world  # noqa: E402
-from vloc.workers.core.evaluate import evaluate  # noqa: E402
-from vloc.workers.core.experiment import load_experiment  # noqa: E402
-from vloc.workers.core.report import results_dict  # noqa: E402
+from vloc.workers.core.evaluation.evaluate import evaluate  # noqa: E402
+from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
+from vloc.workers.core.evaluation.report import results_dict  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "datasets"
 WORLDS = ROOT / "bench" / ".cache" / "geometry-worlds"

@@ -35,8 +35,9 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from vloc.workers.core.datasets import load_dataset, load_frames, split  # noqa: E402
-from vloc.workers.core.experiment import truth_positions  # noqa: E402
+from vloc.workers.core.evaluation.datasets import load_dataset, load_frames, split  # noqa: E402
+from vloc.workers.core.evaluation.experiment import truth_positions  # noqa: E402
+from vloc.workers.core.evaluation.photometric import apply_variant, variant_rng  # noqa: E402
 from vloc.workers.core.features import DESCRIPTOR_NAMES  # noqa: E402
 from vloc.workers.core.image import prepare  # noqa: E402
 from vloc.workers.core.localisers.scoring import (  # noqa: E402
@@ -44,7 +45,6 @@ from vloc.workers.core.localisers.scoring import (  # noqa: E402
     sift_similarity,
 )
 from vloc.workers.core.mapbuild import assemble_map, extract_image_features  # noqa: E402
-from vloc.workers.core.photometric import apply_variant, variant_rng  # noqa: E402
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 
 SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"

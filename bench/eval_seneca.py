@@ -22,11 +22,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vloc.workers.core.evaluate import evaluate, retrieval_grid  # noqa: E402
-from vloc.workers.core.experiment import load_experiment  # noqa: E402
+from vloc.workers.core.evaluation.evaluate import evaluate, retrieval_grid  # noqa: E402
+from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
+from vloc.workers.core.evaluation.report import (  # noqa: E402
+    grid_table,
+    markdown_table,
+    plot_tracks,
+    results_dict,
+)
 from vloc.workers.core.features import FEATURE_NAMES  # noqa: E402
 from vloc.workers.core.measures import MEASURES  # noqa: E402
-from vloc.workers.core.report import grid_table, markdown_table, plot_tracks, results_dict  # noqa: E402
 
 SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
 MODES = ["hybrid", "global", "sift", "hierarchical", "retrieval"]

@@ -33,8 +33,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # one core, before numpy loa
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vloc.workers.core.evaluate import evaluate  # noqa: E402
-from vloc.workers.core.experiment import load_experiment  # noqa: E402
+from vloc.workers.core.evaluation.evaluate import evaluate  # noqa: E402
+from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
 
 SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
 VLAD = {"global_features": ["vlad_orb"], "global_power": 5.0}

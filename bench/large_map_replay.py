@@ -51,7 +51,7 @@ def tile_features(work: Path, tile: int) -> Path:
     returns the file holding (name, lat, lon, alt, captured_at) rows and the features."""
     import cv2
 
-    from vloc.workers.core.datasets import load_dataset, load_frames
+    from vloc.workers.core.evaluation.datasets import load_dataset, load_frames
     from vloc.workers.core.mapbuild import extract_image_features
 
     cv2.setNumThreads(1)

@@ -17,7 +17,7 @@ _SDK_NAMES = frozenset({
     "FRAME_METADATA", "GeoExtent", "GeoPose", "Gone", "ImageRejection", "ImageSource", "Job",
     "JobFailed", "LocalExtent", "Map", "MapGeometry", "MapImage", "MapSelfCheck", "Message",
     "NotFound", "Origin",
-    "PayloadTooLarge", "Pose", "PoseStream", "Route",
+    "PayloadTooLarge", "Pose", "PoseStream", "ProblemKind", "Route",
     "RetryPolicy", "ServerError", "ServerShutdown", "Session", "SessionDeleted",
     "SessionExpired", "SessionRef", "SessionStats", "StreamError",
     "TooManyRequests", "TransportError", "Unauthorized", "UnsupportedMediaType",

@@ -1,7 +1,7 @@
 """The frames a simulated device sends: a data set's query pass, optionally relit.
 
 Relit frames are made exactly as ``vloc eval`` makes them (the working-size colour frame
-through :func:`~workers.core.photometric.apply_variant` with ``variant_rng(seed, i)``) and
+through :func:`~workers.core.evaluation.photometric.apply_variant` with ``variant_rng(seed, i)``) and
 sent as lossless PNG, so the server's decoder sees the same pixels the offline evaluation
 does. Unrelit frames are sent as the original files.
 """
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
-from vloc.workers.core.datasets import Dataset, DatasetImage, load_dataset, split
+from vloc.workers.core.evaluation.datasets import Dataset, DatasetImage, load_dataset, split
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,9 +63,9 @@ def load_replay_data(folder: str | Path, *, rule: str = "pass", map_pass: int | 
     folder : path
         A data set folder as ``vloc eval`` reads it.
     rule, map_pass, query_pass
-        As :func:`workers.core.datasets.split`.
+        As :func:`workers.core.evaluation.datasets.split`.
     photometric : str
-        One of :data:`workers.core.photometric.VARIANTS`.
+        One of :data:`workers.core.evaluation.photometric.VARIANTS`.
     seed : int
         Seeds the photometric variant of frame ``i`` (``variant_rng(seed, i)``).
     limit : int, optional
@@ -79,7 +79,7 @@ def load_replay_data(folder: str | Path, *, rule: str = "pass", map_pass: int | 
     ------
     DatasetError, FileNotFoundError, ValueError
     """
-    from vloc.workers.core.photometric import VARIANTS
+    from vloc.workers.core.evaluation.photometric import VARIANTS
 
     if photometric not in VARIANTS:
         raise ValueError(f"unknown photometric variant {photometric!r}; "
@@ -150,8 +150,8 @@ def _device_frame(index: int, img: DatasetImage, photometric: str, seed: int) ->
 def _relit_png(data: bytes, variant: str, seed: int, index: int) -> bytes:
     import cv2
 
+    from vloc.workers.core.evaluation.photometric import apply_variant, variant_rng
     from vloc.workers.core.image import load_frame
-    from vloc.workers.core.photometric import apply_variant, variant_rng
 
     colour = apply_variant(load_frame(data).colour, variant, rng=variant_rng(seed, index))
     ok, buf = cv2.imencode(".png", colour)

@@ -1,7 +1,7 @@
 """Scores of a replay, per mode and device, as JSON-ready dicts and a Markdown table.
 
 The error, SIFT-share and timing figures come from
-:meth:`workers.core.evaluate.ModeSummary.to_dict` (the numbers ``vloc eval`` prints); the
+:meth:`workers.core.evaluation.evaluate.ModeSummary.to_dict` (the numbers ``vloc eval`` prints); the
 replay adds what only a device sees: frames lost or refused and the latency from sending a
 frame to receiving its pose.
 """
@@ -21,7 +21,7 @@ _NAN_FIGURES = ("mean_error_m", "std_error_m", "median_error_m", "within_25m",
 
 
 def _figures(runs: list[DeviceRun], truth_xy: np.ndarray, skip: int) -> dict:
-    from vloc.workers.core.evaluate import ModeSummary
+    from vloc.workers.core.evaluation.evaluate import ModeSummary
 
     eval_runs = [as_eval_run(r, truth_xy) for r in runs if r.poses]
     if not eval_runs or sum(max(len(r.frames) - skip, 0) for r in eval_runs) == 0:
@@ -104,15 +104,15 @@ def replay_table(data: dict) -> str:
 def plot_replay(path, map_xy: np.ndarray, runs: list[DeviceRun], frames, origin, *,
                 title: str = "", skip: int = 10, config: str = "default"):
     """PNG of the map images, the true track and device 0's estimated track per mode
-    (:func:`workers.core.report.plot_tracks`).
+    (:func:`workers.core.evaluation.report.plot_tracks`).
 
     Parameters
     ----------
     map_xy : (M, 2) float64 ndarray
         Map image positions, east/north metres in the map's frame.
     """
-    from vloc.workers.core.evaluate import ModeSummary
-    from vloc.workers.core.report import plot_tracks
+    from vloc.workers.core.evaluation.evaluate import ModeSummary
+    from vloc.workers.core.evaluation.report import plot_tracks
 
     truth = truth_in_map_frame(frames, origin)
     modes = {r.mode: ModeSummary(r.mode, config, [as_eval_run(r, truth)], skip)
@@ -126,9 +126,9 @@ def plot_replay(path, map_xy: np.ndarray, runs: list[DeviceRun], frames, origin,
 def replay_tracks(map_xy: np.ndarray, runs: list[DeviceRun], frames, origin, *,
                   config: str = "default") -> dict:
     """Device 0's track per mode against the truth, for the web viewer
-    (:func:`workers.core.report.tracks_dict`), under the sessions' filter ``config``."""
-    from vloc.workers.core.evaluate import ModeSummary
-    from vloc.workers.core.report import tracks_dict
+    (:func:`workers.core.evaluation.report.tracks_dict`), under the sessions' filter ``config``."""
+    from vloc.workers.core.evaluation.evaluate import ModeSummary
+    from vloc.workers.core.evaluation.report import tracks_dict
 
     truth = truth_in_map_frame(frames, origin)
     modes = {r.mode: ModeSummary(r.mode, config, [as_eval_run(r, truth)], 0)

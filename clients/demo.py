@@ -29,7 +29,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-DEMO_MODES = ("hybrid", "global", "sift")
+from vloc.workers.core.modes import FILTER_MODES
+
+DEMO_MODES = FILTER_MODES
 STOP_GRACE_S = 20.0
 
 

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from vloc.clients.sdk import APIError, Client, ImageRejection, Job
-from vloc.workers.core.datasets import DatasetImage
+from vloc.workers.core.evaluation.datasets import DatasetImage
 
 BATCH_FILES = 8
 BATCH_BYTES = 16 * 2**20

@@ -6,7 +6,7 @@ own socket, at the recorded rate or as fast as the server answers. At most ``win
 frames are in flight per device, as a device with a bounded send queue would have. Several
 devices run at once (one asyncio task each) to load the server.
 
-Scoring reuses :class:`workers.core.evaluate.ModeSummary`, so a replay's mean/median error,
+Scoring reuses :class:`workers.core.evaluation.evaluate.ModeSummary`, so a replay's mean/median error,
 SIFT share and ms per frame are defined exactly as those of ``vloc eval``: errors in the
 map's local frame over the frames after the first ``skip``, truth from the CSV else EXIF.
 """
@@ -209,14 +209,14 @@ def replay(base_url: str, admin_key: str | None, map_id: str, frames: list[Devic
 # -- scoring ---------------------------------------------------------------------------------
 
 def as_eval_run(run: DeviceRun, truth_xy: np.ndarray, *, config: str = "replay"):
-    """The device's answered frames as a :class:`workers.core.evaluate.Run`.
+    """The device's answered frames as a :class:`workers.core.evaluation.evaluate.Run`.
 
     Parameters
     ----------
     truth_xy : (n_frames, 2) float64 ndarray
         True east/north of every frame in the map's local frame.
     """
-    from vloc.workers.core.evaluate import Run
+    from vloc.workers.core.evaluation.evaluate import Run
 
     seqs = np.array(sorted(run.poses), dtype=np.int64)
     poses = [run.poses[s] for s in seqs]

@@ -8,7 +8,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
 from vloc.app.deps import Ctx, require_metrics
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 
 router = APIRouter(tags=["health"])
 
@@ -28,10 +28,10 @@ def readyz(ctx: Ctx) -> dict:
             conn.execute(text("SELECT 1"))
     except Exception as exc:  # noqa: BLE001 - any failure means "not ready"
         raise Problem(503, f"database unreachable: {type(exc).__name__}",
-                      kind="not-ready") from None
+                      kind=ProblemKind.NOT_READY) from None
     if not ctx.engine.alive():
         raise Problem(503, "worker processes are not all running, or one has not run for "
-                      f"{ctx.settings.worker_stall_s:g} s", kind="not-ready")
+                      f"{ctx.settings.worker_stall_s:g} s", kind=ProblemKind.NOT_READY)
     return {"status": "ready", "database": ctx.db_engine.dialect.name,
             "workers": ctx.engine.n_workers}
 

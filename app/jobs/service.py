@@ -20,13 +20,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from vloc.app.background import BackgroundRunner
 from vloc.app.config import Settings
 from vloc.app.db import utcnow
-from vloc.app.engine import Engine
-from vloc.app.jobs import tasks
+from vloc.app.engine import Engine, run_task
 from vloc.app.jobs.models import BuildJob, BuildStage, JobStatus
 from vloc.app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapStatus
 from vloc.app.maps.service import image_path
 from vloc.app.metrics import Metrics
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
+from vloc.app.tasks import build as tasks
 
 log = logging.getLogger(__name__)
 
@@ -54,9 +54,9 @@ def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
     the build would pack the same revision again."""
     if db.scalar(select(func.count(BuildJob.id)).where(
             BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
-        raise Problem(409, "a build of this map is already running", kind="map-busy")
+        raise Problem(409, "a build of this map is already running", kind=ProblemKind.MAP_BUSY)
     if not db.scalar(select(func.count(MapImage.id)).where(MapImage.map_id == map_.id)):
-        raise Problem(409, "the map has no images to build from", kind="map-empty")
+        raise Problem(409, "the map has no images to build from", kind=ProblemKind.MAP_EMPTY)
     if not force and map_.status == MapStatus.READY and map_.revision > 0 \
             and not db.scalar(select(func.count(MapImage.id))
                               .outerjoin(ImageSift, ImageSift.image_id == MapImage.id)
@@ -66,7 +66,7 @@ def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
                                          ImageOrb.image_id.is_(None)))):
         raise Problem(409, f"revision {map_.revision} already holds every image of the map; "
                       "add or delete images first, or pass force=true to pack it again",
-                      kind="map-up-to-date",
+                      kind=ProblemKind.MAP_UP_TO_DATE,
                       revision=map_.revision)
     job = BuildJob(map_id=map_.id, status=JobStatus.QUEUED, progress=0.0)
     db.add(job)
@@ -113,9 +113,8 @@ class BuildRunner(BackgroundRunner):
     async def _run(self, job_id: uuid.UUID) -> None:
         map_id, todo = await asyncio.to_thread(self._begin, job_id)
         url = self.settings.resolved_database_url
-        futures = [asyncio.wrap_future(self.engine.call(
-            tasks.extract_image, url, image_id, path,
-            max_pixels=self.settings.max_pixels)) for image_id, path in todo]
+        futures = [run_task(self.engine, tasks.extract_image, url, image_id, path,
+                            max_pixels=self.settings.max_pixels) for image_id, path in todo]
         for done, fut in enumerate(asyncio.as_completed(futures), start=1):
             await fut
             await asyncio.to_thread(self._progress, job_id, done, len(todo))
@@ -132,15 +131,15 @@ class BuildRunner(BackgroundRunner):
         await asyncio.to_thread(tie_dir.mkdir, parents=True, exist_ok=True)
         await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE,
                                 BuildStage.TIE_POINTS)
-        await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
-            tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id)))
+        await self._fan_out(job_id, [run_task(
+            self.engine, tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id))
             for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
         await self._match_pairs(job_id, url, map_id, tie_dir)
         await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files)
-        packed = await asyncio.wrap_future(self.engine.call(
-            tasks.pack_map, url, str(map_id), revision, str(folder),
+        packed = await run_task(
+            self.engine, tasks.pack_map, url, str(map_id), revision, str(folder),
             lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir),
-            job_id=str(job_id)))
+            job_id=str(job_id))
         await asyncio.to_thread(shutil.rmtree, tie_dir, True)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 
@@ -151,28 +150,28 @@ class BuildRunner(BackgroundRunner):
         reads the results from ``tie_dir``."""
         await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE + TIE_SHARE,
                                 BuildStage.MATCHING)
-        plan = await asyncio.wrap_future(self.engine.call(
-            tasks.plan_tie_pairs, url, str(map_id), str(tie_dir)))
+        plan = await run_task(self.engine, tasks.plan_tie_pairs, url, str(map_id),
+                              str(tie_dir))
         ids, pairs = plan["image_ids"], plan["pairs"]
         batches = []
         for k in range(0, len(pairs), PAIR_BATCH):
             batch = pairs[k:k + PAIR_BATCH]
             names = {i: ids[i] for pair in batch for i in pair}
-            batches.append(asyncio.wrap_future(self.engine.call(
-                tasks.match_tie_pairs, str(tie_dir), names, batch, len(batches))))
+            batches.append(run_task(self.engine, tasks.match_tie_pairs, str(tie_dir), names,
+                                    batch, len(batches)))
         await self._fan_out(job_id, batches, EXTRACT_SHARE + TIE_SHARE, PAIR_SHARE)
 
     async def _reconstruct_tiles(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
                                  tie_dir: Path, lens_files: list[str]) -> None:
         """A large map's reconstruction, tile by tile on the engine's workers
         (:mod:`vloc.workers.core.tiles`); the packing reads the results from ``tie_dir``."""
-        n = await asyncio.wrap_future(self.engine.call(
-            tasks.plan_tiles, url, str(map_id), str(tie_dir), lens_files))
+        n = await run_task(self.engine, tasks.plan_tiles, url, str(map_id), str(tie_dir),
+                           lens_files)
         if n:
             await asyncio.to_thread(self._set_progress, job_id,
                                     EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE, BuildStage.TILES)
-        await self._fan_out(job_id, [asyncio.wrap_future(self.engine.call(
-            tasks.reconstruct_tile, str(tie_dir), k)) for k in range(n)],
+        await self._fan_out(job_id, [run_task(
+            self.engine, tasks.reconstruct_tile, str(tie_dir), k) for k in range(n)],
             EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE, TILE_SHARE)
 
     async def _fan_out(self, job_id: uuid.UUID, futures: list, start: float,

@@ -9,10 +9,11 @@ from typing import Annotated
 from fastapi import Depends
 
 from vloc.app.deps import Ctx, DbSession
-from vloc.app.engine import EngineClosed, WorkerDied, inspect_image
+from vloc.app.engine import EngineClosed, WorkerDied, run_task
 from vloc.app.maps.models import Map
 from vloc.app.maps.service import Verifier
-from vloc.app.problems import Problem, not_found
+from vloc.app.problems import Problem, ProblemKind, not_found
+from vloc.app.tasks.images import inspect_image
 
 VERIFY_TIMEOUT_S = 120.0
 
@@ -41,12 +42,11 @@ async def get_verifier(ctx: Ctx) -> Verifier:
 
     async def verify(blobs: list[bytes]) -> list[str | None]:
         try:
-            futures = [asyncio.wrap_future(engine.call(
-                inspect_image, blob, max_pixels=max_pixels))
-                for blob in blobs]
+            futures = [run_task(engine, inspect_image, blob, max_pixels=max_pixels)
+                       for blob in blobs]
         except (WorkerDied, EngineClosed) as exc:
             raise Problem(503, f"image check unavailable: {exc}",
-                          kind="engine-unavailable") from None
+                          kind=ProblemKind.ENGINE_UNAVAILABLE) from None
         out: list[str | None] = []
         for fut in futures:
             try:
@@ -56,7 +56,7 @@ async def get_verifier(ctx: Ctx) -> Verifier:
                 out.append(str(exc))
             except (WorkerDied, EngineClosed, TimeoutError) as exc:
                 raise Problem(503, f"image check unavailable: {exc}",
-                              kind="engine-unavailable") from None
+                              kind=ProblemKind.ENGINE_UNAVAILABLE) from None
         return out
 
     return verify

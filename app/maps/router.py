@@ -2,35 +2,21 @@
 
 from __future__ import annotations
 
-import asyncio
-import time
 from datetime import datetime
-from pathlib import Path
-from typing import Literal
 
-from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Query, Response, UploadFile
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 
 from vloc.app.deps import Ctx, DbSession, SettingsDep, require_admin
-from vloc.app.engine import EngineClosed, WorkerDied
-from vloc.app.imagecheck import check_image, kind_of_content_type
 from vloc.app.jobs.service import start_build
-from vloc.app.limits import read_body
 from vloc.app.maps import service
 from vloc.app.maps.coverage import Coverage, covering_maps
 from vloc.app.maps.dependencies import ImageVerifier, MapDep, parse_id
-from vloc.app.maps.localize import DEFAULT_PRIOR_SIGMA_M, check_prior, localize_in_worker
 from vloc.app.maps.models import MapImage
 from vloc.app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
-from vloc.app.problems import Problem
-from vloc.app.sessions.admission import revision_missing
-from vloc.app.sessions.dependencies import FrameMetadataDep
-from vloc.app.sessions.pose import pose_fields
-from vloc.app.sessions.schemas import MAX_INITIAL_SIGMA_M, InitialPose, Localization
-from vloc.app.sessions.service import check_initial_pose, map_frame
-from vloc.app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_captured_at, check_text
-from vloc.workers.core.localisers import validate_params
+from vloc.app.problems import Problem, ProblemKind
+from vloc.app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_text
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(require_admin)])
 
@@ -95,7 +81,7 @@ def get_image_file(map_: MapDep, db: DbSession, settings: SettingsDep,
     image = service.get_image(db, map_=map_, image_id=image_id)
     path = service.image_path(settings, image)
     if not path.is_file():
-        raise Problem(404, f"the file of image {image_id} is missing", kind="not-found")
+        raise Problem(404, f"the file of image {image_id} is missing", kind=ProblemKind.NOT_FOUND)
     # content-addressed: the file of an image id never changes
     return FileResponse(path, media_type=image.content_type,
                         headers={"Cache-Control": "private, max-age=86400"})
@@ -126,7 +112,7 @@ async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: Image
                      ) -> ImageUploadResult:
     """Add geotagged images: GPS from EXIF, or ``lat``/``lon`` fields for one file."""
     if (lat is None) != (lon is None):
-        raise Problem(422, "give both lat and lon, or neither", kind="bad-position")
+        raise Problem(422, "give both lat and lon, or neither", kind=ProblemKind.BAD_POSITION)
     position = None
     if lat is not None:
         position = service.GivenPosition(lat, lon, alt, aware(captured_at))
@@ -150,81 +136,3 @@ def build_map(map_: MapDep, db: DbSession, ctx: Ctx, response: Response,
     ctx.builds.launch(job.id)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return BuildAccepted(job_id=job.id, status=job.status)
-
-
-@router.post("/{map_id}/localize", response_model=Localization,
-             responses={409: {"description": "The map has not been built (map-not-built)"},
-                        413: {"description": "Body or image too large"},
-                        415: {"description": "Not image/jpeg or image/png"},
-                        422: {"description": "Corrupt image, bad prior (bad-prior, "
-                                             "bad-initial-pose) or metadata (bad-metadata)"},
-                        503: {"description": "The map's files are missing, or the engine "
-                                             "is unavailable"},
-                        504: {"description": "No answer within VLOC_FRAME_WAIT_TIMEOUT_S"}},
-             openapi_extra={"requestBody": {"required": True, "content": {
-                 "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
-                 "image/png": {"schema": {"type": "string", "format": "binary"}}}}})
-async def localize_image(
-    request: Request, map_: MapDep, ctx: Ctx, metadata: FrameMetadataDep,
-    mode: Literal["sift", "global", "hybrid"] = Query(
-        "sift", description="The measurement of the one filter step"),
-    prior_lat: float | None = Query(None, ge=-90, le=90, allow_inf_nan=False,
-                                    description="Prior position, WGS84; with prior_lon"),
-    prior_lon: float | None = Query(None, ge=-180, le=180, allow_inf_nan=False),
-    prior_sigma_m: float | None = Query(
-        None, gt=0, le=MAX_INITIAL_SIGMA_M, allow_inf_nan=False,
-        description=f"Its standard deviation, metres (default {DEFAULT_PRIOR_SIGMA_M:g})"),
-    captured_at: datetime | None = Query(None, description="ISO 8601 or seconds since the "
-                                                           "epoch; echoed"),
-    seed: int = Query(0, ge=0, lt=2**63, description="Random seed of the filter step"),
-) -> Localization:
-    """Where was this image taken? One image (the raw body), answered synchronously.
-
-    Without a prior the filter starts over the whole map; with one (``prior_lat``,
-    ``prior_lon``, ``prior_sigma_m``) around it. The frame metadata query parameters of
-    ``POST /v1/sessions/{id}/frames`` are accepted too. Nothing is stored.
-    """
-    t0 = time.perf_counter()
-    declared = kind_of_content_type(request.headers.get("content-type"))
-    if declared is None:
-        raise Problem(415, "send the image as the raw body with Content-Type image/jpeg or "
-                      "image/png", kind="unsupported-media-type")
-    captured = check_captured_at(captured_at)
-    prior = check_prior(prior_lat, prior_lon, prior_sigma_m)
-    if map_.revision == 0:
-        raise Problem(409, "the map has not been built yet; POST /v1/maps/{id}/build",
-                      kind="map-not-built")
-    map_id, revision = str(map_.id), map_.revision
-    folder = str(ctx.settings.packed_map_dir(map_id, revision))
-    if not Path(folder).is_dir():
-        raise revision_missing(map_id, revision)
-    if prior is not None:
-        frame = await asyncio.to_thread(map_frame, folder, map_id, revision)
-        check_initial_pose(frame, InitialPose(lat=prior[0], lon=prior[1], sigma=prior[2]))
-    data = await read_body(request, ctx.settings.max_frame_bytes)
-    check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
-    try:
-        params = validate_params(mode, {})
-    except ValueError as exc:  # the server's own defaults: not the caller's fault
-        raise Problem(500, str(exc), kind="bad-params") from None
-    params.pop("seed", None)
-    try:
-        result = await asyncio.wait_for(asyncio.wrap_future(ctx.engine.call(
-            localize_in_worker, folder, data, mode=mode, params=params,
-            seed=seed, prior=prior, metadata=metadata, max_pixels=ctx.settings.max_pixels)),
-            ctx.settings.frame_wait_timeout_s)
-    except TimeoutError:
-        raise Problem(504, "no answer within "
-                      f"{ctx.settings.frame_wait_timeout_s:g} s", kind="estimate-timeout") \
-            from None
-    except ValueError as exc:
-        raise Problem(422, str(exc), kind="bad-image") from None
-    except (KeyError, RuntimeError, WorkerDied, EngineClosed) as exc:
-        raise Problem(503, f"the engine could not localise the image: {exc}",
-                      kind="engine-unavailable") from None
-    fields = pose_fields(result["estimate"], map_id=map_id, map_revision=revision,
-                         map_folder=folder, metadata=metadata,
-                         decode_ms=result["decode_ms"],
-                         bound_m=ctx.settings.converged_accuracy_m, converged_before=False)
-    return Localization(**fields, captured_at=captured,
-                        latency_ms=(time.perf_counter() - t0) * 1e3)

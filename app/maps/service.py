@@ -28,7 +28,7 @@ from vloc.app.maps.schemas import (
     MapRead,
     Origin,
 )
-from vloc.app.problems import Problem, not_found
+from vloc.app.problems import Problem, ProblemKind, not_found
 from vloc.app.sessions.models import LocalisationSession
 from vloc.app.validation import (
     MAX_ALT_M,
@@ -109,12 +109,12 @@ def delete_map(db: Session, *, map_: Map, settings: Settings) -> None:
     active = db.scalar(select(func.count(BuildJob.id)).where(
         BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE)))
     if active:
-        raise Problem(409, "a build of this map is running", kind="map-busy")
+        raise Problem(409, "a build of this map is running", kind=ProblemKind.MAP_BUSY)
     sessions = db.scalar(select(func.count(LocalisationSession.id))
                          .where(LocalisationSession.map_id == map_.id))
     if sessions:
         raise Problem(409, f"{sessions} session(s) use this map; delete them first",
-                      kind="map-in-use", sessions=sessions)
+                      kind=ProblemKind.MAP_IN_USE, sessions=sessions)
     map_id = str(map_.id)
     db.delete(map_)
     db.commit()
@@ -131,7 +131,7 @@ def delete_image(db: Session, *, map_: Map, image_id: int, settings: Settings) -
     image = get_image(db, map_=map_, image_id=image_id)
     if db.scalar(select(func.count(BuildJob.id)).where(
             BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
-        raise Problem(409, "a build of this map is running", kind="map-busy")
+        raise Problem(409, "a build of this map is running", kind=ProblemKind.MAP_BUSY)
     path = image_path(settings, image)
     db.delete(image)
     db.flush()
@@ -168,14 +168,14 @@ async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,
     the workers decode.
     """
     if not uploads:
-        raise Problem(422, "no files in the upload (form field 'files')", kind="no-files")
+        raise Problem(422, "no files in the upload (form field 'files')", kind=ProblemKind.NO_FILES)
     if len(uploads) > settings.max_files_per_upload:
         raise Problem(413, f"{len(uploads)} files exceed the limit of "
-                      f"{settings.max_files_per_upload} per upload", kind="too-many-files")
+                      f"{settings.max_files_per_upload} per upload", kind=ProblemKind.TOO_MANY_FILES)
     if position is not None:
         if len(uploads) != 1:
             raise Problem(422, "lat/lon form fields apply to a single file; upload several "
-                          "files with EXIF GPS instead", kind="position-ambiguous")
+                          "files with EXIF GPS instead", kind=ProblemKind.POSITION_AMBIGUOUS)
         check_position(position.lat, position.lon, position.alt)
         check_captured_at(position.captured_at)
     rejected, candidates = await asyncio.to_thread(
@@ -187,12 +187,12 @@ async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,
             good.append(cand)
         else:
             rejected.append(ImageRejection(filename=cand[0].filename, status=422,
-                                           reason="bad-image", detail=error))
+                                           reason=ProblemKind.BAD_IMAGE, detail=error))
     if not good:
         statuses = {r.status for r in rejected}
         status = statuses.pop() if len(statuses) == 1 else 422
         raise Problem(status, "no image was accepted: " + "; ".join(
-            f"{r.filename}: {r.detail}" for r in rejected), kind="no-image-accepted",
+            f"{r.filename}: {r.detail}" for r in rejected), kind=ProblemKind.NO_IMAGE_ACCEPTED,
             rejected=[r.model_dump() for r in rejected])
     accepted = await asyncio.to_thread(_store, db_sessions, map_id, good, settings)
     return ImageUploadResult(accepted=accepted, rejected=rejected)
@@ -212,7 +212,7 @@ def _screen(db_sessions: sessionmaker[Session], map_id: uuid.UUID, uploads: Sequ
             header, pos = _check_one(up, position, settings)
         except Problem as p:
             rejected.append(ImageRejection(filename=up.filename, status=p.status,
-                                           reason=p.kind or "bad-request", detail=p.detail))
+                                           reason=p.kind or ProblemKind.BAD_REQUEST, detail=p.detail))
             continue
         digest = hashlib.sha256(up.data).hexdigest()
         if digest in existing:
@@ -232,20 +232,20 @@ def _check_one(up: Upload, position: GivenPosition | None,
 
     if len(up.data) > settings.max_upload_bytes:
         raise Problem(413, f"{len(up.data)} bytes exceed the limit of "
-                      f"{settings.max_upload_bytes} bytes per image", kind="too-large")
+                      f"{settings.max_upload_bytes} bytes per image", kind=ProblemKind.TOO_LARGE)
     header = check_image(up.data, max_pixels=settings.max_pixels)
     if position is not None:
         return header, position
     try:
         tag = read_gps(up.data)
     except ValueError as exc:
-        raise Problem(422, f"malformed EXIF GPS: {exc}", kind="bad-gps") from None
+        raise Problem(422, f"malformed EXIF GPS: {exc}", kind=ProblemKind.BAD_GPS) from None
     if tag is None:
         raise Problem(422, "the image has no GPS position in its EXIF; give lat and lon "
-                      "form fields with a single file", kind="no-gps")
+                      "form fields with a single file", kind=ProblemKind.NO_GPS)
     if tag.alt is not None and not MIN_ALT_M <= tag.alt <= MAX_ALT_M:
         raise Problem(422, f"EXIF GPS altitude {tag.alt:g} m is outside [{MIN_ALT_M:g}, "
-                      f"{MAX_ALT_M:g}] m", kind="bad-gps")
+                      f"{MAX_ALT_M:g}] m", kind=ProblemKind.BAD_GPS)
     # Camera-local time without an offset: kept as is, labelled UTC. Only differences
     # between capture times are used (the platform's speed), which this keeps. A time
     # outside 1990..tomorrow is a clock that was never set: treated as absent, as a

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from vloc.app.config import Settings
 from vloc.app.engine import DEFAULT_FACTORY, SessionSpec
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 from vloc.app.sessions.models import LocalisationSession
 from vloc.app.sessions.schemas import MAX_SEQ
 
@@ -38,10 +38,10 @@ def next_seq(last_seq: int | None, seq: int | None) -> int:
             return 0
         if last_seq >= MAX_SEQ:
             raise Problem(409, f"the session has used every seq up to {MAX_SEQ}",
-                          kind="seq-exhausted", last_seq=last_seq)
+                          kind=ProblemKind.SEQ_EXHAUSTED, last_seq=last_seq)
         return last_seq + 1
     if last_seq is not None and seq <= last_seq:
-        kind = "duplicate-seq" if seq == last_seq else "stale-seq"
+        kind = ProblemKind.DUPLICATE_SEQ if seq == last_seq else ProblemKind.STALE_SEQ
         raise Problem(409, f"seq {seq} is not after the last accepted seq {last_seq}",
                       kind=kind, last_seq=last_seq)
     return seq
@@ -57,4 +57,4 @@ def check_revision(spec: SessionSpec) -> None:
 def revision_missing(map_id: str, revision: int) -> Problem:
     return Problem(503, f"the files of map {map_id} revision {revision} are missing from "
                    "the data directory; restore them or rebuild the map",
-                   kind="map-revision-missing")
+                   kind=ProblemKind.MAP_REVISION_MISSING)

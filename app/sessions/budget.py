@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 
 RETRY_AFTER_S = 1
 
@@ -68,7 +68,7 @@ class FrameBudget:
         if total.frames + 1 > self.max_frames or total.bytes + size > self.max_bytes:
             raise Problem(503, f"the server holds {total.frames} frames ({total.bytes} bytes) "
                           "not answered yet, as many as it takes; send the frame again later",
-                          kind="server-busy", headers={"Retry-After": str(RETRY_AFTER_S)},
+                          kind=ProblemKind.SERVER_BUSY, headers={"Retry-After": str(RETRY_AFTER_S)},
                           max_queued_frames=self.max_frames, max_queued_bytes=self.max_bytes)
         mine = held.get(session_id, Held())
         sessions = len(held) + (session_id not in held)
@@ -79,7 +79,7 @@ class FrameBudget:
             raise Problem(429, f"this session holds {mine.frames} frames ({mine.bytes} bytes) "
                           f"not answered yet, its share of the server's room while "
                           f"{sessions} sessions send frames; send the next one later",
-                          kind="over-fair-share",
+                          kind=ProblemKind.OVER_FAIR_SHARE,
                           headers={"Retry-After": str(RETRY_AFTER_S)})
 
     @contextmanager

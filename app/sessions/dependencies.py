@@ -11,7 +11,7 @@ from starlette.requests import HTTPConnection
 from vloc.app.context import AppContext
 from vloc.app.deps import AdminSchemes, Ctx, DbSession, session_bearer, unauthenticated
 from vloc.app.maps.dependencies import parse_id
-from vloc.app.problems import Problem, not_found
+from vloc.app.problems import Problem, ProblemKind, not_found
 from vloc.app.security import matches, presented_secret
 from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.models import LocalisationSession
@@ -25,7 +25,7 @@ def authorise(secret: str | None, token_hash: str, ctx: AppContext, session_id: 
         raise unauthenticated("a session token is required: Authorization: Bearer <token>")
     if not (matches(secret, token_hash) or matches(secret, ctx.admin_key_hash)):
         raise Problem(403, f"these credentials do not open session {session_id}",
-                      kind="forbidden")
+                      kind=ProblemKind.FORBIDDEN)
 
 
 SessionScheme = Security(session_bearer)

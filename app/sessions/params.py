@@ -14,17 +14,21 @@ from __future__ import annotations
 import uuid
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, create_model
+
+from vloc.workers.core.features import ALL_FEATURE_NAMES
+from vloc.workers.core.measures import MEASURES
+from vloc.workers.core.modes import FILTER_MODES, MODES
+from vloc.workers.core.pf.params import MAX_GLOBAL_FEATURES, PARAMS, VERIFICATIONS, Param
 
 SEED_BOUND = 2**63
 """Seeds are stored in a signed 64-bit column: below 2**63 (an exclusive bound, which a
 JSON number states exactly where 2**63 - 1 is rounded up)."""
 
 FilterConfigName = Literal["default", "weiss2008"]
-FeatureName = Literal["grid_hist", "wgoh", "wgii", "wgii2", "wgii2_sparse", "hue_hist",
-                      "vlad_orb", "vlad_rootsift", "bow_orb", "bow_rootsift"]
-MeasureName = Literal["l1", "l2", "linf", "intersection", "bradley", "weiss"]
-Verification = Literal["none", "homography", "fundamental"]
+FeatureName = Literal[ALL_FEATURE_NAMES]
+MeasureName = Literal[MEASURES]
+Verification = Literal[VERIFICATIONS]
 
 
 def _no_defaults(schema: dict) -> None:
@@ -44,56 +48,30 @@ class _Params(BaseModel):
     seed: int = _unset(ge=0, lt=SEED_BOUND, description="Random seed (as the body's seed)")
 
 
-class FilterParams(_Params):
-    """Parameters of the particle filter (``hybrid``, ``global``, ``sift``); see
-    :class:`workers.core.pf.config.FilterConfig` for their meaning."""
+def _filter_field(param: Param) -> tuple[object, object]:
+    """The pydantic (annotation, field) of one declared filter parameter."""
+    doc = {"description": param.doc} if param.doc else {}
+    if param.type is tuple:
+        return FeatureName | Annotated[list[FeatureName], Field(
+            min_length=1, max_length=MAX_GLOBAL_FEATURES)], _unset(**doc)
+    if param.type is str:
+        return Literal[param.names()], _unset(**doc)
+    if param.type is float and param.nullable:
+        number = Annotated[float, Field(**param.bounds)]
+        annotation = number | Literal["auto"] | None if param.auto else number | None
+        return annotation, _unset(**doc)
+    annotation = param.type | None if param.nullable else param.type
+    return annotation, _unset(**param.bounds, **doc)
 
-    config: FilterConfigName = _unset(description="Named base configuration")
-    n_particles: int = _unset(ge=1, le=100_000)
-    motion_sigma: float = _unset(gt=0, le=1e4, description="Metres per frame")
-    speed: Annotated[float, Field(gt=0, le=1e4)] | Literal["auto"] | None = _unset(
-        description='Metres per second, "auto" (from the map) or null')
-    pull: float = _unset(ge=0, lt=1)
-    global_power: float = _unset(gt=0, le=1e3)
-    replace_fraction: float = _unset(ge=0, lt=1)
-    replacement: Literal["uniform", "retrieval"] = _unset()
-    d_global: float = _unset(gt=0, le=1e5, description="Metres")
-    d_sift: float = _unset(gt=0, le=1e5, description="Metres")
-    distance_scale: Annotated[float, Field(gt=0, le=1e5)] | None = _unset(
-        description="Metres, or null")
-    global_features: FeatureName | Annotated[list[FeatureName], Field(
-        min_length=1, max_length=8)] = _unset()
-    global_measure: MeasureName = _unset()
-    sift_ratio: float = _unset(gt=0, lt=1)
-    sift_verify: Verification = _unset()
-    sift_reduce: Literal["both", "map", "query", "none"] = _unset()
-    sift_power: float = _unset(gt=0, le=1e3)
-    global_check: int = _unset(ge=0, le=1000)
-    sift_candidates: int = _unset(ge=0, le=1000)
-    global_trust: int = _unset(ge=0, le=1000)
-    global_trust_level: float = _unset(ge=0, le=1)
-    velocity: bool = _unset()
-    resampler: Literal["multinomial", "systematic"] = _unset()
-    refine: bool = _unset(description="Fuse a metric position solved against the best map "
-                                      "images")
-    refine_outlier: float = _unset(gt=0, lt=1, description="Probability that a refined "
-                                                           "position is wrong")
-    refine_inject: float = _unset(ge=0, lt=1, description="Share of the particles drawn "
-                                                          "around a refined position")
-    refine_global: bool = _unset(description="Register global steps with ORB against the "
-                                             "map's geometry")
-    refine_global_inliers: int = _unset(ge=4, le=10_000, description="Fewest pose inliers "
-                                                                     "for a global step's fix")
-    refine_gate: float = _unset(gt=0, le=1e3, description="A global step's fix counts "
-                                                          "within this many cloud spreads")
-    refine_sift_fallback: bool = _unset(description="Register a global step with SIFT "
-                                                    "against the same map images when ORB "
-                                                    "finds no fix")
-    global_misses: int | None = _unset(ge=0, le=1000, description="Global steps in a row "
-                                                                  "without a fix allowed")
-    escalate: bool = _unset(description="Take back a global step without a fix and use "
-                                        "SIFT for the frame")
-    drift: bool = _unset(description="Move the cloud by the velocity tracked from fixes")
+
+FilterParams = create_model(
+    "FilterParams", __base__=_Params, __module__=__name__,
+    __doc__="""Parameters of the particle filter (``hybrid``, ``global``, ``sift``); see
+    :class:`workers.core.pf.config.FilterConfig` for their meaning.""",
+    config=(FilterConfigName, _unset(description="Named base configuration")),
+    **{name: _filter_field(param) for name, param in PARAMS.items()})
+"""Generated from the core's declarations (:data:`workers.core.pf.params.PARAMS`): the
+names, types and bounds the core checks, strictly typed and with nothing left to default."""
 
 
 class RetrievalParams(_Params):
@@ -165,7 +143,7 @@ class _SessionCreate(BaseModel):
 
 
 class FilterSessionCreate(_SessionCreate):
-    mode: Literal["hybrid", "global", "sift"] = "hybrid"
+    mode: Literal[FILTER_MODES] = "hybrid"
     params: FilterParams = Field(default_factory=FilterParams)
 
 
@@ -179,9 +157,8 @@ class HierarchicalSessionCreate(_SessionCreate):
     params: HierarchicalParams = Field(default_factory=HierarchicalParams)
 
 
-MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
-_FAMILY = {"hybrid": "filter", "global": "filter", "sift": "filter",
-           "retrieval": "retrieval", "hierarchical": "hierarchical"}
+_FAMILY = {mode: "filter" for mode in FILTER_MODES} | {"retrieval": "retrieval",
+                                                         "hierarchical": "hierarchical"}
 
 
 def _family(value) -> str | None:

@@ -18,20 +18,18 @@ not stored per pose; ``geopose`` is computed from the other fields.
 from __future__ import annotations
 
 import enum
-import json
 import types
 import typing
 import uuid
 from dataclasses import dataclass
 from datetime import datetime
-from functools import lru_cache
-from pathlib import Path
 
 from pydantic.fields import FieldInfo
 from sqlalchemy import JSON, BigInteger, Boolean, Column, Float, Integer, String, Text
 from sqlalchemy.types import TypeEngine
 
 from vloc.app.db import UTCDateTime
+from vloc.app.maps.revisions import revision_images
 from vloc.app.sessions.schemas import PoseEstimate, PoseFields
 from vloc.workers.core.accuracy import horizontal_accuracy
 from vloc.workers.core.estimate import Status
@@ -43,8 +41,6 @@ JSON_FIELDS = ("navigation",)
 """Object fields that are stored whole, as one JSON column."""
 WIDE_INTS = ("image_id",)
 """Integer fields that hold another table's 64-bit id."""
-IMAGE_IDS_FILE = "image_ids.json"
-"""Beside a packed map revision: the database id of each of its images, in map order."""
 
 
 def stored_fields() -> tuple[str, ...]:
@@ -146,43 +142,6 @@ def from_row(row, *, map_id: uuid.UUID, map_revision: int) -> PoseEstimate:
 
 
 # -- from a worker's estimate --------------------------------------------------------------------
-
-@dataclass(frozen=True, slots=True)
-class RevisionImages:
-    """The images of one packed map revision, in map order (an estimate's ``best_image``
-    indexes them)."""
-
-    ids: tuple[int, ...] | None
-    """None for a revision packed before the ids were written beside it."""
-    names: tuple[str, ...]
-
-    def lookup(self, index: int) -> tuple[int | None, str | None]:
-        if not 0 <= index < len(self.names):
-            return None, None
-        return (self.ids[index] if self.ids is not None else None), self.names[index]
-
-
-@lru_cache(maxsize=64)
-def revision_images(folder: str) -> RevisionImages:
-    """Read once per revision folder (a packed revision never changes)."""
-    path = Path(folder)
-    try:
-        names = tuple(json.loads((path / "meta.json").read_text())["names"])
-    except (OSError, ValueError, KeyError):
-        return RevisionImages(None, ())
-    try:
-        ids = tuple(int(i) for i in json.loads((path / IMAGE_IDS_FILE).read_text()))
-    except (OSError, ValueError):
-        ids = None
-    if ids is not None and len(ids) != len(names):
-        ids = None
-    return RevisionImages(ids, names)
-
-
-def write_image_ids(folder: str | Path, image_ids: list[int]) -> None:
-    """Record the database ids of a packed revision's images beside it."""
-    (Path(folder) / IMAGE_IDS_FILE).write_text(json.dumps([int(i) for i in image_ids]))
-
 
 def judge(core_status: str, accuracy_m: float, *, bound_m: float,
           converged_before: bool) -> tuple[Status, bool]:

@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse
 from vloc.app.deps import Ctx, DbSession, require_admin
 from vloc.app.imagecheck import check_image, kind_of_content_type
 from vloc.app.limits import read_body
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 from vloc.app.sessions import service
 from vloc.app.sessions.dependencies import FrameMetadataDep, LiveSessionDep, SessionDep
 from vloc.app.sessions.models import LocalisationSession
@@ -130,7 +130,7 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
     declared = kind_of_content_type(request.headers.get("content-type"))
     if declared is None:
         raise Problem(415, "send the frame as the raw body with Content-Type image/jpeg or "
-                      "image/png", kind="unsupported-media-type")
+                      "image/png", kind=ProblemKind.UNSUPPORTED_MEDIA_TYPE)
     runtime = ctx.runtime
     limit = ctx.settings.max_frame_bytes
     try:
@@ -142,7 +142,7 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
             seq, queued = await runtime.accept(live, data, seq=seq, captured_at=captured,
                                                t0=t0, metadata=metadata, admitted=True)
     except Problem as p:
-        ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
+        ctx.metrics.frames_rejected.labels(p.kind or ProblemKind.BAD_IMAGE).inc()
         raise
     fut = runtime.waiter(live, seq) if wait else None
     try:
@@ -159,11 +159,11 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
         runtime.drop_waiter(live, seq)
         raise Problem(504, f"no estimate for frame {seq} within "
                       f"{ctx.settings.frame_wait_timeout_s:g} s; it will still be streamed",
-                      kind="estimate-timeout", seq=seq) from None
+                      kind=ProblemKind.ESTIMATE_TIMEOUT, seq=seq) from None
     if msg["type"] == "pose":
         return JSONResponse(msg, status_code=200)
     raise Problem(FAILED_FRAME_STATUS.get(msg["kind"], 500), msg["reason"],
-                  kind=f"frame-{msg['kind'].replace('_', '-')}", seq=seq)
+                  kind=ProblemKind(f"frame-{msg['kind'].replace('_', '-')}"), seq=seq)
 
 
 def _declared_size(request: Request, limit: int) -> int:
@@ -214,10 +214,10 @@ async def _control(ctx, live, op: str, **kwargs) -> None:
         # in order after the frames already accepted
         await ctx.runtime.control(live, op, **kwargs)
     except ValueError as exc:
-        raise Problem(422, str(exc), kind="bad-control") from None
+        raise Problem(422, str(exc), kind=ProblemKind.BAD_CONTROL) from None
     except (KeyError, RuntimeError) as exc:
         raise Problem(503, f"the engine could not {op.replace('_', ' ')}: {exc}",
-                      kind="engine-unavailable") from None
+                      kind=ProblemKind.ENGINE_UNAVAILABLE) from None
 
 
 def _read(ctx, session_id: str) -> SessionRead:
@@ -226,5 +226,5 @@ def _read(ctx, session_id: str) -> SessionRead:
     with ctx.db_sessions() as db:
         row = db.get(LocalisationSession, uuid.UUID(session_id))
         if row is None:
-            raise Problem(404, f"session {session_id} was deleted", kind="not-found")
+            raise Problem(404, f"session {session_id} was deleted", kind=ProblemKind.NOT_FOUND)
         return service.read_session(db, row=row, runtime=ctx.runtime)

@@ -42,7 +42,7 @@ from vloc.app.engine import (
     WorkerDied,
 )
 from vloc.app.metrics import Metrics
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 from vloc.app.sessions import store
 from vloc.app.sessions.admission import check_revision, next_seq, spec_for
 from vloc.app.sessions.budget import FrameBudget, Held
@@ -202,14 +202,14 @@ class SessionRuntime:
             # The worker's message may name files under the data directory: logged only.
             log.warning("session %s could not be restored", spec.session_id, exc_info=exc)
             raise Problem(503, f"the session could not be restored ({type(exc).__name__}); "
-                          "see the server log", kind="session-unavailable") from None
+                          "see the server log", kind=ProblemKind.SESSION_UNAVAILABLE) from None
 
     async def _reopen(self, live: LiveSession) -> None:
         """The engine lost the session (its actor died and came back empty): open it again
         from the checkpoint in the database."""
         row, recorded, _ = await asyncio.to_thread(self._read_row, uuid.UUID(live.id))
         if row is None:
-            raise Problem(404, f"session {live.id} was deleted", kind="not-found")
+            raise Problem(404, f"session {live.id} was deleted", kind=ProblemKind.NOT_FOUND)
         known = [s for s in (row.last_seq, recorded, live.last_seq) if s is not None]
         log.warning("session %s: reopened in the engine from its checkpoint (seq %s)",
                     live.id, row.state_seq)
@@ -341,12 +341,12 @@ class SessionRuntime:
         """
         if self._closing:
             raise Problem(503, "the server is shutting down; send the frame again later",
-                          kind="shutting-down", headers={"Retry-After": "5"})
+                          kind=ProblemKind.SHUTTING_DOWN, headers={"Retry-After": "5"})
         if not self.engine.shared:
             seq = next_seq(live.last_seq, seq)
         if len(live.arrivals) >= self.settings.max_pending_frames:
             raise Problem(429, f"{len(live.arrivals)} frames of this session are still queued",
-                          kind="too-many-pending", headers={"Retry-After": "1"})
+                          kind=ProblemKind.TOO_MANY_PENDING, headers={"Retry-After": "1"})
         if not admitted:
             self.budget.check(live.id, len(data))
         if self.engine.shared:
@@ -370,21 +370,21 @@ class SessionRuntime:
             try:
                 got = await asyncio.wrap_future(self.engine.reserve_seq(live.id, seq))
             except SeqRefused as exc:
-                raise Problem(409, str(exc), kind=exc.kind, last_seq=exc.last_seq) from None
+                raise Problem(409, str(exc), kind=ProblemKind(exc.kind), last_seq=exc.last_seq) from None
             except KeyError:
                 if attempt:
                     raise Problem(503, "the engine could not reopen the session; retry",
-                                  kind="session-unavailable",
+                                  kind=ProblemKind.SESSION_UNAVAILABLE,
                                   headers={"Retry-After": "1"}) from None
                 await self._reopen(live)
                 continue
             except (EngineClosed, WorkerDied) as exc:
                 raise Problem(503, f"the engine could not take the frame: {exc}",
-                              kind="engine-unavailable", headers={"Retry-After": "1"}) from None
+                              kind=ProblemKind.ENGINE_UNAVAILABLE, headers={"Retry-After": "1"}) from None
             if got > MAX_SEQ:
                 self.engine.release_seq(live.id, got)
                 raise Problem(409, f"the session has used every seq up to {MAX_SEQ}",
-                              kind="seq-exhausted", last_seq=MAX_SEQ)
+                              kind=ProblemKind.SEQ_EXHAUSTED, last_seq=MAX_SEQ)
             return got
         raise AssertionError("unreachable")
 
@@ -432,7 +432,7 @@ class SessionRuntime:
                 live.last_seq = arrival.previous_seq
             _resolve(arrival.queued, exception=Problem(
                 503, "the frame could not be recorded, so it was not processed; retry",
-                kind="storage-unavailable", headers={"Retry-After": "1"}))
+                kind=ProblemKind.STORAGE_UNAVAILABLE, headers={"Retry-After": "1"}))
             return
         data, arrival.data = arrival.data, None
         captured = arrival.captured_at.timestamp() if arrival.captured_at is not None else None
@@ -473,7 +473,7 @@ class SessionRuntime:
 
 def expired_problem(session_id) -> Problem:
     return Problem(410, f"session {session_id} expired after its time to live without a "
-                   "frame or keep-alive; create a new session", kind="session-expired")
+                   "frame or keep-alive; create a new session", kind=ProblemKind.SESSION_EXPIRED)
 
 
 def _resolve(fut: asyncio.Future, value=None, *, exception: BaseException | None = None) -> None:

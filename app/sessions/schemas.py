@@ -10,6 +10,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, computed_field, model_validator
 
 from vloc.workers.core.estimate import Status
+from vloc.workers.core.modes import MODES
 
 MAX_SEQ = 2**63 - 1
 """The largest frame sequence number: the database stores it as a signed 64-bit integer."""
@@ -99,7 +100,8 @@ GEOPOSE = ("The pose as an OGC GeoPose 1.0 Basic-Quaternion: position (lat, lon,
 
 class PoseFields(BaseModel):
     """What a pose says of where the camera is: a session's estimate
-    (:class:`PoseEstimate`) and a single image's (:class:`Localization`).
+    (:class:`PoseEstimate`) and a single image's
+    (:class:`~vloc.app.localize.schemas.Localization`).
 
     The fields are declared here once: the table ``pose_estimates`` is generated from them
     (:mod:`app.sessions.pose`), and an estimate's fields of the same name are copied into
@@ -182,14 +184,6 @@ class PoseEstimate(PoseFields):
         None, description="For a session that follows a route; null otherwise")
 
 
-class Localization(PoseFields):
-    """Where a single image was taken (``POST /v1/maps/{id}/localize``)."""
-
-    type: Literal["localization"] = "localization"
-    captured_at: datetime | None
-    latency_ms: float = Field(description="Request arrival to answer, in the API")
-
-
 def heading_quaternion(heading_deg: float) -> Quaternion:
     """The ENU-frame rotation about Up of a compass heading (clockwise from north): yaw,
     counter-clockwise from east, is 90 deg - heading."""
@@ -224,7 +218,7 @@ class SessionRead(BaseModel):
     id: uuid.UUID
     map_id: uuid.UUID
     map_revision: int
-    mode: Literal["hybrid", "global", "sift", "hierarchical", "retrieval"]
+    mode: Literal[MODES]
     params: dict[str, Any]
     seed: int
     created_at: datetime

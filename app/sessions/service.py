@@ -16,8 +16,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from vloc.app.db import new_id, utcnow
 from vloc.app.engine import WorkerDied
 from vloc.app.maps.models import Map
-from vloc.app.problems import Problem, not_found
-from vloc.app.routes.service import navigation_path
+from vloc.app.problems import Problem, ProblemKind, not_found
 from vloc.app.security import hash_secret, new_token
 from vloc.app.sessions import pose, store
 from vloc.app.sessions.admission import revision_missing
@@ -32,6 +31,7 @@ from vloc.app.sessions.schemas import (
     SessionRead,
     SessionStats,
 )
+from vloc.app.teach.service import navigation_path
 from vloc.workers.core.geo import GeoOrigin
 
 LATENCY_WINDOW = 1000
@@ -76,14 +76,14 @@ def check_initial_pose(frame: MapFrame, pose: InitialPose) -> None:
     if not (e0 - m <= east <= e1 + m and n0 - m <= north <= n1 + m):
         raise Problem(422, f"the initial pose ({east:.1f} m east, {north:.1f} m north) lies "
                       f"outside the map's extent ({e0:.1f}..{e1:.1f} m east, "
-                      f"{n0:.1f}..{n1:.1f} m north) plus {m:g} m", kind="bad-initial-pose")
+                      f"{n0:.1f}..{n1:.1f} m north) plus {m:g} m", kind=ProblemKind.BAD_INITIAL_POSE)
 
 
 def resolve_seed(body: SessionCreate) -> int:
     given = body.params.seed
     if given is not None and body.seed is not None and given != body.seed:
         raise Problem(422, f"seed {body.seed} and params.seed {given} disagree",
-                      kind="bad-params")
+                      kind=ProblemKind.BAD_PARAMS)
     seed = body.seed if body.seed is not None else given
     return secrets.randbits(63) if seed is None else int(seed)
 
@@ -105,10 +105,10 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
         await asyncio.to_thread(_unreserve, db_sessions, row.id)
         if isinstance(exc, ValueError):
             raise Problem(422, f"the localiser refused the session: {exc}",
-                          kind="bad-params") from None
+                          kind=ProblemKind.BAD_PARAMS) from None
         if isinstance(exc, WorkerDied | TimeoutError | RuntimeError):
             raise Problem(503, f"the engine could not open the session: {exc}",
-                          kind="engine-unavailable") from None
+                          kind=ProblemKind.ENGINE_UNAVAILABLE) from None
         raise
     try:
         read = await asyncio.to_thread(_read_new, db_sessions, row.id, runtime)
@@ -128,19 +128,19 @@ def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
             raise not_found("map", body.map_id)
         if map_.revision == 0:
             raise Problem(409, "the map has not been built yet; POST /v1/maps/{id}/build",
-                          kind="map-not-built")
+                          kind=ProblemKind.MAP_NOT_BUILT)
         map_id, revision = map_.id, map_.revision
         navigation = _navigation(db, body, map_id)
     try:
         params = validate_params(body.mode, body.given_params())
     except ValueError as exc:
-        raise Problem(422, str(exc), kind="bad-params") from None
+        raise Problem(422, str(exc), kind=ProblemKind.BAD_PARAMS) from None
     seed = resolve_seed(body)
     ttl_s = body.ttl_s if body.ttl_s is not None else settings.session_ttl_s
     if ttl_s > settings.max_session_ttl_s:
         raise Problem(422, f"ttl_s {ttl_s} is longer than this server allows "
                       f"({settings.max_session_ttl_s} s, VLOC_MAX_SESSION_TTL_S)",
-                      kind="bad-params")
+                      kind=ProblemKind.BAD_PARAMS)
     params.pop("seed", None)  # the seed travels as its own argument
     token = new_token()
     row = LocalisationSession(id=new_id(), map_id=map_id, map_revision=revision,
@@ -164,7 +164,7 @@ def _navigation(db: Session, body: SessionCreate, map_id) -> dict | None:
     try:
         params = navigation_params(given)
     except ValueError as exc:
-        raise Problem(422, f"navigation.params: {exc}", kind="bad-params") from None
+        raise Problem(422, f"navigation.params: {exc}", kind=ProblemKind.BAD_PARAMS) from None
     path = navigation_path(db, map_id=map_id, route_id=nav.route_id,
                            from_node=nav.from_node, to_node=nav.to_node)
     return {**path, "params": params}
@@ -189,7 +189,7 @@ def _reserve(db_sessions: sessionmaker[Session], row: LocalisationSession,
         if existing >= max_sessions:
             raise Problem(429, f"{existing} sessions exist, the most this server keeps "
                           f"(VLOC_MAX_SESSIONS); delete finished sessions first",
-                          kind="too-many-sessions", headers={"Retry-After": "60"},
+                          kind=ProblemKind.TOO_MANY_SESSIONS, headers={"Retry-After": "60"},
                           max_sessions=max_sessions)
         db.add(row)
         db.commit()

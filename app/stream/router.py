@@ -48,7 +48,7 @@ from pydantic import BaseModel, ValidationError
 from vloc.app.context import AppContext
 from vloc.app.imagecheck import check_image
 from vloc.app.limits import too_large
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 from vloc.app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
 from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.runtime import expired_problem
@@ -193,7 +193,7 @@ async def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: by
         _, queued = await ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured,
                                              t0=t0, metadata=metadata)
     except Problem as p:
-        ctx.metrics.frames_rejected.labels(p.kind or "bad-image").inc()
+        ctx.metrics.frames_rejected.labels(p.kind or ProblemKind.BAD_IMAGE).inc()
         sub.put({"type": "error", "problem": p.body()})
         return
     queued.add_done_callback(lambda f: _report_refusal(sub, f))
@@ -210,7 +210,7 @@ def _text(sub: Subscription, text: str, meta: FrameMeta) -> FrameMeta:
         parsed = FrameMeta.model_validate_json(text)
     except ValidationError as exc:
         problem = Problem(422, f"unreadable message: {exc.errors()[0]['msg']}",
-                          kind="bad-message")
+                          kind=ProblemKind.BAD_MESSAGE)
         sub.put({"type": "error", "problem": problem.body()})
         return meta
     if parsed.type == "ping":
@@ -218,6 +218,6 @@ def _text(sub: Subscription, text: str, meta: FrameMeta) -> FrameMeta:
         return meta
     if parsed.type == "frame_meta":
         return parsed
-    problem = Problem(422, f"unknown message type {parsed.type!r}", kind="bad-message")
+    problem = Problem(422, f"unknown message type {parsed.type!r}", kind=ProblemKind.BAD_MESSAGE)
     sub.put({"type": "error", "problem": problem.body()})
     return meta

@@ -7,7 +7,7 @@ module sets it too for scripts that import it first), and OpenCV through its own
 Runs are kept in a compact, JSON-friendly record per run (:func:`run_record`): the error
 and the milliseconds of every frame and the feature each step used. :func:`pool` turns
 records of any number of runs (one pair of passes, or all pairs of a table row) into the
-figures of the tables, the way :meth:`workers.core.evaluate.ModeSummary.to_dict` does for
+figures of the tables, the way :meth:`workers.core.evaluation.evaluate.ModeSummary.to_dict` does for
 the runs of one evaluation.
 """
 
@@ -36,8 +36,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from vloc.clients.world import generate_world  # noqa: E402
-from vloc.workers.core.evaluate import Run  # noqa: E402
-from vloc.workers.core.experiment import Experiment, load_experiment  # noqa: E402
+from vloc.workers.core.evaluation.evaluate import Run  # noqa: E402
+from vloc.workers.core.evaluation.experiment import Experiment, load_experiment  # noqa: E402
 
 cv2.setNumThreads(1)
 
@@ -156,7 +156,7 @@ def experiment(folder: Path, map_pass: int, query_pass: int, *,
 
 
 def progress_printer(label: str):
-    """A ``progress`` callback for :func:`workers.core.evaluate.evaluate`."""
+    """A ``progress`` callback for :func:`workers.core.evaluation.evaluate.evaluate`."""
     def progress(config: str, mode: str, k: int, n: int) -> None:
         log(f"  {label} {config}/{mode}: start {k}/{n}")
     return progress

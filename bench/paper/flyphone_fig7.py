@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np  # noqa: E402
 
 from bench.paper import _common as c  # noqa: E402
-from vloc.workers.core.evaluate import retrieval_grid  # noqa: E402
+from vloc.workers.core.evaluation.evaluate import retrieval_grid  # noqa: E402
 from vloc.workers.core.features import FEATURE_NAMES  # noqa: E402
 from vloc.workers.core.measures import MEASURES  # noqa: E402
 

@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 
 from bench.paper import _common as c  # noqa: E402
 from bench.paper import weiss_table1  # noqa: E402
-from vloc.workers.core.evaluate import evaluate  # noqa: E402
+from vloc.workers.core.evaluation.evaluate import evaluate  # noqa: E402
 
 NAME = "weiss_fig4"
 CONFIG = "weiss2008"

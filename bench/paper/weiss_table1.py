@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np  # noqa: E402
 
 from bench.paper import _common as c  # noqa: E402
-from vloc.workers.core.evaluate import evaluate  # noqa: E402
+from vloc.workers.core.evaluation.evaluate import evaluate  # noqa: E402
 from vloc.workers.core.pf.config import CONFIGS  # noqa: E402
 
 NAME = "weiss_table1"

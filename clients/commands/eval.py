@@ -10,9 +10,9 @@ from pathlib import Path
 
 import click
 
-from ._common import parse_params
+from vloc.workers.core.modes import MODES
 
-MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
+from ._common import parse_params
 
 
 def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
@@ -30,7 +30,7 @@ def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
 @click.option("--query-pass", type=int, help="Pass number replayed as the query sequence.")
 @click.option("--split", "rule", type=click.Choice(["pass", "alternate"]), default="pass",
               show_default=True, help="Split by pass, or alternate images (even map, odd query).")
-@click.option("--modes", default="hybrid,global,sift,hierarchical,retrieval", show_default=True,
+@click.option("--modes", default=",".join(MODES), show_default=True,
               help="Comma-separated localisers to run.")
 @click.option("--config", "configs", default="default", show_default=True,
               help="Comma-separated filter configurations (default, weiss2008).")
@@ -66,22 +66,22 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
              heading_sigma, threads, as_json) -> None:
     """Run the localisers over DATASET (a folder of geotagged images, optionally with a CSV
     of positions and a `pass` column) and report error and speed per mode."""
-    from vloc.workers.core.datasets import DatasetError
-    from vloc.workers.core.evaluate import evaluate
-    from vloc.workers.core.evaluate import retrieval_grid as run_grid
-    from vloc.workers.core.experiment import frame_metadata, load_experiment
-    from vloc.workers.core.features import FEATURE_NAMES
-    from vloc.workers.core.measures import MEASURES
-    from vloc.workers.core.metadata import METADATA_KINDS
-    from vloc.workers.core.pf.config import CONFIGS
-    from vloc.workers.core.photometric import VARIANTS
-    from vloc.workers.core.report import (
+    from vloc.workers.core.evaluation.datasets import DatasetError
+    from vloc.workers.core.evaluation.evaluate import evaluate
+    from vloc.workers.core.evaluation.evaluate import retrieval_grid as run_grid
+    from vloc.workers.core.evaluation.experiment import frame_metadata, load_experiment
+    from vloc.workers.core.evaluation.photometric import VARIANTS
+    from vloc.workers.core.evaluation.report import (
         grid_table,
         markdown_table,
         plot_tracks,
         results_dict,
         tracks_dict,
     )
+    from vloc.workers.core.features import FEATURE_NAMES
+    from vloc.workers.core.measures import MEASURES
+    from vloc.workers.core.metadata import METADATA_KINDS
+    from vloc.workers.core.pf.config import CONFIGS
 
     mode_list = _csv(modes, MODES, "mode")
     config_list = _csv(configs, tuple(CONFIGS), "config")

@@ -15,6 +15,7 @@ from vloc.clients.commands._common import (
     reports_errors,
     server_options,
 )
+from vloc.workers.core.modes import FILTER_MODES
 
 
 def _prior(ctx, param, value: str | None) -> tuple[float, float] | None:
@@ -35,7 +36,7 @@ def _prior(ctx, param, value: str | None) -> tuple[float, float] | None:
               help="Where the image is roughly known to be (with --prior-sigma).")
 @click.option("--prior-sigma", "prior_sigma_m", type=click.FloatRange(0, min_open=True),
               metavar="M", help="Uncertainty of --prior in metres.")
-@click.option("--mode", type=click.Choice(["sift", "global", "hybrid"]), default=None,
+@click.option("--mode", type=click.Choice(FILTER_MODES), default=None,
               help="How the image is compared with the map [default: the server's, sift].")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object per image.")
 @server_options

@@ -127,7 +127,7 @@ def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | 
     from tqdm import tqdm
 
     from vloc.clients.mapping import import_images
-    from vloc.workers.core.datasets import DatasetError, load_dataset
+    from vloc.workers.core.evaluation.datasets import DatasetError, load_dataset
 
     try:
         ds = load_dataset(folder)

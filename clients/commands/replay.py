@@ -18,8 +18,7 @@ from vloc.clients.commands._common import (
     reports_errors,
     server_options,
 )
-
-MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
+from vloc.workers.core.modes import MODES
 
 
 def _modes(value: str) -> list[str]:
@@ -88,7 +87,7 @@ def replay_cmd(dataset: Path, map_id, build_map: bool, map_pass, query_pass, rul
           --mode hybrid,global,sift --rate max
     """
     from vloc.clients._replay_data import load_replay_data
-    from vloc.workers.core.datasets import DatasetError
+    from vloc.workers.core.evaluation.datasets import DatasetError
 
     modes = _modes(modes_text)
     params = parse_params(param_items)

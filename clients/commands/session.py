@@ -17,8 +17,7 @@ from vloc.clients.commands._common import (
     reports_errors,
     server_options,
 )
-
-MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
+from vloc.workers.core.modes import MODES
 
 token_option = click.option("--token", envvar="VLOC_SESSION_TOKEN", metavar="TOKEN",
                             help="The session's token [env VLOC_SESSION_TOKEN; else the "

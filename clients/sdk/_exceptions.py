@@ -25,16 +25,92 @@ Every error the client raises is a :class:`VlocError`::
     └── WaitTimeout ........... a wait ran out of time (also a built-in ``TimeoutError``)
 
 :func:`error_for_response` picks the class from the status code; a status without a class
-of its own (418, 451...) gives a plain :class:`APIError`.
+of its own (418, 451...) gives a plain :class:`APIError`. Within a class, ``error.kind``
+tells problems apart: one of the :class:`ProblemKind` slugs the server documents
+(``error.kind == ProblemKind.STALE_SEQ``), or ``session-deleted`` for a stream that ended
+because its session was deleted.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+from enum import StrEnum
 from typing import Any
 
 import httpx
+
+
+class ProblemKind(StrEnum):
+    """The slug of every problem type the server answers with (after ``urn:vloc:problem:``);
+    docs/api.md says when each occurs. The same list as the server's own, member for member.
+    """
+
+    BAD_REQUEST = "bad-request"
+    UNAUTHENTICATED = "unauthenticated"
+    FORBIDDEN = "forbidden"
+    NOT_FOUND = "not-found"
+    # 409
+    DUPLICATE_SEQ = "duplicate-seq"
+    STALE_SEQ = "stale-seq"
+    SEQ_EXHAUSTED = "seq-exhausted"
+    MAP_BUSY = "map-busy"
+    MAP_EMPTY = "map-empty"
+    MAP_IN_USE = "map-in-use"
+    MAP_NOT_BUILT = "map-not-built"
+    MAP_UP_TO_DATE = "map-up-to-date"
+    NO_IMAGE_ACCEPTED = "no-image-accepted"
+    ROUTE_BUSY = "route-busy"
+    ROUTE_NOT_READY = "route-not-ready"
+    # 410
+    SESSION_EXPIRED = "session-expired"
+    # 413, 415
+    TOO_LARGE = "too-large"
+    TOO_MANY_PIXELS = "too-many-pixels"
+    TOO_MANY_FILES = "too-many-files"
+    UNSUPPORTED_MEDIA_TYPE = "unsupported-media-type"
+    CONTENT_TYPE_MISMATCH = "content-type-mismatch"
+    # 422
+    EMPTY_IMAGE = "empty-image"
+    BAD_IMAGE = "bad-image"
+    TRUNCATED_IMAGE = "truncated-image"
+    BAD_TEXT = "bad-text"
+    NO_FILES = "no-files"
+    NO_GPS = "no-gps"
+    POSITION_AMBIGUOUS = "position-ambiguous"
+    BAD_POSITION = "bad-position"
+    BAD_GPS = "bad-gps"
+    BAD_CAPTURED_AT = "bad-captured-at"
+    BAD_ODOMETRY = "bad-odometry"
+    UNKNOWN_IMAGES = "unknown-images"
+    AMBIGUOUS_IMAGES = "ambiguous-images"
+    BAD_METADATA = "bad-metadata"
+    BAD_INITIAL_POSE = "bad-initial-pose"
+    BAD_PRIOR = "bad-prior"
+    BAD_CONTROL = "bad-control"
+    BAD_PARAMS = "bad-params"
+    VALIDATION = "validation"
+    BAD_MESSAGE = "bad-message"
+    # a frame accepted with ?wait=true that gave no estimate: frame-<the failure's kind>
+    FRAME_BAD_IMAGE = "frame-bad-image"
+    FRAME_ERROR = "frame-error"
+    FRAME_NOT_STORED = "frame-not-stored"
+    FRAME_WORKER_DIED = "frame-worker-died"
+    FRAME_NOT_OPEN = "frame-not-open"
+    # 429
+    TOO_MANY_PENDING = "too-many-pending"
+    TOO_MANY_SESSIONS = "too-many-sessions"
+    OVER_FAIR_SHARE = "over-fair-share"
+    # 500, 503, 504
+    INTERNAL = "internal"
+    ENGINE_UNAVAILABLE = "engine-unavailable"
+    SESSION_UNAVAILABLE = "session-unavailable"
+    MAP_REVISION_MISSING = "map-revision-missing"
+    SHUTTING_DOWN = "shutting-down"
+    STORAGE_UNAVAILABLE = "storage-unavailable"
+    SERVER_BUSY = "server-busy"
+    NOT_READY = "not-ready"
+    ESTIMATE_TIMEOUT = "estimate-timeout"
 
 
 class VlocError(Exception):
@@ -179,7 +255,7 @@ _BY_STATUS: dict[int, type[APIError]] = {
 }
 
 
-_BY_KIND: dict[str, type[APIError]] = {"session-expired": SessionExpired}
+_BY_KIND: dict[str, type[APIError]] = {ProblemKind.SESSION_EXPIRED: SessionExpired}
 
 
 def error_class(status: int, kind: str | None = None) -> type[APIError]:

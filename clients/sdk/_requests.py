@@ -15,7 +15,7 @@ from typing import Any
 
 import httpx
 
-from ._exceptions import APIError, error_for_response
+from ._exceptions import APIError, ProblemKind, error_for_response
 from ._models import (
     Coverage,
     FrameAccepted,
@@ -120,7 +120,7 @@ def outcome(call: Call, response: httpx.Response, *, retried: bool) -> Any:
         return call.parse(response)
     error = error_for_response(response)
     if (retried and call.accepted_seq is not None and error.status == 409
-            and error.kind == "duplicate-seq"):
+            and error.kind == ProblemKind.DUPLICATE_SEQ):
         return FrameAccepted(seq=call.accepted_seq)
     raise error
 

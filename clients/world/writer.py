@@ -1,6 +1,6 @@
 """Generating a world and writing it as a data set folder.
 
-Layout (the one :func:`workers.core.datasets.load_dataset` and ``vloc eval`` read)::
+Layout (the one :func:`workers.core.evaluation.datasets.load_dataset` and ``vloc eval`` read)::
 
     OUT/images/p1_00000.jpg ...   320x240 JPEGs with EXIF GPS position and capture time
     OUT/ground_truth.csv          filename,pass,captured_at,lat,lon,alt_m (true positions)

@@ -14,8 +14,13 @@ Create Date: 2026-11-24
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import sqlalchemy as sa
 from alembic import op
+from scipy.optimize import brentq
+from scipy.special import erf, erfinv
 
 revision = "0007"
 down_revision = "0006"
@@ -57,8 +62,6 @@ def upgrade() -> None:
 
 def _fill_accuracy() -> None:
     """The accuracy of the poses stored before, from their covariance."""
-    from vloc.workers.core.accuracy import horizontal_accuracy
-
     conn = op.get_bind()
     poses = sa.table("pose_estimates", sa.column("id"), sa.column("cov_xx"),
                      sa.column("cov_xy"), sa.column("cov_yx"), sa.column("cov_yy"),
@@ -68,7 +71,46 @@ def _fill_accuracy() -> None:
     if rows:
         conn.execute(poses.update().where(poses.c.id == sa.bindparam("b_id"))
                      .values(horizontal_accuracy_m=sa.bindparam("b_acc")),
-                     [{"b_id": r[0], "b_acc": horizontal_accuracy(r[1:])} for r in rows])
+                     [{"b_id": r[0], "b_acc": _horizontal_accuracy(r[1:])} for r in rows])
+
+
+# The accuracy as workers/core/accuracy.py computed it when this revision was written, kept
+# here so that what the migration stores never changes with the core: the radius of the
+# circle about the estimate holding the position with probability 68 %, exact for a
+# bivariate normal error (the integral by Gauss-Legendre, the root by Brent's method).
+_CONFIDENCE = 0.68
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(48)
+
+
+def _horizontal_accuracy(cov) -> float:
+    """Radius (metres) for a (2, 2) covariance given as 4 floats, row-major; 0 for a zero
+    covariance, NaN when it is not finite."""
+    p = _CONFIDENCE
+    c = np.asarray(cov, np.float64).reshape(2, 2)
+    if not np.all(np.isfinite(c)):
+        return math.nan
+    lam = np.clip(np.linalg.eigvalsh((c + c.T) / 2.0), 0.0, None)
+    l2, l1 = float(lam[0]), float(lam[1])
+    if l1 == 0.0:
+        return 0.0
+    if l2 <= 1e-12 * l1:
+        return float(math.sqrt(2.0 * l1) * erfinv(p))
+    k = math.sqrt(-2.0 * math.log1p(-p))
+    lo, hi = k * math.sqrt(l2), k * math.sqrt(l1)
+    if hi - lo <= 1e-12 * hi:
+        return hi
+    return float(brentq(lambda r: _within(r, l1, l2) - p, lo, hi, xtol=1e-12 * hi,
+                        rtol=1e-12))
+
+
+def _within(r: float, l1: float, l2: float) -> float:
+    """P(l1 Z1^2 + l2 Z2^2 < r^2), by Gauss-Legendre after z1 = (r / sqrt(l1)) sin t."""
+    a = r / math.sqrt(l1)
+    t = 0.5 * math.pi * _NODES
+    z = a * np.sin(t)
+    phi = np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+    inner = erf(r * np.cos(t) / math.sqrt(2.0 * l2))
+    return float(0.5 * math.pi * a * np.sum(_WEIGHTS * phi * inner * np.cos(t)))
 
 
 def downgrade() -> None:

@@ -7,10 +7,10 @@ import uuid
 from sqlalchemy import select
 
 from tests.app.conftest import ADMIN, jpeg_files, wait_job
-from vloc.app.jobs import tasks
 from vloc.app.jobs.models import BuildJob, BuildStage, JobStatus
 from vloc.app.maps.models import MapImage
 from vloc.app.maps.service import image_path
+from vloc.app.tasks import build as tasks
 
 
 def test_the_packing_reports_its_stages_to_the_job(module_client, shots, tmp_path,

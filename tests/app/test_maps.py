@@ -21,6 +21,7 @@ from tests.app.conftest import (
     wait_job,
 )
 from tests.app.imagery import plain_jpeg, png, png_bomb
+from vloc.app.maps.codecs import decode_vocabulary
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
 from vloc.workers.core.features import DESCRIPTOR_NAMES
 from vloc.workers.core.features.orb import extract_orb
@@ -28,7 +29,6 @@ from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.image import load_frame
 from vloc.workers.core.mapdata import MapData
 from vloc.workers.core.sift import extract_sift
-from vloc.workers.engine.build import decode_vocabulary
 
 
 def new_map(client, name: str = "a map") -> str:
@@ -380,7 +380,7 @@ def test_a_frame_that_pillow_cannot_identify_has_a_clean_detail(module_client):
 
 
 def test_tie_points_are_extracted_to_files_and_unreadable_images_say_so(tmp_path, shots):
-    from vloc.app.jobs.tasks import extract_ties
+    from vloc.app.tasks.build import extract_ties
     from vloc.workers.core.mapbuild import extract_tie_points, load_tie_points
 
     image = tmp_path / "map.jpg"
@@ -418,7 +418,7 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
     """The build's pair phase (a plan, then batches on the workers) hands the packing every
     pair it needs: packed with them, no pair is matched in the packing, and the map is the
     map the packing builds by matching them all itself."""
-    from vloc.app.jobs import tasks
+    from vloc.app.tasks import build as tasks
     from vloc.workers.core import tiepairs
     from vloc.workers.core.geometry import pairs
 
@@ -457,7 +457,7 @@ def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, t
     """A build that fails keeps its tie-point folder; the retry's tie points and pair
     batches found there complete are not computed again, and those a changed plan, changed
     inputs or an older results format have made stale are."""
-    from vloc.app.jobs import tasks
+    from vloc.app.tasks import build as tasks
     from vloc.workers.core import mapbuild, tiepairs
 
     map_id, url, files = _built_six_image_map(module_client, shots)

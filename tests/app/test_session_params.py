@@ -139,3 +139,46 @@ def test_the_edge_models_follow_the_core():
                           ("resampler", RESAMPLERS)):
         assert _literal_values(fields[name].annotation) == set(allowed), name
     assert set(edge.MODES) == set(MODES)
+
+
+def _probes(param) -> list:
+    """Values at and beside each of a parameter's bounds, and of the wrong type."""
+    from vloc.workers.core.pf.params import MAX_GLOBAL_FEATURES
+
+    if param.type is bool:
+        return [True, False, 1, "true", None]
+    if param.type is str:
+        return [*param.names(), "nope", 1, None]
+    if param.type is tuple:
+        names = list(param.names())
+        return [names[0], names[:2], [], ["nope"], names[:1] * (MAX_GLOBAL_FEATURES + 1), None]
+    out: list = [True, "1", None, "auto", 1]
+    for bound in param.bounds.values():
+        if param.type is int:
+            out += [int(bound) - 1, int(bound), int(bound) + 1]
+        else:
+            out += [bound * (1 - 1e-9) - 1e-12, float(bound), bound * (1 + 1e-9) + 1e-12]
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(edge.PARAMS))
+def test_the_api_and_the_core_take_the_same_values_of_each_filter_parameter(name):
+    """The API's model is generated from the core's declaration: at every bound, and for
+    every wrong type, the two agree on what a parameter takes."""
+    import json
+
+    import pydantic
+
+    param = edge.PARAMS[name]
+    for value in _probes(param):
+        try:
+            edge.FilterParams.model_validate_json(json.dumps({name: value}))
+            api = True
+        except pydantic.ValidationError:
+            api = False
+        try:
+            param.check(name, value)
+            core = True
+        except ValueError:
+            core = False
+        assert api == core, (name, value, api)

@@ -67,7 +67,7 @@ def test_table1_json_holds_every_run(table1):
 
 def test_pool_matches_the_evaluation_summary(tmp_path):
     """``_common.pool`` on stored records equals ``ModeSummary.to_dict`` on the same runs."""
-    from vloc.workers.core.evaluate import evaluate
+    from vloc.workers.core.evaluation.evaluate import evaluate
 
     folder = _common.world("robot", seed=1, passes=("sunny", "cloudy"), frames=24,
                            route_length=24.0, cache=tmp_path)

@@ -101,7 +101,7 @@ def test_eval_pins_the_threads_and_reports_cpu_beside_wall_time(dataset_dir, mon
     import cv2
     from threadpoolctl import threadpool_info
 
-    import vloc.workers.core.evaluate as evaluate_module
+    import vloc.workers.core.evaluation.evaluate as evaluate_module
 
     seen = {}
     real = evaluate_module.evaluate

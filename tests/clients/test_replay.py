@@ -213,7 +213,7 @@ def test_a_run_without_estimates_scores_nan():
 
 
 def test_relit_frames_are_the_pixels_eval_uses(dataset_dir):
-    from vloc.workers.core.experiment import load_experiment
+    from vloc.workers.core.evaluation.experiment import load_experiment
     from vloc.workers.core.image import load_frame
 
     data = load_replay_data(dataset_dir, map_pass=1, query_pass=2, photometric="dusk",

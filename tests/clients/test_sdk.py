@@ -621,6 +621,13 @@ def test_public_surface():
         clients.NoSuchThing  # noqa: B018
 
 
+def test_the_sdk_knows_every_problem_kind_of_the_server():
+    from vloc.app.problems import ProblemKind as ServerKind
+
+    assert {k.name: k.value for k in clients.ProblemKind} == \
+        {k.name: k.value for k in ServerKind}
+
+
 def test_images_are_typed_by_their_bytes():
     from vloc.clients.sdk._requests import image_content_type
 

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from vloc.clients.world import generate_world
-from vloc.workers.core.experiment import load_experiment
+from vloc.workers.core.evaluation.experiment import load_experiment
 from vloc.workers.core.localisers import make_localiser
 
 GOLDEN_DIR = Path(__file__).with_name("golden_estimates")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vloc.workers.core.estimate import Status
-from vloc.workers.core.evaluate import choose_starts, evaluate
+from vloc.workers.core.evaluation.evaluate import choose_starts, evaluate
 from vloc.workers.core.features import shortlist
 from vloc.workers.core.features.shortlist import PlaceCodes
 from vloc.workers.core.geo import GeoOrigin
@@ -432,3 +432,30 @@ def test_a_global_step_whose_orb_fails_registers_with_sift_before_escalating(
     loc2.config = replace(loc2.config, refine=replace(loc2.config.refine, sift_fallback=False))
     e2 = loc2.step(nxt[0])
     assert e2.feature == "sift" and e2.measurement.startswith("sift")
+
+
+def test_step_image_decodes_steps_and_records_and_refuses_bytes_that_do_not_decode():
+    import cv2
+
+    from vloc.workers.core.image import ImageError
+    from vloc.workers.core.stepping import step_image
+
+    class Once:
+        def __init__(self):
+            self.frames = []
+
+        def step(self, frame, *, captured_at=None, metadata=None):
+            self.frames.append((frame, captured_at, metadata))
+            return self.estimate
+
+    localiser = Once()
+    with pytest.raises(ImageError):
+        step_image(localiser, b"not an image", max_pixels=10**6)
+    assert localiser.frames == []
+    localiser.estimate = type("E", (), {"to_dict": lambda self: {"x": 1.0}})()
+    _, jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 128, np.uint8))
+    record = step_image(localiser, jpeg.tobytes(), max_pixels=10**6, captured_at=5.0,
+                        metadata={"heading_deg": 80.0})
+    assert record.estimate == {"x": 1.0} and record.decode_ms >= 0.0
+    (_, captured_at, metadata), = localiser.frames
+    assert captured_at == 5.0 and metadata.heading_deg == 80.0

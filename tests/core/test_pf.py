@@ -374,7 +374,7 @@ def test_flat_parameters_reach_their_part_and_come_back():
 def test_every_field_of_every_part_has_one_flat_name():
     from dataclasses import fields
 
-    paths = set(PARAMS.values())
+    paths = {(p.part, p.field) for p in PARAMS.values()}
     assert len(paths) == len(PARAMS)
     for f in fields(FilterConfig):
         part = getattr(WEISS2008, f.name)

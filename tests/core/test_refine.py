@@ -9,7 +9,7 @@ import pytest
 
 from tests.core.geometry.scene import GROUND_ALT, HEIGHT, WIDTH, observe, survey, tilted_rotation
 from vloc.clients.world.writer import generate_world
-from vloc.workers.core.experiment import load_experiment
+from vloc.workers.core.evaluation.experiment import load_experiment
 from vloc.workers.core.features.orb import OrbFeatures
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.localisers.refine import (

@@ -14,7 +14,7 @@ import pytest
 
 from tests.conftest import REPO_ROOT
 from tests.e2e.conftest import start_server
-from vloc.workers.core.datasets import load_dataset, split
+from vloc.workers.core.evaluation.datasets import load_dataset, split
 from vloc.workers.core.geo import GeoOrigin
 
 pytestmark = [pytest.mark.slow, pytest.mark.dataset]

@@ -335,8 +335,8 @@ def test_wrong_credentials_are_refused_and_a_token_opens_its_session(browser, li
 
 
 def test_replay_file_draws_tracks_against_the_truth(browser, live, tmp_path, shots):
-    from vloc.workers.core.evaluate import ModeSummary, Run
-    from vloc.workers.core.report import tracks_dict
+    from vloc.workers.core.evaluation.evaluate import ModeSummary, Run
+    from vloc.workers.core.evaluation.report import tracks_dict
 
     n = 40
     t = np.arange(n, dtype=float)

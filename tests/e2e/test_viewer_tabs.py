@@ -33,8 +33,8 @@ def test_sign_in_shows_the_session_id_for_a_token_only(browser, live):
 
 def _replay_file(tmp_path) -> str:
     """A replay 2 km away from the map, so that its framing differs from the map's."""
-    from vloc.workers.core.evaluate import ModeSummary, Run
-    from vloc.workers.core.report import tracks_dict
+    from vloc.workers.core.evaluation.evaluate import ModeSummary, Run
+    from vloc.workers.core.evaluation.report import tracks_dict
 
     n = 20
     truth = np.c_[2000 + 5 * np.arange(n, dtype=float), np.full(n, 2000.0)]

@@ -84,3 +84,14 @@ def test_resolve_refuses_malformed_references():
     assert resolve("tests.engine.fakes:square")(3) == 9
     with pytest.raises(ValueError):
         resolve("no_colon")
+
+
+def test_a_one_shot_localisation_and_the_sessions_share_the_map(tmp_path):
+    """A worker loads a packed revision once, whoever asks: its sessions and the single-image
+    localisation's task (:func:`workers.core.mapdata.open_map`)."""
+    from vloc.workers.core.mapdata import open_map
+
+    state = WorkerState(max_pixels=10**6)
+    folder = _map(tmp_path / "r1", 1)
+    assert state.handle(OpenSession(_spec("a", folder, 1), None, 1)).ok
+    assert open_map(folder) is state.maps[("m", 1)]

@@ -38,6 +38,9 @@ geometry : MapGeometry or None
 from __future__ import annotations
 
 import json
+import threading
+import weakref
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -333,3 +336,31 @@ def _concatenate(parts, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     desc = (np.concatenate([p.descriptors for p in parts]) if parts
             else np.zeros((0, width), np.uint8))
     return offsets, kps.astype(np.float32), desc.astype(np.uint8)
+
+
+KEPT_OPEN = 4
+"""Packed revisions :func:`open_map` keeps loaded after their last user lets them go."""
+
+_open: weakref.WeakValueDictionary[str, MapData] = weakref.WeakValueDictionary()
+_kept: OrderedDict[str, MapData] = OrderedDict()
+_open_lock = threading.Lock()
+
+
+def open_map(folder: str | Path) -> MapData:
+    """The packed revision in ``folder``, memory-mapped, loaded once per process.
+
+    Every caller gets the same :class:`MapData` while any of them holds it (a worker's
+    sessions, a one-shot localisation), and the :data:`KEPT_OPEN` last opened stay loaded
+    after that: a packed revision never changes, and loading it again costs page-cache hits.
+    """
+    key = str(Path(folder))
+    with _open_lock:
+        data = _open.get(key)
+        if data is None:
+            data = MapData.load(key, mmap=True)
+            _open[key] = data
+        _kept[key] = data
+        _kept.move_to_end(key)
+        while len(_kept) > KEPT_OPEN:
+            _kept.popitem(last=False)
+    return data

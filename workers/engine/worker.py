@@ -89,23 +89,19 @@ class WorkerState:
         return replace(outcome, prev_seq=prev)
 
     def _step(self, task: FrameTask, localiser) -> FrameDone | FrameFailed:
-        from vloc.workers.core.image import ImageError, load_frame
-        from vloc.workers.core.metadata import FrameMetadata
+        from vloc.workers.core.image import ImageError
+        from vloc.workers.core.stepping import step_image
 
-        t0 = time.perf_counter()
         try:
-            frame = load_frame(task.data, max_pixels=self.max_pixels)
+            record = step_image(localiser, task.data, max_pixels=self.max_pixels,
+                                captured_at=task.captured_at, metadata=task.metadata)
+            state = localiser.get_state() if task.checkpoint else None
         except ImageError as exc:
             return FrameFailed(task.session_id, task.seq, "bad_image", str(exc))
-        decode_ms = (time.perf_counter() - t0) * 1e3
-        try:
-            estimate = localiser.step(frame, captured_at=task.captured_at,
-                                      metadata=FrameMetadata.from_dict(task.metadata))
-            state = localiser.get_state() if task.checkpoint else None
         except Exception as exc:  # noqa: BLE001 - reported on the stream, the worker lives on
             return FrameFailed(task.session_id, task.seq, "error",
                                f"{type(exc).__name__}: {exc}")
-        return FrameDone(task.session_id, task.seq, estimate.to_dict(), state, decode_ms)
+        return FrameDone(task.session_id, task.seq, record.estimate, state, record.decode_ms)
 
     def _open(self, task: OpenSession) -> tuple[object, bytes | None]:
         spec = task.spec
@@ -161,9 +157,9 @@ class WorkerState:
     def _map(self, spec: SessionSpec):
         key = (spec.map_id, spec.revision)
         if key not in self.maps:
-            from vloc.workers.core.mapdata import MapData
+            from vloc.workers.core.mapdata import open_map
 
-            self.maps[key] = MapData.load(spec.map_folder, mmap=True)
+            self.maps[key] = open_map(spec.map_folder)
         return self.maps[key]
 
     @staticmethod

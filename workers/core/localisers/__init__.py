@@ -13,14 +13,12 @@ retrieval      Flyphone: nearest map image under a chosen feature and measure
 from __future__ import annotations
 
 from ..mapdata import MapData
+from ..modes import FILTER_MODES, MODES
 from ..pf.config import config_from_params
 from .base import Localiser, pack_state, unpack_state
 from .filtering import FilterLocaliser
 from .hierarchical import HierarchicalConfig, HierarchicalLocaliser
 from .retrieval import RetrievalConfig, RetrievalLocaliser
-
-MODES = ("hybrid", "global", "sift", "hierarchical", "retrieval")
-FILTER_MODES = ("hybrid", "global", "sift")
 
 
 def validate_params(mode: str, params: dict | None = None) -> dict:

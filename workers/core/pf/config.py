@@ -10,8 +10,8 @@ with its source). ``default`` is ``weiss2008`` with the overrides that measureme
 data (seneca-uav) showed to help (:data:`DEFAULT_OVERRIDES`).
 
 Sessions and the command line name parameters by flat keys (``n_particles``, ``sift_ratio``,
-``global_features`` ...): :data:`~.params.PARAMS` maps each to its part and field
-(:mod:`.params`, with their validation),
+``global_features`` ...): :data:`~.params.PARAMS` declares each: its part and field, the values it
+takes and what it means (:mod:`.params`),
 :func:`config_from_params` builds a configuration from a named base and flat overrides, and
 :meth:`FilterConfig.to_params` gives the flat view back.
 """
@@ -245,7 +245,8 @@ class FilterConfig:
     def to_params(self) -> dict:
         """The flat parameters (keys of :data:`PARAMS`, in its order), JSON-ready."""
         out = {}
-        for key, (part, name) in PARAMS.items():
+        for key, param in PARAMS.items():
+            part, name = param.part, param.field
             value = getattr(self if part is None else getattr(self, part), name)
             out[key] = list(value) if isinstance(value, tuple) else value
         return out
@@ -255,7 +256,7 @@ class FilterConfig:
         top: dict = {}
         parts: dict[str, dict] = {}
         for key, value in params.items():
-            part, name = PARAMS[key]
+            part, name = PARAMS[key].part, PARAMS[key].field
             if part is None:
                 top[name] = value
             else:

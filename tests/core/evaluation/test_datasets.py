@@ -11,7 +11,7 @@ import pytest
 from PIL import ExifTags, Image
 from PIL.TiffImagePlugin import IFDRational as R
 
-from vloc.workers.core.datasets import (
+from vloc.workers.core.evaluation.datasets import (
     DatasetError,
     load_dataset,
     load_frames,

@@ -1,8 +1,7 @@
-"""What map builds run in the worker processes besides the core: image inspection and the
-byte layouts of features as the database stores them.
+"""The byte layouts of features as the maps' tables store them (:mod:`app.maps.models`):
+little-endian float32 vectors, keypoints and centroids, uint8 descriptors.
 
-The build tasks that read and write the database belong to the service
-(:mod:`app.jobs.tasks`); the engine only runs them, so it never imports the web layer.
+The build tasks (:mod:`app.tasks`) write them and read them back in the workers.
 """
 
 from __future__ import annotations
@@ -12,14 +11,6 @@ import numpy as np
 from vloc.workers.core.features.orb import OrbFeatures
 from vloc.workers.core.features.vocabulary import Vocabulary
 from vloc.workers.core.sift import SiftFeatures
-
-
-def inspect_image(data: bytes, *, max_pixels: int) -> tuple[int, int]:
-    """Decode an image fully; (width, height), or ImageError (a ValueError)."""
-    from vloc.workers.core.image import decode_image
-
-    image = decode_image(data, max_pixels=max_pixels)
-    return int(image.shape[1]), int(image.shape[0])
 
 
 def encode_vector(vec: np.ndarray) -> bytes:

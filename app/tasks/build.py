@@ -1,4 +1,4 @@
-"""Map-building tasks the service hands to the worker processes (``engine.call``).
+"""A map's build, run by the engine's workers (:func:`vloc.app.engine.run_task`).
 
 Extraction is per image and writes its features straight into the database, so that big
 arrays never travel through the API process; packing reads every built image's features
@@ -11,18 +11,16 @@ the functions that need them.
 
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 import uuid
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 from sqlalchemy import delete, select, update
 
-from vloc.app.db import make_engine, make_session_factory
-from vloc.app.engine import (
+from vloc.app.jobs.models import BuildJob, BuildStage
+from vloc.app.maps.codecs import (
     decode_orb,
     decode_sift,
     decode_vector,
@@ -30,23 +28,14 @@ from vloc.app.engine import (
     encode_vector,
     encode_vocabulary,
 )
-from vloc.app.jobs.models import BuildJob, BuildStage
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
-from vloc.app.sessions.pose import write_image_ids
+from vloc.app.maps.revisions import write_image_ids, write_timings
+from vloc.app.tasks.database import sessions
 
 log = logging.getLogger(__name__)
 
-TIMINGS_FILE = "build_timings.json"
-"""Seconds each stage of packing a revision took, beside the revision."""
-
-
 _BATCH = 500
 """Rows read at a time when a map's stored features are packed."""
-
-
-@lru_cache(maxsize=8)
-def _sessions(database_url: str):
-    return make_session_factory(make_engine(database_url))
 
 
 def extract_image(database_url: str, image_id: int, path: str, *, max_pixels: int) -> int:
@@ -61,7 +50,7 @@ def extract_image(database_url: str, image_id: int, path: str, *, max_pixels: in
     feats = extract_image_features(frame)
     kps, desc = encode_local(feats.sift)
     orb_kps, orb_desc = encode_local(feats.orb)
-    with _sessions(database_url)() as db, db.begin():
+    with sessions(database_url)() as db, db.begin():
         db.execute(delete(ImageGlobalFeature).where(ImageGlobalFeature.image_id == image_id))
         db.execute(delete(ImageSift).where(ImageSift.image_id == image_id))
         db.execute(delete(ImageOrb).where(ImageOrb.image_id == image_id))
@@ -169,7 +158,7 @@ def _set_stage(database_url: str, job_id: str, stage: str) -> None:
     values: dict = {"stage": stage}
     if stage in PACKING_PROGRESS:
         values["progress"] = PACKING_PROGRESS[stage]
-    with _sessions(database_url)() as db, db.begin():
+    with sessions(database_url)() as db, db.begin():
         db.execute(update(BuildJob).where(BuildJob.id == uuid.UUID(job_id)).values(**values))
 
 
@@ -180,7 +169,7 @@ def tie_stem(tie_dir: str | Path, image_id: int) -> str:
 
 def _read_images(database_url: str, map_id: str) -> list[dict]:
     """The map's images with extracted features, in map order: the fields a build needs."""
-    with _sessions(database_url)() as db:
+    with sessions(database_url)() as db:
         rows = db.execute(
             select(MapImage.id, MapImage.filename, MapImage.lat, MapImage.lon, MapImage.alt,
                    MapImage.captured_at)
@@ -201,7 +190,7 @@ def _read_features(database_url: str, map_id: str, images: list[dict], ties: lis
     from vloc.workers.core.mapbuild import ImageFeatures, stage
 
     mid = uuid.UUID(map_id)
-    with stage(timings, "reading features"), _sessions(database_url)() as db:
+    with stage(timings, "reading features"), sessions(database_url)() as db:
         vectors: dict[int, dict[str, np.ndarray]] = {}
         for image_id, name, data in db.execute(
                 select(ImageGlobalFeature.image_id, ImageGlobalFeature.name,
@@ -311,7 +300,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     finally:
         if own:
             shutil.rmtree(ties_at, ignore_errors=True)
-    with stage(timings, "storing vocabularies"), _sessions(database_url)() as db, db.begin():
+    with stage(timings, "storing vocabularies"), sessions(database_url)() as db, db.begin():
         db.execute(delete(MapVocabulary).where(MapVocabulary.map_id == uuid.UUID(map_id),
                                                MapVocabulary.revision == revision))
         for name, vocab in sorted(data.vocabularies.items()):
@@ -324,9 +313,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     with stage(timings, "saving"):
         data.save(folder)
         write_image_ids(folder, [img["id"] for img in images])
-    (Path(folder) / TIMINGS_FILE).write_text(json.dumps(
-        {name: {"wall_s": wall, "cpu_s": cpu} for name, (wall, cpu) in timings.items()},
-        indent=1))
+    write_timings(folder, timings)
     o = data.origin
     return {"origin": (o.lat, o.lon, o.alt), "image_ids": [img["id"] for img in images],
             "geometry": report or None,

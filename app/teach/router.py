@@ -8,10 +8,10 @@ from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
 
 from vloc.app.deps import Ctx, DbSession, SettingsDep, require_admin
 from vloc.app.maps.dependencies import MapDep
-from vloc.app.problems import Problem
-from vloc.app.routes import service
-from vloc.app.routes.odometry import parse_odometry
-from vloc.app.routes.schemas import RouteDetail, RouteRead
+from vloc.app.problems import Problem, ProblemKind
+from vloc.app.teach import service
+from vloc.app.teach.odometry import parse_odometry
+from vloc.app.teach.schemas import RouteDetail, RouteRead
 from vloc.app.validation import check_text
 
 router = APIRouter(prefix="/v1/maps/{map_id}/routes", tags=["routes"],
@@ -39,14 +39,14 @@ async def create_route(map_: MapDep, db: DbSession, ctx: Ctx, settings: Settings
     data = await odometry.read(settings.max_upload_bytes + 1)
     if len(data) > settings.max_upload_bytes:
         raise Problem(413, f"the odometry CSV exceeds {settings.max_upload_bytes} bytes",
-                      kind="too-large")
+                      kind=ProblemKind.TOO_LARGE)
     rows = parse_odometry(data, max_step_m=max_step_m)
     try:
         given = json.loads(params) if params else {}
     except json.JSONDecodeError as exc:
-        raise Problem(422, f"params: not JSON ({exc.msg})", kind="validation") from None
+        raise Problem(422, f"params: not JSON ({exc.msg})", kind=ProblemKind.VALIDATION) from None
     if not isinstance(given, dict):
-        raise Problem(422, "params: must be a JSON object", kind="validation")
+        raise Problem(422, "params: must be a JSON object", kind=ProblemKind.VALIDATION)
     route = service.create_route(db, map_=map_, name=name, rows=rows,
                                  params=service.route_params(given))
     ctx.routes.launch(route.id)

@@ -14,7 +14,7 @@ import io
 import math
 from dataclasses import dataclass
 
-from vloc.app.problems import Problem
+from vloc.app.problems import Problem, ProblemKind
 
 REQUIRED = ("filename", "x", "y", "theta")
 OPTIONAL = ("lat", "lon")
@@ -36,8 +36,8 @@ def _bad(detail: str, *, row: int | None = None, column: str | None = None) -> P
     loc = ["body", "odometry"] + ([row] if row is not None else []) + \
         ([column] if column is not None else [])
     where = f"odometry row {row}" if row is not None else "odometry"
-    return Problem(422, f"{where}: {detail}", kind="bad-odometry",
-                   errors=[{"loc": loc, "msg": detail, "type": "bad-odometry"}])
+    return Problem(422, f"{where}: {detail}", kind=ProblemKind.BAD_ODOMETRY,
+                   errors=[{"loc": loc, "msg": detail, "type": ProblemKind.BAD_ODOMETRY}])
 
 
 def parse_odometry(data: bytes, *, max_step_m: float) -> list[OdometryRow]:

@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .estimate import Status
-from .localisers import make_localiser
-from .mapdata import MapData
-from .query import QueryFrame
+from ..estimate import Status
+from ..localisers import make_localiser
+from ..mapdata import MapData
+from ..query import QueryFrame
 
 
 @dataclass
@@ -130,7 +130,7 @@ def evaluate(map_data: MapData, queries: list[QueryFrame], truth: np.ndarray, *,
     -------
     dict config -> dict mode -> ModeSummary
     """
-    from .localisers import FILTER_MODES
+    from ..localisers import FILTER_MODES
 
     first = choose_starts(len(queries), starts, skip)
     out: dict[str, dict[str, ModeSummary]] = {}
@@ -169,7 +169,7 @@ def retrieval_grid(map_data: MapData, queries: list[QueryFrame], truth: np.ndarr
     -------
     dict feature -> measure -> {"mean_error_m", "median_error_m"}
     """
-    from .measures import similarities
+    from ..measures import similarities
 
     xy = np.asarray(map_data.positions)
     truth = np.asarray(truth)[skip:]

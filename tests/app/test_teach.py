@@ -242,7 +242,7 @@ def test_deleting_a_map_deletes_its_routes(module_client, shots):
     with ctx.db_sessions() as db:
         from sqlalchemy import func, select
 
-        from vloc.app.routes.models import Route, RouteImage
+        from vloc.app.teach.models import Route, RouteImage
 
         assert db.scalar(select(func.count()).select_from(Route)
                          .where(Route.map_id == uuid.UUID(map_id))) == 0

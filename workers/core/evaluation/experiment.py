@@ -12,12 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..image import prepare
+from ..mapbuild import assemble_map, extract_image_features, extract_tie_points, typical_focal_px
+from ..mapdata import MapData
+from ..metadata import FrameMetadata
+from ..query import QueryFrame
 from .datasets import Dataset, DatasetImage, load_dataset, load_frames, split
-from .image import prepare
-from .mapbuild import assemble_map, extract_image_features, extract_tie_points, typical_focal_px
-from .mapdata import MapData
-from .metadata import FrameMetadata
-from .query import QueryFrame
 
 
 @dataclass
@@ -99,8 +99,8 @@ def frame_metadata(exp: Experiment, kinds: tuple[str, ...], *, gps_accuracy: flo
       plus noise of 10 % of the speed.
     - ``altitude``: the image's own altitude tag.
     """
-    from .localisers.refine import refine_sift
-    from .metadata import METADATA_KINDS
+    from ..localisers.refine import refine_sift
+    from ..metadata import METADATA_KINDS
 
     unknown = set(kinds) - set(METADATA_KINDS)
     if unknown:

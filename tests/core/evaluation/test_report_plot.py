@@ -8,8 +8,8 @@ import re
 import numpy as np
 
 from tests.conftest import REPO_ROOT
-from vloc.workers.core.evaluate import ModeSummary, Run
-from vloc.workers.core.report import PALETTE, plot_tracks
+from vloc.workers.core.evaluation.evaluate import ModeSummary, Run
+from vloc.workers.core.evaluation.report import PALETTE, plot_tracks
 
 
 def _run(mode: str, early: float, late: float, n: int = 30) -> Run:

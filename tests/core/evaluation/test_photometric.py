@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vloc.workers.core.photometric import VARIANTS, apply_variant, variant_rng
+from vloc.workers.core.evaluation.photometric import VARIANTS, apply_variant, variant_rng
 
 RANDOM_VARIANTS = tuple(v for v in VARIANTS if v != "none")
 

@@ -13,13 +13,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from vloc.app.background import BackgroundRunner
 from vloc.app.config import Settings
 from vloc.app.db import utcnow
-from vloc.app.engine import Engine
+from vloc.app.engine import Engine, run_task
 from vloc.app.maps.models import ImageSift, Map, MapImage
-from vloc.app.problems import Problem, not_found
-from vloc.app.routes import tasks
-from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
-from vloc.app.routes.odometry import OdometryRow
-from vloc.app.routes.schemas import RouteDetail
+from vloc.app.problems import Problem, ProblemKind, not_found
+from vloc.app.tasks import teach as tasks
+from vloc.app.teach.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
+from vloc.app.teach.odometry import OdometryRow
+from vloc.app.teach.schemas import RouteDetail
 
 log = logging.getLogger(__name__)
 
@@ -35,22 +35,22 @@ def route_params(params: dict | None) -> dict:
     known = set(RouteParams.__dataclass_fields__)
     if (unknown := sorted(set(params) - known)):
         raise Problem(422, f"params: unknown route parameter(s) {', '.join(unknown)}",
-                      kind="validation", errors=[{"loc": ["body", "params", unknown[0]],
+                      kind=ProblemKind.VALIDATION, errors=[{"loc": ["body", "params", unknown[0]],
                                                   "msg": "unknown parameter", "type": "extra"}])
     for key, value in params.items():
         if key == "node_variances":
             if not isinstance(value, bool):
                 raise Problem(422, "params.node_variances: must be true or false",
-                              kind="validation")
+                              kind=ProblemKind.VALIDATION)
             continue
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise Problem(422, f"params.{key}: must be a number", kind="validation",
+            raise Problem(422, f"params.{key}: must be a number", kind=ProblemKind.VALIDATION,
                           errors=[{"loc": ["body", "params", key], "msg": "must be a number",
                                    "type": "type"}])
     try:
         return RouteParams(**params).to_params()
     except ValueError as exc:
-        raise Problem(422, f"params: {exc}", kind="validation") from None
+        raise Problem(422, f"params: {exc}", kind=ProblemKind.VALIDATION) from None
 
 
 def create_route(db: Session, *, map_: Map, name: str, rows: list[OdometryRow],
@@ -72,17 +72,17 @@ def create_route(db: Session, *, map_: Map, name: str, rows: list[OdometryRow],
         listed = ", ".join(missing[:MAX_LISTED])
         more = f" and {len(missing) - MAX_LISTED} more" if len(missing) > MAX_LISTED else ""
         raise Problem(422, f"odometry: {len(missing)} row(s) name images this map does not "
-                      f"have: {listed}{more}; upload them first", kind="unknown-images",
+                      f"have: {listed}{more}; upload them first", kind=ProblemKind.UNKNOWN_IMAGES,
                       missing=missing[:100])
     ambiguous = [r.filename for r in rows if len(by_name[r.filename]) > 1]
     if ambiguous:
         raise Problem(422, f"odometry: the map has several images named {ambiguous[0]}; "
-                      "give the images distinct names", kind="ambiguous-images",
+                      "give the images distinct names", kind=ProblemKind.AMBIGUOUS_IMAGES,
                       ambiguous=ambiguous[:100])
     unbuilt = [r.filename for r in rows if not by_name[r.filename][0][1]]
     if unbuilt:
         raise Problem(409, f"{len(unbuilt)} image(s) of the route have no features yet "
-                      f"(e.g. {unbuilt[0]}); build the map first", kind="map-not-built")
+                      f"(e.g. {unbuilt[0]}); build the map first", kind=ProblemKind.MAP_NOT_BUILT)
     route = Route(map_id=map_.id, name=name, status=RouteStatus.BUILDING, params=params,
                   n_images=len(rows))
     db.add(route)
@@ -128,7 +128,7 @@ def delete_route(db: Session, *, route: Route) -> None:
     """Delete a route; 409 while it builds. Sessions that follow it keep their copy of the
     path."""
     if route.status == RouteStatus.BUILDING:
-        raise Problem(409, "the route is being built", kind="route-busy")
+        raise Problem(409, "the route is being built", kind=ProblemKind.ROUTE_BUSY)
     db.delete(route)
     db.commit()
 
@@ -144,10 +144,10 @@ def navigation_path(db: Session, *, map_id: uuid.UUID, route_id: uuid.UUID,
     """
     route = db.get(Route, route_id)
     if route is None or route.map_id != map_id:
-        raise Problem(404, f"route {route_id} does not exist on this map", kind="not-found")
+        raise Problem(404, f"route {route_id} does not exist on this map", kind=ProblemKind.NOT_FOUND)
     if route.status != RouteStatus.READY:
         raise Problem(409, f"route {route_id} is {route.status}, not ready",
-                      kind="route-not-ready")
+                      kind=ProblemKind.ROUTE_NOT_READY)
     rows = db.execute(select(RouteImage.x, RouteImage.y, RouteImage.theta, RouteImage.node,
                              RouteImage.filename)
                       .where(RouteImage.route_id == route_id).order_by(RouteImage.seq)).all()
@@ -157,10 +157,10 @@ def navigation_path(db: Session, *, map_id: uuid.UUID, route_id: uuid.UUID,
     for field, value in (("from_node", lo), ("to_node", hi)):
         if not 0 <= value <= last:
             raise Problem(422, f"navigation.{field}: the route has nodes 0 to {last}",
-                          kind="validation")
+                          kind=ProblemKind.VALIDATION)
     if lo >= hi:
         raise Problem(422, "navigation: from_node must come before to_node",
-                      kind="validation")
+                      kind=ProblemKind.VALIDATION)
     kept = [r for r in rows if lo <= r.node <= hi]
     return {"route_id": str(route_id), "points": [[r.x, r.y] for r in kept],
             "thetas": [r.theta for r in kept], "nodes": [r.node for r in kept],
@@ -188,9 +188,8 @@ class RouteRunner(BackgroundRunner):
 
     async def run(self, route_id: uuid.UUID) -> None:
         try:
-            await asyncio.wrap_future(self.engine.call(
-                tasks.build_route, self.settings.resolved_database_url,
-                str(route_id)))
+            await run_task(self.engine, tasks.build_route,
+                           self.settings.resolved_database_url, str(route_id))
         except asyncio.CancelledError:
             await asyncio.to_thread(self._fail, route_id, "cancelled by shutdown")
             raise

@@ -1,5 +1,6 @@
-"""Building a route in a worker process (``engine.call``): read the taught sequence and its
-images' features, partition, close loops, relax, store nodes, arcs and the taught path.
+"""Building a taught route, run by the engine's workers (:func:`vloc.app.engine.run_task`):
+read the taught sequence and its images' features, partition, close loops, relax, store
+nodes, arcs and the taught path.
 
 The route is aligned to the map's frame by the images' positions of the map's last build
 (``east``/``north``), or by the GPS given with the odometry where those are missing.
@@ -14,10 +15,10 @@ import numpy as np
 from sqlalchemy import delete, select
 
 from vloc.app.db import utcnow
-from vloc.app.engine import decode_sift, decode_vector
-from vloc.app.jobs.tasks import _sessions
+from vloc.app.maps.codecs import decode_sift, decode_vector
 from vloc.app.maps.models import ImageGlobalFeature, ImageSift, Map, MapImage
-from vloc.app.routes.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
+from vloc.app.tasks.database import sessions
+from vloc.app.teach.models import Route, RouteArc, RouteImage, RouteNode, RouteStatus
 
 
 def build_route(database_url: str, route_id: str) -> dict:
@@ -30,7 +31,7 @@ def build_route(database_url: str, route_id: str) -> dict:
     from vloc.workers.core.navigation.visual import camera_matrix
 
     rid = uuid.UUID(route_id)
-    with _sessions(database_url)() as db:
+    with sessions(database_url)() as db:
         route = db.get(Route, rid)
         params = RouteParams(**route.params)
         rows = db.execute(
@@ -63,7 +64,7 @@ def build_route(database_url: str, route_id: str) -> dict:
                    verify=sift_verifier(sift), relative_yaw=yaw_from_views(sift, K),
                    positions=positions, params=params)
     length = float(np.sum(np.hypot(*np.diff(result.path[:, :2], axis=0).T)))
-    with _sessions(database_url)() as db, db.begin():
+    with sessions(database_url)() as db, db.begin():
         for table in (RouteNode, RouteArc):
             db.execute(delete(table).where(table.route_id == rid))
         ends = list(result.node_images[1:] - 1) + [len(seqs) - 1]

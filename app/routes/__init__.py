@@ -1,1 +1,0 @@
-"""Route maps: a taught image sequence with odometry, partitioned and relaxed."""

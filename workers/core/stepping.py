@@ -1,0 +1,45 @@
+"""One frame through a localiser, as every caller runs it: decode, step, to record.
+
+A session's worker and the one-shot localisation of a single image both go through
+:func:`step_image`, so a frame is decoded, stepped and reported the same way whichever asked.
+It imports no localiser: the one it steps comes from the caller.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from .image import load_frame
+from .metadata import FrameMetadata
+
+# Only for the annotation: the localisers' package imports every localiser, which a worker
+# would pay for on its first frame (a shard restarted by Ray, on its first after that).
+if TYPE_CHECKING:
+    from .localisers.base import Localiser
+
+
+@dataclass(frozen=True, slots=True)
+class StepRecord:
+    """What one step reports: ``estimate`` (:meth:`~workers.core.estimate.Estimate.to_dict`)
+    and ``decode_ms``, the milliseconds the image took to decode."""
+
+    estimate: dict
+    decode_ms: float
+
+
+def step_image(localiser: Localiser, data: bytes, *, max_pixels: int,
+               captured_at: float | None = None, metadata: dict | None = None) -> StepRecord:
+    """Decode an encoded image (JPEG or PNG bytes) and step ``localiser`` on it once.
+
+    ``metadata`` is :meth:`~workers.core.metadata.FrameMetadata.to_dict`'s form. Raises
+    :class:`~workers.core.image.ImageError` (a ValueError) for bytes that do not decode,
+    before the localiser is touched; anything the step raises passes through.
+    """
+    t0 = time.perf_counter()
+    frame = load_frame(data, max_pixels=max_pixels)
+    decode_ms = (time.perf_counter() - t0) * 1e3
+    estimate = localiser.step(frame, captured_at=captured_at,
+                              metadata=FrameMetadata.from_dict(metadata))
+    return StepRecord(estimate.to_dict(), decode_ms)
