@@ -35,7 +35,7 @@ demo: $(RUNTIME)
 
 ## test: the whole test suite (PostgreSQL/Redis tests skip when those are absent), run by
 ## TEST_WORKERS processes in parallel; tests sharing an app, a server or Ray stay together
-TEST_WORKERS ?= 3
+TEST_WORKERS ?= 2
 test: $(DEV)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
