@@ -1,14 +1,5 @@
-"""Localisers: a session picks one by name (DESIGN section 4).
-
-=============  ==============================================================
-mode           behaviour
-=============  ==============================================================
-hybrid         particle filter switching between global features and SIFT
-global, sift   particle filter with one feature type only (Weiss's baselines)
-hierarchical   Li: hue-histogram top-k candidates, then SIFT against each
-retrieval      Flyphone: nearest map image under a chosen feature and measure
-=============  ==============================================================
-"""
+"""Localisers: a session picks one by name (DESIGN section 4); the names and what each does
+are in :mod:`workers.core.modes`."""
 
 from __future__ import annotations
 
