@@ -74,11 +74,13 @@ REDIS_URL = _for_worker_redis(os.environ.get("VLOC_TEST_REDIS_URL",
                                              "redis://127.0.0.1:6379/0"))
 
 
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items) -> None:
     """Groups for pytest-xdist's ``--dist loadgroup`` (``make test``): the tests that share a
     module- or session-wide fixture instance (an app with a built map, a live server, a
     browser) run on one worker, so that it is made once, not once per worker; the tests that
-    use Ray run on one worker; every other test goes wherever a worker is free."""
+    use Ray run on one worker; every other test goes wherever a worker is free. It runs
+    first: xdist's own hook turns the group markers into the node ids it schedules by."""
     for item in items:
         if item.get_closest_marker("xdist_group") is not None:
             continue
@@ -104,7 +106,9 @@ def _shared_fixture_group(item) -> str | None:
                       else name)
     if not shared:
         return None
-    return item.module.__name__ + "[" + ",".join(sorted(shared)) + "]"
+    # xdist reads the group after the id's last "@", and only when no "]" follows it
+    group = item.module.__name__ + "(" + ",".join(sorted(shared)) + ")"
+    return group.translate(str.maketrans("[]@", "<>_"))
 
 
 def _service_missing(what: str, exc: Exception) -> None:

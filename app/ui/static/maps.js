@@ -35,6 +35,9 @@ $("#create-map").addEventListener("submit", async (ev) => {
 
 export async function selectMap(mapId, { fit = true } = {}) {
   const m = state.maps.find((x) => x.id === mapId) || await api(`/v1/maps/${mapId}`);
+  // everything is fetched before anything is shown: the summary never describes a revision
+  // whose images are not drawn yet
+  const images = await listAll(`/v1/maps/${mapId}/images`, { by: "after_id", limit: 10000 });
   state.mapId = mapId;
   document.querySelectorAll("#maps-table tbody tr").forEach((tr) =>
     tr.classList.toggle("selected", tr.dataset.mapId === mapId));
@@ -43,7 +46,7 @@ export async function selectMap(mapId, { fit = true } = {}) {
   $("#map-summary").textContent = `${m.status}, revision ${m.revision}, ` +
     `${m.image_count} images (${m.pending_images} not built yet)`;
   $("#map-geometry").textContent = geometryLine(m.geometry);
-  state.mapImages = await listAll(`/v1/maps/${mapId}/images`, { by: "after_id", limit: 10000 });
+  state.mapImages = images;
   state.origin = m.origin;
   setOrigin(m.origin);
   drawImages(m, fit);
