@@ -9,6 +9,10 @@ PIP    := $(BIN)/python -m pip --quiet --quiet --disable-pip-version-check
 # Playwright, Schemathesis, Ray: what the tests and benchmarks need). Either order works:
 # `make test` after `make demo` adds the dev extra; `make demo` after `make test` has all.
 RUNTIME := $(VENV)/.runtime-stamp
+# what `make demo` runs imports these (and, through them, most of what it needs)
+WARM    := vloc.clients.cli vloc.clients.demo vloc.clients.replay vloc.app.main vloc.app.tasks \
+           vloc.workers.engine.pool vloc.workers.engine.worker vloc.workers.core.mapbuild \
+           vloc.workers.core.localisers vloc.workers.core.evaluation.report matplotlib.pyplot
 DEV     := $(VENV)/.dev-stamp
 
 .PHONY: demo test bench bench-large fuzz eval-seneca lint clean
@@ -19,14 +23,20 @@ $(RUNTIME): pyproject.toml docker/requirements.lock
 	@echo "setting up $(VENV): the runtime dependencies (first run only, a few minutes)"
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	@$(PIP) install --upgrade pip
-	@# with bytecode: where Python may not write it (PYTHONDONTWRITEBYTECODE), every process
-	@# (server, worker, test) would otherwise compile SciPy, FastAPI and the rest from source
-	@$(PIP) install -c docker/requirements.lock -e .
+	@$(PIP) install --no-compile -c docker/requirements.lock -e .
+	@# bytecode for what the server, its workers and the CLI import, not for every module of
+	@# every dependency (a sixth of the environment): Python writes it on first import, but
+	@# where it may not (PYTHONDONTWRITEBYTECODE) each process would compile SciPy, FastAPI
+	@# and the rest from source every time
+	@env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -c \
+	    'import importlib, sys; [importlib.import_module(m) for m in sys.argv[1:]]' $(WARM)
 	@touch $@
 
 $(DEV): $(RUNTIME)
 	@echo "setting up $(VENV): the test tools (the dev extra; first run only)"
 	@$(PIP) install -c docker/requirements.lock -e '.[dev]'
+	@# the tests import much more than the service: all of it as bytecode here
+	@$(BIN)/python -m compileall -q -j 0 $(VENV)/lib >/dev/null
 	@touch $@
 
 ## demo: synthetic world -> server on embedded defaults -> map over HTTP -> replay -> table

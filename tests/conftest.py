@@ -87,6 +87,24 @@ def pytest_collection_modifyitems(config, items) -> None:
         group = _shared_fixture_group(item)
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))
+    if config.getoption("loadgroup", False):
+        _longest_first(items)
+
+
+def _longest_first(items) -> None:
+    """Hand the workers the long groups first (the real-data evaluations, then Ray's), so
+    that the short tests fill the gaps instead of one worker finishing a long test alone
+    after the others are idle. The order within a group stays as written."""
+    def group_of(item):
+        mark = item.get_closest_marker("xdist_group")
+        return mark.args[0] if mark is not None else item.nodeid
+
+    rank: dict[str, tuple[int, int]] = {}  # group -> (how long, where it first appears)
+    for at, item in enumerate(items):
+        own = 0 if item.get_closest_marker("slow") else 1 if group_of(item) == RAY_GROUP else 2
+        before = rank.get(group_of(item), (own, at))
+        rank[group_of(item)] = (min(before[0], own), before[1])
+    items.sort(key=lambda item: rank[group_of(item)])
 
 
 def _shared_fixture_group(item) -> str | None:

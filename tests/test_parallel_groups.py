@@ -27,3 +27,24 @@ def test_a_test_sharing_a_module_fixture_is_scheduled_by_its_group(request, shar
 def test_a_test_sharing_nothing_goes_wherever_a_worker_is_free(request):
     assert request.node.get_closest_marker("xdist_group") is None
     assert "@" not in request.node.nodeid
+
+
+class _Item:
+    def __init__(self, nodeid: str, group: str | None = None, slow: bool = False) -> None:
+        self.nodeid = nodeid
+        self.marks = {"xdist_group": pytest.mark.xdist_group(group).mark if group else None,
+                      "slow": pytest.mark.slow.mark if slow else None}
+
+    def get_closest_marker(self, name):
+        return self.marks.get(name)
+
+
+def test_long_groups_are_handed_out_first_and_keep_their_order():
+    from tests.conftest import RAY_GROUP, _longest_first
+
+    items = [_Item("a"), _Item("m1", "m"), _Item("r1", RAY_GROUP), _Item("m2", "m", slow=True),
+             _Item("b"), _Item("s", slow=True), _Item("r2", RAY_GROUP), _Item("m3", "m")]
+    _longest_first(items)
+    # a group with one slow test goes first whole, in its own order; then the slow test
+    # alone; then Ray's; then the rest as collected
+    assert [i.nodeid for i in items] == ["m1", "m2", "m3", "s", "r1", "r2", "a", "b"]

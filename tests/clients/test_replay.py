@@ -331,23 +331,3 @@ def test_relit_replay_reproduces_eval(live_server, dataset_dir, replayed, tmp_pa
         assert got["modes"]["hybrid"][key] == pytest.approx(offline["modes"]["hybrid"][key],
                                                             abs=1e-6)
     assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-
-
-# -- the real data set, against `vloc serve` in its own process -----------------------------
-
-
-@pytest.mark.dataset
-@pytest.mark.slow
-def test_seneca_replay_matches_eval(seneca_dir, tmp_path):
-    from vloc.clients.demo import server_process
-
-    key = "seneca-test-admin-key-0123456789"
-    with server_process(tmp_path / "data", log_path=tmp_path / "server.log",
-                        admin_key=key) as (url, _):
-        got = replay_json(url, seneca_dir, "--build-map", "--map-pass", "1", "--query-pass", "2",
-                          "--mode", "hybrid", "--seed", "0", "--skip", "10", key=key)
-    offline = eval_json(seneca_dir, "--map-pass", "1", "--query-pass", "2", "--modes",
-                        "hybrid", "--seed", "0", "--skip", "10")
-    for key_ in FIGURES:
-        assert got["modes"]["hybrid"][key_] == pytest.approx(
-            offline["modes"]["hybrid"][key_], abs=1e-6), key_

@@ -1,5 +1,10 @@
 """The service localises exactly as ``vloc eval`` does: seneca-uav, pass 1 as the map, pass 2
-streamed as frames, hybrid mode, the same seed -> the same errors."""
+streamed as frames, hybrid mode, the same seed -> the same errors, whether the frames come as
+plain HTTP requests or from ``vloc replay``.
+
+Building the seneca map is most of the cost (about two and a half minutes here, the frames a
+few seconds), so the module builds it twice, not four times: once offline by ``vloc eval`` and
+once by the service, whose map both of the service's paths then use."""
 
 from __future__ import annotations
 
@@ -11,9 +16,11 @@ import time
 import httpx
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
 from tests.conftest import REPO_ROOT
 from tests.e2e.conftest import start_server
+from vloc.clients.cli import main as cli
 from vloc.workers.core.evaluation.datasets import load_dataset, split
 from vloc.workers.core.geo import GeoOrigin
 
@@ -21,6 +28,26 @@ pytestmark = [pytest.mark.slow, pytest.mark.dataset]
 
 SEED = 5
 SKIP = 10
+FIGURES = ("mean_error_m", "median_error_m", "sift_step_share", "within_25m")
+
+
+@pytest.fixture(scope="module")
+def offline(seneca_dir) -> dict:
+    return _eval(seneca_dir)
+
+
+@pytest.fixture(scope="module")
+def served(seneca_dir, tmp_path_factory):
+    """A two-worker ``vloc serve`` with the seneca pass 1 map built through its API, the
+    map's record and the poses of pass 2 posted to it frame by frame."""
+    ds = load_dataset(seneca_dir)
+    map_images, query_images = split(ds, "pass", map_pass=1, query_pass=2)
+    server = start_server(tmp_path_factory.mktemp("seneca") / "data", workers=2)
+    try:
+        the_map, poses = _service(server, map_images, query_images)
+        yield server, the_map, poses, query_images
+    finally:
+        server.stop()
 
 
 def _eval(dataset) -> dict:
@@ -62,15 +89,8 @@ def _service(server, map_images, query_images) -> tuple[dict, list[dict]]:
     return the_map, poses
 
 
-def test_service_errors_match_vloc_eval(seneca_dir, tmp_path):
-    offline = _eval(seneca_dir)
-    ds = load_dataset(seneca_dir)
-    map_images, query_images = split(ds, "pass", map_pass=1, query_pass=2)
-    server = start_server(tmp_path / "data", workers=2)
-    try:
-        the_map, poses = _service(server, map_images, query_images)
-    finally:
-        server.stop()
+def test_service_errors_match_vloc_eval(offline, served):
+    _, the_map, poses, query_images = served
     o = the_map["origin"]
     origin = GeoOrigin(o["lat"], o["lon"], o["alt"])
     lat = [im.truth_lat if im.truth_lat is not None else im.lat for im in query_images]
@@ -86,3 +106,17 @@ def test_service_errors_match_vloc_eval(seneca_dir, tmp_path):
     assert (errors <= 25.0).mean() == pytest.approx(offline["within_25m"], abs=1e-12)
     sift_share = np.mean([p["feature"] == "sift" for p in poses])
     assert sift_share == pytest.approx(offline["sift_step_share"], abs=1e-12)
+
+
+def test_vloc_replay_on_the_served_map_matches_vloc_eval(offline, served, seneca_dir):
+    server, the_map, _, query_images = served
+    result = CliRunner().invoke(cli, [
+        "replay", str(seneca_dir), "--server", server.base_url, "--admin-key",
+        server.admin_key(), "--map-id", the_map["id"], "--map-pass", "1", "--query-pass", "2",
+        "--mode", "hybrid", "--seed", str(SEED), "--skip", str(SKIP), "--json", "--quiet"])
+    assert result.exit_code == 0, result.output
+    got = json.loads(result.stdout)
+    assert got["query_frames"] == len(query_images)
+    assert got["modes"]["hybrid"]["frames_answered"] == len(query_images)
+    for key in FIGURES:
+        assert got["modes"]["hybrid"][key] == pytest.approx(offline[key], abs=1e-6), key
