@@ -13,6 +13,7 @@ RUNTIME := $(VENV)/.runtime-stamp
 WARM    := vloc.clients.cli vloc.clients.demo vloc.clients.replay vloc.app.main vloc.app.tasks \
            vloc.workers.engine.pool vloc.workers.engine.worker vloc.workers.core.mapbuild \
            vloc.workers.core.localisers vloc.workers.core.evaluation.report matplotlib.pyplot
+IMPORT_ALL := import importlib, sys; [importlib.import_module(m) for m in sys.argv[1:]]
 DEV     := $(VENV)/.dev-stamp
 
 .PHONY: demo test bench bench-large fuzz eval-seneca lint clean
@@ -28,8 +29,7 @@ $(RUNTIME): pyproject.toml docker/requirements.lock
 	@# every dependency (a sixth of the environment): Python writes it on first import, but
 	@# where it may not (PYTHONDONTWRITEBYTECODE) each process would compile SciPy, FastAPI
 	@# and the rest from source every time
-	@env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -c \
-	    'import importlib, sys; [importlib.import_module(m) for m in sys.argv[1:]]' $(WARM)
+	@env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -c '$(IMPORT_ALL)' $(WARM)
 	@touch $@
 
 $(DEV): $(RUNTIME)
