@@ -54,6 +54,12 @@ class MapSelfCheck(BaseModel):
                                               "a position from the map's images alone does")
     trusted: bool = Field(description="Whether frames' fixes use the geometry: it beats "
                                       "the nearest-image floor")
+    every_image_mean_m: float | None = Field(
+        None, description="Mean over every map image, the ones no pose reaches counted at "
+                          "their nearest-image distance (m): what to expect of the map as a "
+                          "whole, holes included")
+    every_image_median_m: float | None = Field(None, description="Their median (m)")
+    every_image_within_5m: float | None = Field(None, description="Their share within 5 m")
 
 
 class MapGeometryRead(BaseModel):

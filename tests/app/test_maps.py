@@ -240,6 +240,11 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     assert geometry["images"] == 6 and geometry["status"] in ("accepted", "refused", "none")
     if geometry["status"] != "none":
         assert 0 < geometry["placed"] <= 6 and geometry["self_check"]["images"] > 0
+        check = geometry["self_check"]
+        # the whole map's figure counts the images no pose reaches at their nearest image:
+        # never better than the registered images' own
+        assert check["every_image_mean_m"] >= (check["mean_m"] or 0.0)
+        assert 0.0 <= check["every_image_within_5m"] <= 1.0
 
     # The packed revision is the images' positions in a frame at their centroid.
     first = MapData.load(ctx.settings.packed_map_dir(map_id, 1))

@@ -46,25 +46,38 @@ def _moved(geo, shift=(0.0, 0.0, 0.0), scale=1.0):
     return replace(geo, points={"sift": moved}, self_check={})
 
 
-def _reference(data, geo):
+def _per_image(data, geo):
     """The slow obvious reference: each map image localised by refine_sift against its four
-    GPS-nearest others, its error against its GPS, and its nearest other image."""
+    GPS-nearest others: its error against its GPS (None where no pose registers), and its
+    distance to its nearest other image."""
     positions = np.asarray(data.positions)
-    errors, floors = [], []
+    out = []
     data.geometry = geo
     try:
         for i in range(len(data)):
             d = np.linalg.norm(positions - positions[i], axis=1)
             d[i] = np.inf
             others = np.argsort(d, kind="stable")[:4]
-            floors.append(d[others[0]])
             fix = refine_sift(data.sift(i), data, others, np.ones(4),
                               frame_shape=(WORK_SIZE[1], WORK_SIZE[0]))
-            if fix is not None and fix.kind == "registered":
-                errors.append(math.dist(fix.xy, positions[i]))
+            registered = fix is not None and fix.kind == "registered"
+            out.append((math.dist(fix.xy, positions[i]) if registered else None,
+                        d[others[0]]))
     finally:
         data.geometry = None
-    return np.array(errors), np.array(floors)
+    return out
+
+
+def _reference(data, geo):
+    """The registered images' errors and every image's nearest other image."""
+    out = _per_image(data, geo)
+    return (np.array([e for e, _ in out if e is not None]),
+            np.array([floor for _, floor in out]))
+
+
+def _every_image(data, geo):
+    """Every image's error, or its nearest-image distance where no pose registers."""
+    return np.array([floor if e is None else e for e, floor in _per_image(data, geo)])
 
 
 def test_self_check_accepts_the_right_geometry_with_its_figures(surveyed):
@@ -89,6 +102,13 @@ def test_self_check_accepts_the_right_geometry_with_its_figures(surveyed):
     assert figures["trusted"] is True
     assert figures["sigma_m"] == max(selfcheck.SIGMA_FLOOR, 1.25 * figures["median_m"]) == 2.0
     assert geo.base_sigma == 2.0
+    # the whole map's figures: here every image is placed, so they count the registered
+    # errors and, for an image no pose reaches, its nearest-image distance
+    every = _every_image(data, replace(geo, self_check={}))
+    assert figures["every_image_mean_m"] == pytest.approx(every.mean())
+    assert figures["every_image_median_m"] == pytest.approx(np.median(every))
+    assert figures["every_image_within_5m"] == pytest.approx(np.mean(every <= 5.0))
+    assert figures["every_image_mean_m"] >= figures["mean_m"]
 
 
 @pytest.mark.parametrize("shift", [(30.0, 0.0, 0.0), (0.0, -25.0, 10.0)],
@@ -133,6 +153,10 @@ def test_self_check_refuses_a_geometry_that_registers_too_few(surveyed):
     figures = unknown.self_check
     assert figures["registered"] == 0.0 and figures["trusted"] is False
     assert "median_m" not in figures and math.isnan(figures["sigma_m"])
+    # nothing registers: the whole map is only as good as its images' spacing
+    _, floors = _reference(data, replace(unknown, self_check={}))
+    assert figures["every_image_mean_m"] == pytest.approx(floors.mean())
+    assert figures["every_image_median_m"] == pytest.approx(np.median(floors))
     assert unknown.base_sigma == 2.0
 
 

@@ -224,8 +224,9 @@ def test_an_admin_creates_uploads_and_builds_a_map(browser, live, world, tmp_pat
     geometry = made[0]["geometry"]
     line = page.locator("#map-geometry").inner_text()
     if geometry["status"] == "accepted":
-        median = geometry["self_check"]["median_m"]
-        assert f"localises to about {median:.1f} m" in line, line
+        check = geometry["self_check"]
+        assert f"localises to about {check['median_m']:.1f} m" in line, line
+        assert f"included, {check['every_image_mean_m']:.1f} m on average." in line, line
     else:
         assert line.startswith("No camera geometry"), line
     assert not log.errors, log.errors

@@ -60,7 +60,9 @@ export function geometryLine(g) {
     return `Camera geometry: ${g.placed} of ${g.images} images placed; this map localises ` +
       `to about ${check.median_m.toFixed(1)} m (median over ${check.images} of its own ` +
       `images, ${Math.round(100 * check.within_5m)} % within 5 m), where the nearest ` +
-      `image alone gives ${check.floor_median_m.toFixed(1)} m.`;
+      `image alone gives ${check.floor_median_m.toFixed(1)} m` +
+      (check.every_image_mean_m == null ? "." : `; over all its images, the ones no pose ` +
+        `reaches included, ${check.every_image_mean_m.toFixed(1)} m on average.`);
   }
   if (g.status === "refused" && check) {
     const got = check.median_m === null ? "placed none of its own images"
