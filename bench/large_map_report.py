@@ -92,8 +92,8 @@ def report(args, layout, stats: dict, load: float) -> str:
     job_cpu = b["api_cpu"] + b["worker_cpu"]
     rows.append(("outside the packing, on the engine's workers: the tie points "
                  "(`extract_ties`, one call per image), their pairs (`match_tie_pairs`, "
-                 "batches of pairs), the reconstruction's blocks (`adjust_block`, one call "
-                 "per block) and bookkeeping", n, b["wall"] - packing[0],
+                 "batches of pairs), the reconstruction's tiles (`reconstruct_tile`, one "
+                 "call per tile) and bookkeeping", n, b["wall"] - packing[0],
                  job_cpu - packing[1], "API + workers"))
     rows.append(("build job in all", n, b["wall"], job_cpu,
                  f"API {b['api_cpu']:.0f} + worker {b['worker_cpu']:.0f}"))
