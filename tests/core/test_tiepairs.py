@@ -10,7 +10,7 @@ import pytest
 from tests.core.geometry.scene import survey
 from vloc.workers.core import tiepairs
 from vloc.workers.core.geo import GeoOrigin
-from vloc.workers.core.geometry import build_geometry, match_pair, tie_pairs, tie_reach
+from vloc.workers.core.geometry import build_geometry, match_pair, tie_pairs
 from vloc.workers.core.geometry.pairs import PairMatches, match_pairs
 from vloc.workers.core.mapbuild import local_frame, save_tie_points
 from vloc.workers.core.sift import SiftFeatures
@@ -79,7 +79,7 @@ def test_batches_give_the_pairs_and_the_geometry_of_one_process(surveyed, tmp_pa
     known = tiepairs.load_results(tmp_path, ids)
     assert set(known) == set(planned)
     assert verified == sum(p is not None for p in known.values()) >= len(xy)
-    serial = match_pairs(s.keypoints, s.image_descriptors, xy, max_distance=tie_reach(xy))
+    serial = match_pairs(s.keypoints, s.image_descriptors, tie_pairs(xy))
     apart = [p for _, p in sorted(known.items()) if p is not None]
     assert [(p.a, p.b) for p in serial] == [(p.a, p.b) for p in apart]
     for p, q in zip(serial, apart, strict=True):

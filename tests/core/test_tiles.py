@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from tests.core.geometry.scene import F_TRUE, survey
-from vloc.workers.core import tiles
-from vloc.workers.core.geometry import sfm, tie_reach
+from vloc.workers.core import tiepairs, tiles
+from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.geometry import TIE_NEIGHBOURS, build_geometry, sfm, tie_pairs
+from vloc.workers.core.geometry import pairs as pairs_module
 from vloc.workers.core.geometry.pairs import match_pairs
-from vloc.workers.core.mapbuild import save_tie_points
+from vloc.workers.core.mapbuild import local_frame, save_tie_points
 from vloc.workers.core.sift import SiftFeatures
 
 
@@ -23,8 +25,7 @@ def surveyed(tmp_path_factory):
     stems = [str(folder / str(i)) for i in range(len(s.keypoints))]
     for kp, desc, stem in zip(s.keypoints, s.image_descriptors, stems, strict=True):
         save_tie_points(SiftFeatures(kp, desc), stem)
-    pairs = match_pairs(s.keypoints, s.image_descriptors, s.positions,
-                        max_distance=tie_reach(s.positions))
+    pairs = match_pairs(s.keypoints, s.image_descriptors, tie_pairs(s.positions))
     return s, stems, pairs
 
 
@@ -99,3 +100,46 @@ def test_a_small_map_is_not_tiled(surveyed, tmp_path):
     s, stems, pairs = surveyed
     assert tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems) == 0
     assert tiles.load_results(tmp_path) == {}
+
+
+def test_the_packing_takes_up_every_tile_the_build_reconstructed(tmp_path, monkeypatch):
+    """The service's order: pairs planned from the images' WGS84 tags and matched in
+    batches, tiles planned from those pairs and reconstructed, then the packing's geometry,
+    which must match no pair and reconstruct no tile again. (The plan once took each
+    image's 16 nearest where the packing kept 12: over a survey this dense the extra pairs
+    verify, no tile's key was the packing's, and every tile was reconstructed twice.)"""
+    # tiles larger than an image's neighbours, so that a tile holds pairs beyond them
+    monkeypatch.setattr(sfm, "MAX_TILE", 16)
+    monkeypatch.setattr(sfm, "TILE_MARGIN", 1.0)
+    s = survey(np.random.default_rng(8), rows=4, cols=8, spacing=9.0, n_points=2500)
+    stems = [str(tmp_path / f"img{i}") for i in range(len(s.keypoints))]
+    for kp, desc, stem in zip(s.keypoints, s.image_descriptors, stems, strict=True):
+        save_tie_points(SiftFeatures(kp, desc), stem)
+    lat, lon = GeoOrigin(42.0, -76.5, 300.0).to_wgs84(s.positions[:, 0], s.positions[:, 1])
+    _, xy, alt = local_frame(lat, lon, list(s.altitudes))
+    planned = tiepairs.plan(lat, lon, list(s.altitudes))
+    # the neighbour limit, not the reach, decides which pairs are tried
+    assert max(np.bincount(np.ravel(planned))) > TIE_NEIGHBOURS
+    ids = list(range(len(xy)))
+    tiepairs.save_plan(tmp_path, ids)
+    for k in range(0, len(planned), 10):
+        batch = planned[k:k + 10]
+        tiepairs.match_batch({i: stems[i] for p in batch for i in p}, batch,
+                             tmp_path / f"pairs-{k:06d}.npz")
+    known_pairs = tiepairs.load_results(tmp_path, ids)
+    verified = [p for _, p in sorted(known_pairs.items()) if p is not None]
+    far = [p for p in verified if np.hypot(*(xy[p.a] - xy[p.b])) > 2.5 * 9.0]
+    assert far, "pairs beyond the nearest neighbours verify"
+    n = tiles.plan(tmp_path, verified, xy, alt, F_TRUE, stems)
+    assert n >= 2
+    for k in range(n):
+        tiles.reconstruct(tmp_path, k)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the packing matched a pair or reconstructed a tile again")
+
+    monkeypatch.setattr(pairs_module, "match_pair", refuse)
+    monkeypatch.setattr(sfm, "tile_models", refuse)
+    built = build_geometry(s.keypoints, s.image_descriptors, xy, alt, F_TRUE,
+                           known_pairs=known_pairs, known_tiles=tiles.load_results(tmp_path))
+    assert built is not None and built[1].placed.mean() > 0.9

@@ -37,6 +37,11 @@ MAX_GPS_RMS: float = 15.0
 """... nor one whose cameras sit further than this (m RMS, horizontally) from their GPS."""
 
 
+TIE_NEIGHBOURS: int = 12
+"""Each map image's tie points are matched with those of at most this many GPS-nearest images
+(within :func:`tie_reach`)."""
+
+
 def tie_reach(positions: np.ndarray) -> float:
     """How far apart (m) two map images may be for their tie points to be matched: views
     overlap over a few spacings, and surveys have gaps: six median spacings to the nearest
@@ -51,7 +56,8 @@ def tie_pairs(positions: np.ndarray) -> list[tuple[int, int]]:
     positions = np.asarray(positions, np.float64)
     if len(positions) < 3:
         return []
-    return candidate_pairs(positions, max_distance=tie_reach(positions))
+    return candidate_pairs(positions, max_distance=tie_reach(positions),
+                           neighbours=TIE_NEIGHBOURS)
 
 
 def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarray],
@@ -95,8 +101,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
         return None
     # One BLAS thread, as in the engine's workers: a map build is the same wherever it runs.
     with threadpool_limits(limits=1, user_api="blas"):
-        pairs = match_pairs(keypoints, descriptors, positions,
-                            max_distance=tie_reach(positions), seed=seed, known=known_pairs)
+        pairs = match_pairs(keypoints, descriptors, tie_pairs(positions), seed=seed,
+                            known=known_pairs)
         structure = reconstruct(keypoints, pairs, positions, altitudes, focal_px, seed=seed,
                                 times=times, known_tiles=known_tiles)
     if structure is None:

@@ -44,7 +44,7 @@ class PairMatches:
 
 
 def candidate_pairs(positions: np.ndarray, *, max_distance: float,
-                    neighbours: int = 16) -> list[tuple[int, int]]:
+                    neighbours: int) -> list[tuple[int, int]]:
     """Pairs ``(a, b)``, ``a < b``, of map images worth matching, ascending: each image with
     those of its ``neighbours`` GPS-nearest that lie closer than ``max_distance`` (m)."""
     n = len(positions)
@@ -92,12 +92,11 @@ def match_pair(a: int, b: int, keypoints_a: np.ndarray, descriptors_a: np.ndarra
 
 
 def match_pairs(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarray],
-                positions: np.ndarray, *, max_distance: float, neighbours: int = 12,
-                seed: int = 0,
+                planned: Sequence[tuple[int, int]], *, seed: int = 0,
                 known: dict[tuple[int, int], PairMatches | None] | None = None,
                 **options) -> list[PairMatches]:
-    """Verified matches between each map image and its GPS neighbours
-    (:func:`candidate_pairs`, :func:`match_pair`).
+    """Verified matches of the ``planned`` pairs of map images (:func:`match_pair`), in
+    their order.
 
     Parameters
     ----------
@@ -105,10 +104,8 @@ def match_pairs(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarra
         Pixel coordinates in the first two columns; read by index, a pair at a time.
     descriptors : sequence of (K_i, D) arrays
         SIFT (float-comparable) descriptors.
-    positions : (N, 2) float ndarray
-        GPS east/north of the images.
-    max_distance : float
-        Only pairs closer than this (m) are tried: further apart the views cannot overlap.
+    planned : sequence of (a, b)
+        The pairs to match (:func:`workers.core.geometry.tie_pairs`).
     known : dict, optional
         Pairs already matched elsewhere with the same ``seed`` (the build matches them in
         parallel), their result None where they did not verify; the others are matched here.
@@ -116,7 +113,7 @@ def match_pairs(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarra
         :func:`match_pair`'s.
     """
     verified = []
-    for a, b in candidate_pairs(positions, max_distance=max_distance, neighbours=neighbours):
+    for a, b in planned:
         if known is not None and (a, b) in known:
             p = known[(a, b)]
         else:
