@@ -14,6 +14,7 @@ from tests.core.geometry.scene import (
     street,
     survey,
 )
+from vloc.workers.core.geometry import sfm
 from vloc.workers.core.geometry.sfm import (
     COLMAP_SCALE,
     left_out_models,
@@ -71,6 +72,31 @@ def test_reconstruct_a_nadir_survey_over_hills_and_buildings():
     again = _reconstruct(s)
     np.testing.assert_array_equal(again.centres, st.centres)
     np.testing.assert_array_equal(again.points[3], st.points[3])
+
+
+def test_a_large_reconstruction_adjusts_lighter_and_still_recovers_the_scene(monkeypatch):
+    import pycolmap
+
+    seen = []
+    real = pycolmap.incremental_mapping
+
+    def spy(database, images, out, options):
+        seen.append(options.todict())
+        return real(database, images, out, options)
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", spy)
+    s = survey(np.random.default_rng(0))
+    _reconstruct(s)
+    defaults = pycolmap.IncrementalPipelineOptions().todict()
+    assert all(seen[0][k] == defaults[k] for k in sfm.LARGE_BA)
+    assert not seen[0]["mapper"]["ba_global_ignore_redundant_points3D"]
+    # the same survey counted as a large map: COLMAP's FAQ options, the same scene
+    monkeypatch.setattr(sfm, "LARGE_MODEL", len(s.keypoints) - 1)
+    seen.clear()
+    st = _reconstruct(s)
+    assert seen and all(seen[0][k] == pytest.approx(v) for k, v in sfm.LARGE_BA.items())
+    assert seen[0]["mapper"]["ba_global_ignore_redundant_points3D"]
+    _check_exact(s, st)
 
 
 def test_reconstruct_finds_the_focal_length_without_exif_over_relief():
