@@ -46,6 +46,9 @@ class ProblemKind(StrEnum):
     MAP_NOT_BUILT = "map-not-built"
     MAP_UP_TO_DATE = "map-up-to-date"
     NO_IMAGE_ACCEPTED = "no-image-accepted"
+    REVISION_CURRENT = "revision-current"
+    REVISION_IN_USE = "revision-in-use"
+    REVISION_NOT_RESTORABLE = "revision-not-restorable"
     ROUTE_BUSY = "route-busy"
     ROUTE_NOT_READY = "route-not-ready"
     # 410

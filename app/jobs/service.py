@@ -22,7 +22,8 @@ from vloc.app.config import Settings
 from vloc.app.db import utcnow
 from vloc.app.engine import Engine, run_task
 from vloc.app.jobs.models import BuildJob, BuildStage, JobStatus
-from vloc.app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapStatus
+from vloc.app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapRevision, MapStatus
+from vloc.app.maps.revisions import revision_images
 from vloc.app.maps.service import image_path
 from vloc.app.metrics import Metrics
 from vloc.app.problems import Problem, ProblemKind
@@ -232,14 +233,26 @@ class BuildRunner(BackgroundRunner):
             db.commit()
 
     def _next_revision(self, map_id: uuid.UUID) -> int:
+        """One past every revision the map has had: after a restore the current revision
+        is not the latest, and a later one's folder must not be packed over."""
         with self.db_sessions() as db:
-            return db.get(Map, map_id).revision + 1
+            latest = db.scalar(select(func.max(MapRevision.revision))
+                               .where(MapRevision.map_id == map_id))
+            return max(db.get(Map, map_id).revision, latest or 0) + 1
 
     def _finish_done(self, job_id: uuid.UUID, map_id: uuid.UUID, revision: int,
                      packed: dict) -> None:
         with self.db_sessions() as db:
             m = db.get(Map, map_id)
             lat, lon, alt = packed["origin"]
+            base = m.revision
+            before = set(self._revision_image_ids(map_id, base))
+            now = set(packed["image_ids"])
+            db.add(MapRevision(
+                map_id=map_id, revision=revision, built_at=utcnow(), job_id=job_id,
+                base_revision=base, image_count=len(now), added=len(now - before),
+                removed=len(before - now), origin_lat=lat, origin_lon=lon, origin_alt=alt,
+                geometry=packed.get("geometry")))
             m.revision, m.origin_lat, m.origin_lon, m.origin_alt = revision, lat, lon, alt
             m.built_at, m.geometry = utcnow(), packed.get("geometry")
             # one statement executed for every image (executemany), not one round trip each
@@ -262,6 +275,14 @@ class BuildRunner(BackgroundRunner):
         self.metrics.build_jobs.labels(JobStatus.DONE).inc()
         log.info("map %s built: revision %d, %d images", map_id, revision,
                  len(packed["image_ids"]))
+
+    def _revision_image_ids(self, map_id: uuid.UUID, revision: int) -> tuple[int, ...]:
+        """The image ids a packed revision holds (none for revision 0 or a revision packed
+        before its ids were recorded beside it)."""
+        if revision == 0:
+            return ()
+        ids = revision_images(str(self.settings.packed_map_dir(str(map_id), revision))).ids
+        return ids or ()
 
     def _finish_failed(self, job_id: uuid.UUID, error: str) -> None:
         with self.db_sessions() as db:

@@ -57,6 +57,35 @@ class Map(Base):
         back_populates="map", cascade="all, delete-orphan", passive_deletes=True)
 
 
+class MapRevision(Base):
+    """One packed revision of a map, as its build left it: what it holds, what changed since
+    the revision it was built on, and what its geometry measured of itself. A map's
+    revisions stay on disk until dropped, so that the map can be restored to any of them."""
+
+    __tablename__ = "map_revisions"
+
+    map_id: Mapped[uuid.UUID] = mapped_column(
+        ForeignKey("maps.id", ondelete="CASCADE"), primary_key=True)
+    revision: Mapped[int] = mapped_column(Integer, primary_key=True)
+    built_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    job_id: Mapped[uuid.UUID | None] = mapped_column()
+    """The build job that packed it (no foreign key: jobs may be purged, revisions stay)."""
+    base_revision: Mapped[int] = mapped_column(Integer, default=0)
+    """The map's current revision when the build began (0 for the first): what ``added``
+    and ``removed`` compare with."""
+    image_count: Mapped[int] = mapped_column(Integer)
+    added: Mapped[int] = mapped_column(Integer)
+    removed: Mapped[int] = mapped_column(Integer)
+    origin_lat: Mapped[float] = mapped_column(Float)
+    origin_lon: Mapped[float] = mapped_column(Float)
+    origin_alt: Mapped[float | None] = mapped_column(Float)
+    geometry: Mapped[dict | None] = mapped_column(JSON)
+    """As ``maps.geometry`` while this revision is the current one."""
+    dropped_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """When its files were deleted; the row stays, so that its number is never packed
+    again (poses stored on it keep naming one revision)."""
+
+
 class MapImage(Base):
     __tablename__ = "map_images"
     __table_args__ = (UniqueConstraint("map_id", "file_hash"),)

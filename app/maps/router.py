@@ -1,4 +1,4 @@
-"""Map routes (admin): create, list, read, delete, add images, build."""
+"""Map routes (admin): create, list, read, delete, add images, build, manage revisions."""
 
 from __future__ import annotations
 
@@ -10,11 +10,18 @@ from fastapi.responses import FileResponse
 
 from vloc.app.deps import Ctx, DbSession, SettingsDep, require_admin
 from vloc.app.jobs.service import start_build
-from vloc.app.maps import service
+from vloc.app.maps import history, service
 from vloc.app.maps.coverage import Coverage, covering_maps
 from vloc.app.maps.dependencies import ImageVerifier, MapDep, parse_id
 from vloc.app.maps.models import MapImage
-from vloc.app.maps.schemas import BuildAccepted, ImageUploadResult, MapCreate, MapImageRead, MapRead
+from vloc.app.maps.schemas import (
+    BuildAccepted,
+    ImageUploadResult,
+    MapCreate,
+    MapImageRead,
+    MapRead,
+    RevisionRead,
+)
 from vloc.app.problems import Problem, ProblemKind
 from vloc.app.validation import MAX_ALT_M, MIN_ALT_M, aware, check_text
 
@@ -136,3 +143,34 @@ def build_map(map_: MapDep, db: DbSession, ctx: Ctx, response: Response,
     ctx.builds.launch(job.id)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return BuildAccepted(job_id=job.id, status=job.status)
+
+
+RevisionNumber = PathParam(ge=1, lt=2**31, description="A revision of the map")
+
+
+@router.get("/{map_id}/revisions", response_model=list[RevisionRead])
+def list_revisions(map_: MapDep, db: DbSession, settings: SettingsDep) -> list[RevisionRead]:
+    """The map's packed revisions, newest first: what each holds, what changed since the
+    revision it was built on, its self-check, its size on disk and who uses it."""
+    return history.list_revisions(db, map_=map_, settings=settings)
+
+
+@router.post("/{map_id}/revisions/{revision}/restore", response_model=MapRead,
+             responses={409: {"description": "A build is running, or the revision cannot be "
+                                             "restored"}})
+def restore_revision(map_: MapDep, db: DbSession, settings: SettingsDep,
+                     revision: int = RevisionNumber) -> MapRead:
+    """Make an earlier (or later) revision the current one again: new sessions use it,
+    open sessions keep theirs, images it does not hold wait for the next build."""
+    history.restore_revision(db, map_=map_, revision=revision, settings=settings)
+    return service.read_map(db, map_=map_)
+
+
+@router.delete("/{map_id}/revisions/{revision}", status_code=204,
+               responses={409: {"description": "The current revision, or one in use"}})
+def drop_revision(map_: MapDep, db: DbSession, settings: SettingsDep,
+                  revision: int = RevisionNumber) -> Response:
+    """Delete a revision that is neither current nor used by an active session, with its
+    files."""
+    history.drop_revision(db, map_=map_, revision=revision, settings=settings)
+    return Response(status_code=204)

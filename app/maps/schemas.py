@@ -103,6 +103,30 @@ class MapRead(BaseModel):
                           "build (or for a map built before maps reported it)")
 
 
+class RevisionRead(BaseModel):
+    """One packed revision of a map."""
+
+    revision: int
+    current: bool = Field(description="Whether new sessions and single-image localisations "
+                                      "use it")
+    built_at: datetime
+    job_id: uuid.UUID | None = Field(description="The build that packed it (null for a "
+                                                 "revision recorded from an older server)")
+    base_revision: int = Field(description="The revision it was built on: what added and "
+                                           "removed compare with (0 for the first)")
+    image_count: int
+    added: int = Field(description="Images it holds that its base revision did not")
+    removed: int = Field(description="Images its base revision held that it does not")
+    active_sessions: int = Field(description="Active sessions localising against it")
+    disk_bytes: int | None = Field(description="Size of its packed files; null where they "
+                                               "are missing or dropped")
+    dropped_at: datetime | None = Field(description="When it was dropped with its files; "
+                                                    "its number is never packed again")
+    geometry: MapGeometryRead | None = Field(
+        None, description="Its camera geometry and self-check, as the map showed them while "
+                          "it was current")
+
+
 class MapImageRead(BaseModel):
     model_config = ConfigDict(from_attributes=True)
 

@@ -56,6 +56,8 @@ CLI_ADVICE = {
     "map-not-built": "build it first: vloc map build {map_id}",
     "map-up-to-date": "`vloc map build --force {map_id}` packs it again",
     "session-expired": "open a new one: vloc session create MAP_ID",
+    "revision-current": "restore another first: vloc map restore {map_id} REVISION "
+                        "(vloc map revisions {map_id} lists them)",
 }
 """What to do about a problem, as commands of this CLI (the server's own advice names the
 HTTP routes), by problem kind."""

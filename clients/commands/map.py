@@ -1,4 +1,4 @@
-"""``vloc map``: create, list, show, delete, import a folder, build."""
+"""``vloc map``: create, list, show, delete, import a folder, build, manage revisions."""
 
 from __future__ import annotations
 
@@ -180,3 +180,65 @@ def build_cmd(map_id: str, wait: bool, timeout: float, quiet: bool, force: bool,
             click.echo(vloc.build_map(map_id, force=force).id)
             return
         build_with_bar(vloc, map_id, quiet=quiet, timeout=timeout, force=force)
+
+
+@map_group.command("revisions")
+@click.argument("map_id")
+@click.option("--json", "as_json", is_flag=True)
+@server_options
+@reports_errors
+def revisions_cmd(map_id: str, as_json: bool, server: str, admin_key: str | None) -> None:
+    """List a map's revisions, newest first: what each holds and what changed."""
+    with make_client(server, admin_key) as vloc:
+        revisions = vloc.list_revisions(map_id)
+    if as_json:
+        print_json(model_json(revisions))
+        return
+    if not revisions:
+        click.echo(f"map {map_id} has no revision yet; build it: vloc map build {map_id}")
+    for r in revisions:
+        click.echo(_revision_line(r))
+
+
+def _revision_line(r) -> str:
+    when = r.built_at.strftime("%Y-%m-%d %H:%M") if r.built_at else "?"
+    line = (f"{'*' if r.current else ' '} rev {r.revision:<3} {when}  {r.image_count:>5} images"
+            f" (+{r.added} -{r.removed} on rev {r.base_revision})")
+    check = r.geometry.self_check if r.geometry is not None else None
+    if check is not None and check.median_m is not None:
+        line += f"  self-check median {check.median_m:.1f} m"
+    if r.dropped_at is not None:
+        line += "  dropped"
+    elif r.disk_bytes is not None:
+        line += f"  {r.disk_bytes / 2**20:.1f} MiB"
+    else:
+        line += "  files missing"
+    if r.active_sessions:
+        line += f"  {r.active_sessions} active session(s)"
+    return line
+
+
+@map_group.command("restore")
+@click.argument("map_id")
+@click.argument("revision", type=click.IntRange(min=1))
+@server_options
+@reports_errors
+def restore_cmd(map_id: str, revision: int, server: str, admin_key: str | None) -> None:
+    """Make REVISION the map's current revision again (new sessions use it; open sessions
+    keep theirs; images it does not hold wait for the next build)."""
+    with make_client(server, admin_key) as vloc:
+        m = vloc.restore_revision(map_id, revision)
+    click.echo(f"map {map_id} is at revision {m.revision} ({m.status}, "
+               f"{m.pending_images} image(s) waiting for a build)")
+
+
+@map_group.command("drop-revision")
+@click.argument("map_id")
+@click.argument("revision", type=click.IntRange(min=1))
+@server_options
+@reports_errors
+def drop_revision_cmd(map_id: str, revision: int, server: str, admin_key: str | None) -> None:
+    """Delete REVISION of a map and its files (not the current one, nor one in use)."""
+    with make_client(server, admin_key) as vloc:
+        vloc.drop_revision(map_id, revision)
+    click.echo(f"dropped revision {revision} of map {map_id}")

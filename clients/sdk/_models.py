@@ -93,6 +93,26 @@ class Map(_Model):
     _ids = field_validator("id", "last_job_id", mode="before")(_str_id)
 
 
+class MapRevision(_Model):
+    """One packed revision of a map: what it holds and what changed since the revision it
+    was built on."""
+
+    revision: int
+    current: bool
+    built_at: datetime | None = None
+    job_id: str | None = None
+    base_revision: int = 0
+    image_count: int = 0
+    added: int = 0
+    removed: int = 0
+    active_sessions: int = 0
+    disk_bytes: int | None = None
+    dropped_at: datetime | None = None
+    geometry: MapGeometry | None = None
+
+    _ids = field_validator("job_id", mode="before")(_str_id)
+
+
 class MapImage(_Model):
     """One image of a map, as the server stored it."""
 

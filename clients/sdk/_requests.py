@@ -23,6 +23,7 @@ from ._models import (
     Localization,
     Map,
     MapImage,
+    MapRevision,
     Pose,
     Route,
     Session,
@@ -173,6 +174,20 @@ def build_map(map_id: str, *, force: bool = False) -> Call:
 
     return Call("POST", f"/v1/maps/{map_id}/build", parse,
                 params={"force": "true"} if force else None)
+
+
+def list_revisions(map_id: str) -> Call:
+    return Call("GET", f"/v1/maps/{map_id}/revisions", _models(MapRevision), idempotent=True)
+
+
+def restore_revision(map_id: str, revision: int) -> Call:
+    # restoring the same revision twice leaves the map as once
+    return Call("POST", f"/v1/maps/{map_id}/revisions/{int(revision)}/restore", _model(Map),
+                idempotent=True)
+
+
+def drop_revision(map_id: str, revision: int) -> Call:
+    return Call("DELETE", f"/v1/maps/{map_id}/revisions/{int(revision)}", idempotent=True)
 
 
 def get_job(job_id: str) -> Call:

@@ -23,6 +23,7 @@ from ._models import (
     Localization,
     Map,
     MapImage,
+    MapRevision,
     Pose,
     Route,
     Session,
@@ -95,6 +96,20 @@ class Routes(ABC):
         ``force`` packs a new revision even when there is nothing new (else 409
         ``map-up-to-date``)."""
         return self._call(rq.build_map(map_id, force=force))
+
+    def list_revisions(self, map_id: str) -> list[MapRevision]:
+        """The map's packed revisions, newest first."""
+        return self._call(rq.list_revisions(map_id))
+
+    def restore_revision(self, map_id: str, revision: int) -> Map:
+        """Make ``revision`` the map's current revision again (new sessions use it; open
+        ones keep theirs); returns the map."""
+        return self._call(rq.restore_revision(map_id, revision))
+
+    def drop_revision(self, map_id: str, revision: int) -> None:
+        """Delete a revision and its files (409 ``revision-current`` for the current one,
+        ``revision-in-use`` while active sessions use it)."""
+        return self._call(rq.drop_revision(map_id, revision))
 
     def get_job(self, job_id: str) -> Job:
         return self._call(rq.get_job(job_id))

@@ -25,6 +25,7 @@ TABLES_AT = {
 TABLES_AT["0007"] = TABLES_AT["0006"]
 TABLES_AT["0008"] = TABLES_AT["0006"] | {"routes", "route_images", "route_nodes", "route_arcs"}
 TABLES_AT["0009"] = TABLES_AT["0008"]
+TABLES_AT["0010"] = TABLES_AT["0009"] | {"map_revisions"}
 
 
 def _tables(engine) -> set[str]:
@@ -35,8 +36,8 @@ def test_upgrade_to_head_matches_the_models(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        assert migrate.current_revision(engine) == migrate.head_revision() == "0009"
-        assert _tables(engine) == TABLES_AT["0009"]
+        assert migrate.current_revision(engine) == migrate.head_revision() == "0010"
+        assert _tables(engine) == TABLES_AT["0010"]
         with engine.connect() as conn:
             diff = compare_metadata(MigrationContext.configure(
                 conn, opts={"compare_type": True}), Base.metadata)
@@ -54,7 +55,7 @@ def test_each_step_downgrades_and_upgrades_again(database_url):
             assert migrate.current_revision(engine) == revision
             assert _tables(engine) == TABLES_AT[revision]
         for revision in ("0001", "0002", "0003", "0004", "0005", "0006", "0007", "0008",
-                         "0009"):
+                         "0009", "0010"):
             migrate.upgrade(engine, revision)
             assert _tables(engine) == TABLES_AT[revision]
         names = {c["name"] for c in inspect(engine).get_unique_constraints("map_images")}
@@ -140,5 +141,55 @@ def test_0009_adds_the_geometry_report_and_build_stage_and_keeps_every_map(datab
         assert "geometry" not in {c["name"] for c in inspect(engine).get_columns("maps")}
         with engine.connect() as conn:
             assert conn.execute(text("SELECT name FROM maps")).all() == [("m",)]
+    finally:
+        engine.dispose()
+
+
+def test_0010_lists_the_current_revision_of_every_built_map(database_url):
+    """A map built twice before 0010 gets one revision row, its current one, with the
+    frame, the geometry report and the image counts the map row and its images hold; an
+    unbuilt map gets none. Downgrading drops the table and nothing else."""
+    import json
+    import uuid
+    from datetime import UTC, datetime
+
+    from sqlalchemy import text
+
+    engine = make_engine(database_url)
+    built, unbuilt = uuid.uuid4(), uuid.uuid4()
+    now = datetime.now(UTC)
+    ids = (lambda u: u.hex) if engine.dialect.name == "sqlite" else (lambda u: u)
+    try:
+        migrate.upgrade(engine, "0009")
+        with engine.begin() as conn:
+            conn.execute(text(
+                "INSERT INTO maps (id, name, status, revision, origin_lat, origin_lon, "
+                "origin_alt, created_at, built_at, geometry) VALUES (:id, 'm', 'unbuilt', 2, "
+                "42.1, -76.5, 300.0, :now, :now, :g)"),
+                {"id": ids(built), "now": now, "g": json.dumps({"status": "accepted"})})
+            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                              "VALUES (:id, 'n', 'unbuilt', 0, :now)"),
+                         {"id": ids(unbuilt), "now": now})
+            for k, rev in enumerate([1, 1, 2, None]):
+                conn.execute(text(
+                    "INSERT INTO map_images (map_id, filename, file_hash, content_type, "
+                    "byte_size, width, height, lat, lon, position_source, built_revision, "
+                    "created_at) VALUES (:m, :f, :h, 'image/jpeg', 1, 1, 1, 42.1, -76.5, "
+                    "'exif', :r, :now)"),
+                    {"m": ids(built), "f": f"{k}.jpg", "h": f"{k:064d}", "r": rev, "now": now})
+        migrate.upgrade(engine)
+        with engine.connect() as conn:
+            rows = conn.execute(text(
+                "SELECT revision, base_revision, image_count, added, removed, origin_lat, "
+                "origin_lon, origin_alt, job_id, geometry FROM map_revisions")).all()
+        assert len(rows) == 1
+        assert tuple(rows[0][:9]) == (2, 1, 3, 1, 0, 42.1, -76.5, 300.0, None)
+        geometry = rows[0][9]
+        assert (json.loads(geometry) if isinstance(geometry, str) else geometry) == {
+            "status": "accepted"}
+        migrate.downgrade(engine, "0009")
+        assert "map_revisions" not in _tables(engine)
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT count(*) FROM map_images")).scalar() == 4
     finally:
         engine.dispose()

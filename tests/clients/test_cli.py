@@ -78,6 +78,34 @@ def test_map_commands(vloc, dataset_dir):
     assert map_id not in vloc("map", "list").stdout
 
 
+def test_map_revision_commands(vloc, sdk, dataset_dir):
+    map_id = vloc("map", "import", str(dataset_dir), "--pass", "1", "--build",
+                  "--quiet").stdout.strip()
+    assert "has no revision" not in vloc("map", "revisions", map_id).stdout
+    vloc("map", "build", map_id, "--force", "--quiet")
+    listed = vloc("map", "revisions", map_id).stdout.splitlines()
+    assert len(listed) == 2
+    assert listed[0].startswith("* rev 2") and "10 images (+0 -0 on rev 1)" in listed[0]
+    assert listed[1].startswith("  rev 1") and "(+10 -0 on rev 0)" in listed[1]
+    assert "MiB" in listed[1]
+    as_json = json.loads(vloc("map", "revisions", map_id, "--json").stdout)
+    assert [(r["revision"], r["current"]) for r in as_json] == [(2, True), (1, False)]
+    # the current revision cannot go: the CLI says how to choose another
+    refused = vloc("map", "drop-revision", map_id, "2", code=1)
+    assert "409" in refused.stderr and f"vloc map restore {map_id} REVISION" in refused.stderr
+    restored = vloc("map", "restore", map_id, "1").stdout
+    assert f"map {map_id} is at revision 1 (ready, 0 image(s) waiting" in restored
+    assert vloc("map", "drop-revision", map_id, "2").stdout.strip() == (
+        f"dropped revision 2 of map {map_id}")
+    revisions = sdk.list_revisions(map_id)
+    assert [(r.revision, r.current, r.dropped_at is not None) for r in revisions] == [
+        (2, False, True), (1, True, False)]
+    assert "dropped" in vloc("map", "revisions", map_id).stdout.splitlines()[0]
+    assert sdk.restore_revision(map_id, 1).revision == 1
+    vloc("map", "restore", map_id, "0", code=2)  # not a revision: click refuses it
+    vloc("map", "delete", map_id)
+
+
 def test_map_import_into_a_new_map_and_build_later(vloc, sdk, dataset_dir):
     out = vloc("map", "import", str(dataset_dir), "--pass", "2", "--quiet")
     map_id = out.stdout.strip()

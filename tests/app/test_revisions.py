@@ -1,0 +1,137 @@
+"""A map's revisions through the real app: listed with what changed, restored with the answers
+they gave, dropped with their files, on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.app.conftest import ADMIN, PROBLEM, UNKNOWN_ID, FAST, jpeg_files, snapshot, wait_job
+
+JPEG = {**ADMIN, "Content-Type": "image/jpeg"}
+ANSWER = ("lat", "lon", "x", "y", "cov", "feature", "measurement", "image_filename",
+          "map_revision", "horizontal_accuracy_m")
+"""The fields of a single-image localisation that depend on the map, not on timing."""
+
+
+def _build(c, map_id: str) -> dict:
+    job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"])
+    assert job["status"] == "done", job
+    return job
+
+
+def _answers(c, map_id: str, queries) -> list[dict]:
+    out = []
+    for q in queries:
+        r = c.post(f"/v1/maps/{map_id}/localize", content=q.jpeg, headers=JPEG,
+                   params={"seed": 3})
+        assert r.status_code == 200, r.text
+        out.append({k: r.json()[k] for k in ANSWER})
+    return out
+
+
+def _revisions(c, map_id: str) -> list[dict]:
+    r = c.get(f"/v1/maps/{map_id}/revisions", headers=ADMIN)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def _problem(r, status: int, kind: str) -> dict:
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"] == PROBLEM
+    assert r.json()["type"] == f"urn:vloc:problem:{kind}"
+    return r.json()
+
+
+def test_a_map_restored_to_an_earlier_revision_answers_as_it_did(module_client, shots):
+    c = module_client
+    images, queries = shots[0], shots[1][2:5]
+    map_id = c.post("/v1/maps", json={"name": "revisions"}, headers=ADMIN).json()["id"]
+    assert _revisions(c, map_id) == []
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(images[:7]), headers=ADMIN)
+    first_job = _build(c, map_id)
+    first = _answers(c, map_id, queries)
+    assert {a["map_revision"] for a in first} == {1}
+
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(images[7:]), headers=ADMIN)
+    _build(c, map_id)
+    second = _answers(c, map_id, queries)
+    assert {a["map_revision"] for a in second} == {2}
+    listed = _revisions(c, map_id)
+    assert [(r["revision"], r["current"], r["base_revision"], r["image_count"], r["added"],
+             r["removed"]) for r in listed] == [(2, True, 1, 10, 3, 0), (1, False, 0, 7, 7, 0)]
+    assert listed[1]["job_id"] == first_job["id"]
+    assert all(r["disk_bytes"] > 0 and r["active_sessions"] == 0 for r in listed)
+    assert listed[0]["geometry"] == c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()[
+        "geometry"]
+
+    # a session on revision 2 keeps it through the restore
+    r = c.post("/v1/sessions", json={"map_id": map_id, "mode": "hybrid", "params": FAST,
+                                     "seed": 1}, headers=ADMIN)
+    session = r.json()["id"]
+    assert r.json()["map_revision"] == 2
+    assert [x["active_sessions"] for x in _revisions(c, map_id)] == [1, 0]
+
+    r = c.post(f"/v1/maps/{map_id}/revisions/1/restore", headers=ADMIN)
+    assert r.status_code == 200, r.text
+    restored = r.json()
+    assert (restored["revision"], restored["status"], restored["pending_images"]) == (
+        1, "unbuilt", 3)
+    assert [x["current"] for x in _revisions(c, map_id)] == [False, True]
+    # exactly the answers revision 1 gave, in its frame
+    assert _answers(c, map_id, queries) == first
+    held = {i["filename"]: i for i in c.get(f"/v1/maps/{map_id}/images",
+                                            headers=ADMIN).json()}
+    assert {n for n, i in held.items() if i["built_revision"] is None} == {
+        s.name for s in images[7:]}
+    assert all(i["east"] is not None for n, i in held.items() if i["built_revision"] == 1)
+    assert c.get(f"/v1/sessions/{session}", headers=ADMIN).json()["map_revision"] == 2
+
+    # revision 2 is in use; revision 1 is current: neither can go, and nothing changes
+    before = snapshot(c)
+    p = _problem(c.delete(f"/v1/maps/{map_id}/revisions/2", headers=ADMIN), 409,
+                 "revision-in-use")
+    assert p["sessions"] == 1
+    _problem(c.delete(f"/v1/maps/{map_id}/revisions/1", headers=ADMIN), 409,
+             "revision-current")
+    _problem(c.post(f"/v1/maps/{map_id}/revisions/7/restore", headers=ADMIN), 404,
+             "not-found")
+    _problem(c.delete(f"/v1/maps/{UNKNOWN_ID}/revisions/1", headers=ADMIN), 404, "not-found")
+    assert c.post(f"/v1/maps/{map_id}/revisions/0/restore", headers=ADMIN).status_code == 422
+    assert snapshot(c) == before
+
+    assert c.delete(f"/v1/sessions/{session}", headers=ADMIN).status_code == 204
+    assert c.delete(f"/v1/maps/{map_id}/revisions/2", headers=ADMIN).status_code == 204
+    listed = _revisions(c, map_id)
+    assert [(x["revision"], x["dropped_at"] is not None, x["disk_bytes"]) for x in listed][0] \
+        == (2, True, None)
+    assert listed[1]["dropped_at"] is None
+    assert not c.app.state.ctx.settings.packed_map_dir(map_id, 2).exists()
+    # dropping it again changes nothing; restoring it cannot be
+    assert c.delete(f"/v1/maps/{map_id}/revisions/2", headers=ADMIN).status_code == 204
+    _problem(c.post(f"/v1/maps/{map_id}/revisions/2/restore", headers=ADMIN), 404,
+             "not-found")
+
+    # the next build packs a revision after every one the map has had
+    _build(c, map_id)
+    latest = _revisions(c, map_id)[0]
+    assert (latest["revision"], latest["base_revision"], latest["added"]) == (3, 1, 3)
+    assert _answers(c, map_id, queries) == [a | {"map_revision": 3} for a in second]
+
+
+def test_restoring_waits_for_a_running_build(module_client, shots, hold_worker):
+    c = module_client
+    map_id = c.post("/v1/maps", json={"name": "busy"}, headers=ADMIN).json()["id"]
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][:5]), headers=ADMIN)
+    _build(c, map_id)
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][5:7]), headers=ADMIN)
+    hold_worker()
+    job = c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"]
+    _problem(c.post(f"/v1/maps/{map_id}/revisions/1/restore", headers=ADMIN), 409, "map-busy")
+    assert c.get(f"/v1/jobs/{job}", headers=ADMIN).json()["status"] in ("queued", "running")
+
+
+@pytest.mark.parametrize("path", ["revisions", "revisions/1/restore"])
+def test_revisions_need_the_admin_key(module_client, path):
+    method = "get" if path == "revisions" else "post"
+    r = getattr(module_client, method)(f"/v1/maps/{UNKNOWN_ID}/{path}")
+    assert r.status_code == 401
