@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.app.conftest import ADMIN, PROBLEM, UNKNOWN_ID, FAST, jpeg_files, snapshot, wait_job
+from tests.app.conftest import ADMIN, FAST, PROBLEM, UNKNOWN_ID, jpeg_files, snapshot, wait_job
 
 JPEG = {**ADMIN, "Content-Type": "image/jpeg"}
 ANSWER = ("lat", "lon", "x", "y", "cov", "feature", "measurement", "image_filename",
