@@ -229,6 +229,31 @@ def test_an_admin_creates_uploads_and_builds_a_map(browser, live, world, tmp_pat
         assert f"included, {check['every_image_mean_m']:.1f} m on average." in line, line
     else:
         assert line.startswith("No camera geometry"), line
+    # a second revision; from the page, the first restored and the second dropped
+    map_id = made[0]["id"]
+    job = httpx.post(f"{live.base_url}/v1/maps/{map_id}/build", params={"force": "true"},
+                     headers=ADMIN).json()["job_id"]
+    deadline = time.monotonic() + 120
+    while httpx.get(f"{live.base_url}/v1/jobs/{job}", headers=ADMIN).json()["status"] != "done":
+        assert time.monotonic() < deadline, "the second build did not finish"
+        time.sleep(0.2)
+    page.click(f"#maps-table tbody tr[data-map-id='{map_id}']")
+    page.wait_for_function("document.querySelectorAll('#revisions-table tbody tr').length == 2")
+    page.click("#revisions-box summary")
+    rows = page.locator("#revisions-table tbody tr")
+    assert rows.nth(0).locator("td").nth(0).inner_text() == "2 (current)"
+    assert rows.nth(0).locator("button").count() == 0  # the current one stays
+    assert rows.nth(1).locator("td").nth(3).inner_text() == f"+{N_MAP} -0 on 0"
+    page.click("#revisions-table tr[data-revision='1'] button.revision-restore")
+    page.wait_for_function("document.querySelector('#map-summary').textContent"
+                           ".startsWith('ready, revision 1')")
+    page.click("#revisions-table tr[data-revision='2'] button.revision-drop")
+    page.wait_for_function("(document.querySelector(\"#revisions-table tr[data-revision='2']"
+                           " td:nth-child(6)\") || {}).textContent === 'dropped'")
+    listed = httpx.get(f"{live.base_url}/v1/maps/{map_id}/revisions", headers=ADMIN).json()
+    assert [(r["revision"], r["current"], r["dropped_at"] is not None) for r in listed] == [
+        (2, False, True), (1, True, False)]
+    assert page.locator("#revisions-error").inner_text() == ""
     assert not log.errors, log.errors
     page.close()
 

@@ -1,4 +1,5 @@
-// Maps: the list, a map's images on the plan with thumbnails, upload and build (admin).
+// Maps: the list, a map's images on the plan with thumbnails, upload and build, its
+// revisions restored and dropped (admin).
 
 import { $, api, at, escapeHtml, imageLayer, listAll, plan, say, state } from "./common.js";
 import { setOrigin } from "./tiles.js";
@@ -37,7 +38,9 @@ export async function selectMap(mapId, { fit = true } = {}) {
   const m = state.maps.find((x) => x.id === mapId) || await api(`/v1/maps/${mapId}`);
   // everything is fetched before anything is shown: the summary never describes a revision
   // whose images are not drawn yet
-  const images = await listAll(`/v1/maps/${mapId}/images`, { by: "after_id", limit: 10000 });
+  const [images, revisions] = await Promise.all([
+    listAll(`/v1/maps/${mapId}/images`, { by: "after_id", limit: 10000 }),
+    api(`/v1/maps/${mapId}/revisions`)]);
   state.mapId = mapId;
   document.querySelectorAll("#maps-table tbody tr").forEach((tr) =>
     tr.classList.toggle("selected", tr.dataset.mapId === mapId));
@@ -46,10 +49,67 @@ export async function selectMap(mapId, { fit = true } = {}) {
   $("#map-summary").textContent = `${m.status}, revision ${m.revision}, ` +
     `${m.image_count} images (${m.pending_images} not built yet)`;
   $("#map-geometry").textContent = geometryLine(m.geometry);
+  showRevisions(mapId, revisions);
   state.mapImages = images;
   state.origin = m.origin;
   setOrigin(m.origin);
   drawImages(m, fit);
+}
+
+// The map's revisions, newest first: the current one marked, the others restorable, and
+// droppable unless sessions use them.
+function showRevisions(mapId, revisions) {
+  $("#revisions-error").textContent = "";
+  $("#revisions-table tbody").replaceChildren(...revisions.map((r) => {
+    const tr = document.createElement("tr");
+    tr.dataset.revision = String(r.revision);
+    tr.classList.toggle("selected", r.current);
+    const check = r.geometry && r.geometry.self_check;
+    const cells = [
+      r.current ? `${r.revision} (current)` : String(r.revision),
+      new Date(r.built_at).toISOString().slice(0, 16).replace("T", " "),
+      String(r.image_count),
+      `+${r.added} -${r.removed} on ${r.base_revision}`,
+      check && check.median_m !== null ? `${check.median_m.toFixed(1)} m` : "-",
+      r.dropped_at ? "dropped" : r.disk_bytes === null ? "missing"
+        : `${(r.disk_bytes / 2 ** 20).toFixed(1)} MiB`,
+    ];
+    for (const text of cells) {
+      const td = document.createElement("td");
+      td.textContent = text;
+      tr.append(td);
+    }
+    const actions = document.createElement("td");
+    if (!r.current && !r.dropped_at) {
+      actions.append(revisionButton(mapId, r, "restore", "POST", `${r.revision}/restore`));
+      const drop = revisionButton(mapId, r, "drop", "DELETE", `${r.revision}`);
+      if (r.active_sessions) {
+        drop.disabled = true;
+        drop.title = `${r.active_sessions} active session(s) use this revision`;
+      }
+      actions.append(drop);
+    }
+    tr.append(actions);
+    return tr;
+  }));
+}
+
+function revisionButton(mapId, r, label, method, path) {
+  const b = document.createElement("button");
+  b.type = "button";
+  b.textContent = label;
+  b.className = `revision-${label}`;
+  b.addEventListener("click", async () => {
+    try {
+      await api(`/v1/maps/${mapId}/revisions/${path}`, { method });
+      await refreshMaps();
+      await selectMap(mapId, { fit: false });
+    } catch (err) {
+      $("#revisions-error").textContent = `could not ${label} revision ${r.revision}: ` +
+        err.message;
+    }
+  });
+  return b;
 }
 
 // What the revision's camera geometry gives frames, in a sentence.
