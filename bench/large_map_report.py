@@ -184,6 +184,9 @@ def report(args, layout, stats: dict, load: float) -> str:
         f"| **all stages** (adding + extraction + build job) | | | | {1e3 * per_image:.1f} | "
         f"{1 / per_image:,.1f} | |",
         "",
+        *([("The build job's stages by wall time (its `stage`, polled every half second): "
+            + ", ".join(f"{name} {wall:,.0f} s" for name, wall in b["job_stages"].items())
+            + "."), ""] if b.get("job_stages") else []),
         *([f"Peak resident memory of the worker that packed the map (VmHWM, extraction "
            f"before it included): {b['worker_peak_mib']:,.0f} MiB, "
            f"{b['worker_peak_mib'] * 1024 / n:,.0f} KiB per image.", ""]
