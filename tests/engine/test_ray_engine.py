@@ -264,7 +264,13 @@ def test_a_killed_shard_fails_its_frames_in_flight_and_the_session_reopens(clust
     with pytest.raises(WorkerDied):
         stalled.result(TIMEOUT)
     gate.touch()
-    # The shard came back empty: the session is not open there until it is reopened.
+    # While Ray restarts the shard, calls fail as WorkerDied (the service answers 503,
+    # retry); once it is back it answers again...
+    deadline = time.monotonic() + TIMEOUT
+    while not a.alive():
+        assert time.monotonic() < deadline, "the killed shard did not come back"
+        time.sleep(0.2)
+    # ... empty: the session is not open there until it is reopened.
     with pytest.raises(KeyError):
         a.reserve_seq(sid, None).result(TIMEOUT)
     assert a.alive() and a.restarts == restarts + 1
