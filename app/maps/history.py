@@ -21,10 +21,10 @@ from sqlalchemy.orm import Session
 
 from vloc.app.config import Settings
 from vloc.app.db import utcnow
-from vloc.app.jobs.models import BuildJob, JobStatus
 from vloc.app.maps.models import Map, MapImage, MapRevision, MapStatus, MapVocabulary
 from vloc.app.maps.revisions import revision_images
 from vloc.app.maps.schemas import RevisionRead
+from vloc.app.maps.service import refuse_while_building
 from vloc.app.problems import Problem, ProblemKind, not_found
 from vloc.app.sessions.admission import revision_missing
 from vloc.app.sessions.models import LocalisationSession
@@ -57,7 +57,7 @@ def restore_revision(db: Session, *, map_: Map, revision: int, settings: Setting
     if row.dropped_at is not None:
         raise Problem(404, f"revision {revision} was dropped with its files",
                       kind=ProblemKind.NOT_FOUND)
-    _no_build_running(db, map_)
+    refuse_while_building(db, map_)
     folder = settings.packed_map_dir(str(map_.id), revision)
     held = revision_images(str(folder))
     if not held.names:
@@ -108,7 +108,7 @@ def drop_revision(db: Session, *, map_: Map, revision: int, settings: Settings) 
         raise Problem(409, f"revision {revision} is the map's current revision; restore "
                            "another one before dropping it", kind=ProblemKind.REVISION_CURRENT,
                       revision=revision)
-    _no_build_running(db, map_)
+    refuse_while_building(db, map_)
     sessions = db.scalar(select(func.count(LocalisationSession.id)).where(
         LocalisationSession.map_id == map_.id, LocalisationSession.map_revision == revision,
         LocalisationSession.status == ACTIVE))
@@ -128,12 +128,6 @@ def _revision(db: Session, map_: Map, revision: int) -> MapRevision:
     if row is None:
         raise not_found("revision", revision)
     return row
-
-
-def _no_build_running(db: Session, map_: Map) -> None:
-    if db.scalar(select(func.count(BuildJob.id)).where(
-            BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
-        raise Problem(409, "a build of this map is running", kind=ProblemKind.MAP_BUSY)
 
 
 def _read(row: MapRevision, *, current: bool, active_sessions: int,

@@ -101,15 +101,19 @@ def read_map(db: Session, *, map_: Map) -> MapRead:
         last_job_id=last_job, geometry=map_.geometry)
 
 
+def refuse_while_building(db: Session, map_: Map) -> None:
+    """409 ``map-busy`` while a build of the map is queued or running."""
+    if db.scalar(select(func.count(BuildJob.id)).where(
+            BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
+        raise Problem(409, "a build of this map is running", kind=ProblemKind.MAP_BUSY)
+
+
 def delete_map(db: Session, *, map_: Map, settings: Settings) -> None:
     """Delete a map with its images, features, jobs and packed revisions.
 
     Refused (409) while a build runs or sessions use the map.
     """
-    active = db.scalar(select(func.count(BuildJob.id)).where(
-        BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE)))
-    if active:
-        raise Problem(409, "a build of this map is running", kind=ProblemKind.MAP_BUSY)
+    refuse_while_building(db, map_)
     sessions = db.scalar(select(func.count(LocalisationSession.id))
                          .where(LocalisationSession.map_id == map_.id))
     if sessions:
@@ -129,9 +133,7 @@ def delete_image(db: Session, *, map_: Map, image_id: int, settings: Settings) -
     the image. Refused (409) while a build runs: the build may be reading it.
     """
     image = get_image(db, map_=map_, image_id=image_id)
-    if db.scalar(select(func.count(BuildJob.id)).where(
-            BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
-        raise Problem(409, "a build of this map is running", kind=ProblemKind.MAP_BUSY)
+    refuse_while_building(db, map_)
     path = image_path(settings, image)
     db.delete(image)
     db.flush()
