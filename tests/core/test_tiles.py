@@ -10,7 +10,7 @@ import pytest
 from tests.core.geometry.scene import F_TRUE, survey
 from vloc.workers.core import tiepairs, tiles
 from vloc.workers.core.geo import GeoOrigin
-from vloc.workers.core.geometry import TIE_NEIGHBOURS, build_geometry, sfm, tie_pairs
+from vloc.workers.core.geometry import TIE_NEIGHBOURS, build_geometry, tie_pairs, tiling
 from vloc.workers.core.geometry import pairs as pairs_module
 from vloc.workers.core.geometry.pairs import match_pairs
 from vloc.workers.core.mapbuild import local_frame, save_tie_points
@@ -32,25 +32,25 @@ def surveyed(tmp_path_factory):
 @pytest.fixture
 def small_tiles(monkeypatch):
     """Tiles of at most eight images, widened by one spacing, so that 18 make several."""
-    monkeypatch.setattr(sfm, "MAX_TILE", 8)
-    monkeypatch.setattr(sfm, "TILE_MARGIN", 1.0)
+    monkeypatch.setattr(tiling, "MAX_TILE", 8)
+    monkeypatch.setattr(tiling, "TILE_MARGIN", 1.0)
 
 
 def test_spatial_tiles_cover_every_image_and_overlap():
     xy = np.array([[x * 10.0, y * 10.0] for y in range(16) for x in range(16)])
-    parts = sfm.spatial_tiles(xy, 32)
+    parts = tiling.spatial_tiles(xy, 32)
     assert len(parts) == 8
     assert set(np.concatenate(parts).tolist()) == set(range(len(xy)))
     assert sum(len(p) for p in parts) > len(xy)  # neighbouring tiles share their edges
     # a core of 32 widened by three spacings either way
     assert all(32 < len(p) <= (4 + 6) * (8 + 6) for p in parts)
-    assert [p.tolist() for p in sfm.spatial_tiles(xy, 1000)] == [list(range(len(xy)))]
+    assert [p.tolist() for p in tiling.spatial_tiles(xy, 1000)] == [list(range(len(xy)))]
 
 
 def test_spatial_tiles_drop_a_tile_another_holds():
     # three images in a row, tiles of one: widened by three spacings each holds them all
     xy = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
-    assert [p.tolist() for p in sfm.spatial_tiles(xy, 1)] == [[0, 1, 2]]
+    assert [p.tolist() for p in tiling.spatial_tiles(xy, 1)] == [[0, 1, 2]]
 
 
 def test_tiles_reconstructed_apart_are_the_map_of_one_process(surveyed, small_tiles,
@@ -62,13 +62,13 @@ def test_tiles_reconstructed_apart_are_the_map_of_one_process(surveyed, small_ti
     assert all(p > 0 for p in placed)
     known = tiles.load_results(tmp_path)
     assert len(known) == n
-    whole = sfm.reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE)
+    whole = tiling.reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE)
 
     def refuse(*args, **kwargs):
         raise AssertionError("a tile reconstructed elsewhere was reconstructed again")
 
-    monkeypatch.setattr(sfm, "tile_models", refuse)
-    taken = sfm.reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE,
+    monkeypatch.setattr(tiling, "tile_models", refuse)
+    taken = tiling.reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE,
                             known_tiles=known)
     np.testing.assert_array_equal(taken.centres, whole.centres)
     np.testing.assert_array_equal(taken.rotations, whole.rotations)
@@ -109,8 +109,8 @@ def test_the_packing_takes_up_every_tile_the_build_reconstructed(tmp_path, monke
     image's 16 nearest where the packing kept 12: over a survey this dense the extra pairs
     verify, no tile's key was the packing's, and every tile was reconstructed twice.)"""
     # tiles larger than an image's neighbours, so that a tile holds pairs beyond them
-    monkeypatch.setattr(sfm, "MAX_TILE", 16)
-    monkeypatch.setattr(sfm, "TILE_MARGIN", 1.0)
+    monkeypatch.setattr(tiling, "MAX_TILE", 16)
+    monkeypatch.setattr(tiling, "TILE_MARGIN", 1.0)
     s = survey(np.random.default_rng(8), rows=4, cols=8, spacing=9.0, n_points=2500)
     stems = [str(tmp_path / f"img{i}") for i in range(len(s.keypoints))]
     for kp, desc, stem in zip(s.keypoints, s.image_descriptors, stems, strict=True):
@@ -139,7 +139,7 @@ def test_the_packing_takes_up_every_tile_the_build_reconstructed(tmp_path, monke
         raise AssertionError("the packing matched a pair or reconstructed a tile again")
 
     monkeypatch.setattr(pairs_module, "match_pair", refuse)
-    monkeypatch.setattr(sfm, "tile_models", refuse)
+    monkeypatch.setattr(tiling, "tile_models", refuse)
     built = build_geometry(s.keypoints, s.image_descriptors, xy, alt, F_TRUE,
                            known_pairs=known_pairs, known_tiles=tiles.load_results(tmp_path))
     assert built is not None and built[1].placed.mean() > 0.9

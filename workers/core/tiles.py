@@ -1,13 +1,13 @@
 """The tiles of a large map's reconstruction, reconstructed in parallel ahead of the packing.
 
-A map of more than :data:`~workers.core.geometry.sfm.MAX_TILE` images is reconstructed in
-overlapping spatial tiles (:func:`~workers.core.geometry.sfm.spatial_tiles`), each by COLMAP
+A map of more than :data:`~workers.core.geometry.tiling.MAX_TILE` images is reconstructed in
+overlapping spatial tiles (:func:`~workers.core.geometry.tiling.spatial_tiles`), each by COLMAP
 on its own and aligned to its own GPS. Once the tie points' pairs are matched
 (:mod:`.tiepairs`), a build writes each tile's pairs and what the tiles share to disk
 (:func:`plan`), lets the engine's workers reconstruct the tiles (:func:`reconstruct`, one
 file of results per tile, the tie points read from disk) and hands them to the packing
 (:func:`load_results`), which reconstructs only tiles whose inputs it does not find among
-them (:func:`~workers.core.geometry.sfm.tile_key`): the map comes out the same as when one
+them (:func:`~workers.core.geometry.tiling.tile_key`): the map comes out the same as when one
 process reconstructs every tile.
 """
 
@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .geometry import sfm
+from .geometry import tiling
 from .geometry.pairs import PairMatches
-from .geometry.sfm import TileModel, spatial_tiles, tags, tile_key, tile_models, tile_pairs
+from .geometry.sfm import TileModel, tags
+from .geometry.tiling import spatial_tiles, tile_key, tile_models, tile_pairs
 from .mapbuild import load_tie_points
 from .tiepairs import read_results, save_results
 
@@ -41,7 +42,7 @@ def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
     ``i``'s tie points were written (:func:`~workers.core.mapbuild.save_tie_points`),
     ``times`` the capture times (s, NaN unknown)."""
     positions = np.asarray(positions, np.float64)
-    tiles = spatial_tiles(positions, sfm.MAX_TILE)
+    tiles = spatial_tiles(positions, tiling.MAX_TILE)
     if len(tiles) < 2:
         return 0
     folder = Path(folder)
@@ -59,7 +60,7 @@ def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
 def reconstruct(folder: str | Path, tile: int) -> int:
     """Reconstruct one planned tile (:func:`plan`) and write its models beside it; returns
     the number of cameras it placed. A result already there for the same inputs (a failed
-    build's, by :func:`~workers.core.geometry.sfm.tile_key`) is kept."""
+    build's, by :func:`~workers.core.geometry.tiling.tile_key`) is kept."""
     folder = Path(folder)
     with np.load(folder / PLAN_FILE) as z:
         gps = z["tags"]

@@ -17,12 +17,10 @@ from tests.core.geometry.scene import (
 from vloc.workers.core.geometry import sfm
 from vloc.workers.core.geometry.sfm import (
     COLMAP_SCALE,
-    left_out_models,
-    reconstruct,
     tags,
-    tile_models,
     to_colmap_pixels,
 )
+from vloc.workers.core.geometry.tiling import left_out_models, reconstruct, tile_models
 
 
 def _point_errors(s: Survey, st) -> np.ndarray:

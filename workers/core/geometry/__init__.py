@@ -24,7 +24,8 @@ from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
 from .pairs import PairMatches, candidate_pairs, match_pair, match_pairs
 from .register import Registration, register_frame
-from .sfm import Structure, reconstruct
+from .sfm import Structure
+from .tiling import reconstruct
 
 MIN_PLACED: float = 0.3
 """A reconstruction that places fewer than this share of the map images is not used."""
@@ -87,7 +88,7 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
     times : (N,) float ndarray, optional
         Capture times (s, NaN unknown), which let the GPS altitudes drift.
     known_tiles : dict, optional
-        Tiles of a large map reconstructed elsewhere, by :func:`.sfm.tile_key`
+        Tiles of a large map reconstructed elsewhere, by :func:`.tiling.tile_key`
         (:mod:`workers.core.tiles`); the rest are reconstructed here.
 
     Returns

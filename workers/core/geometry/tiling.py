@@ -1,0 +1,231 @@
+"""A map's reconstruction cut into tiles: which images COLMAP reconstructs together.
+
+A map of up to :data:`MAX_TILE` images is reconstructed whole. A larger one is halved along
+its longer side until each part is small enough, each part widened by :data:`TILE_MARGIN`
+image spacings so that neighbouring tiles share cameras (:func:`spatial_tiles`); each tile is
+reconstructed and aligned to its own GPS (:func:`tile_models`, COLMAP through
+:func:`.sfm.reconstruct_images`), and each image takes its pose from the tile whose centre it
+is nearest. Tiles are independent, so the service reconstructs them on the engine's workers
+(:mod:`workers.core.tiles`) and the packing takes up each one whose inputs hash to the same
+:func:`tile_key`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .pairs import PairMatches
+from .sfm import Structure, TileModel, reconstruct_images, structure_of, tags
+
+MAX_TILE: int = 400
+"""A map of more images is reconstructed in overlapping spatial tiles of at most this many
+(:func:`spatial_tiles`), each on its own GPS: an incremental reconstruction's time grows
+faster than its images."""
+
+TILE_MARGIN: float = 3.0
+"""Tiles overlap by this many median image spacings on each side."""
+
+
+def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
+                positions: np.ndarray, altitudes: np.ndarray, focal_px: float | None, *,
+                seed: int = 0, times: np.ndarray | None = None,
+                known_tiles: dict[str, list[TileModel] | None] | None = None,
+                ) -> Structure | None:
+    """The map's cameras and 3-D points from its tie points and verified pairs.
+
+    A map of more than :data:`MAX_TILE` images is reconstructed tile by tile
+    (:func:`spatial_tiles`), each tile's models aligned to their own GPS, and each image
+    takes its pose from the tile whose centre it is nearest.
+
+    Parameters
+    ----------
+    keypoints : sequence of (K_i, >=2) float arrays, one per map image
+        Tie points, pixels at the working resolution in the first two columns.
+    pairs : list of PairMatches
+        Verified matches, indices into ``keypoints``.
+    positions : (N, 2) float ndarray
+        GPS east/north of the images.
+    altitudes : (N,) float ndarray
+        GPS altitudes, NaN where unknown.
+    focal_px : float or None
+        EXIF focal length at the working resolution; None where unknown.
+    seed : int
+        Seeds COLMAP and the alignment's RANSAC: the same inputs give the same map.
+    times : (N,) float ndarray, optional
+        Capture times (s, NaN unknown): the GPS altitudes may drift in time
+        (:func:`.align.align_to_gps`).
+    known_tiles : dict, optional
+        Tiles reconstructed elsewhere (:func:`tile_models`), by :func:`tile_key`; the
+        others are reconstructed here.
+
+    Returns
+    -------
+    Structure or None
+        None where fewer than three cameras are placed consistently with their GPS.
+    """
+    positions = np.asarray(positions, np.float64)
+    gps = tags(positions, altitudes, times)
+    if len(pairs) == 0 or len(positions) < 3:
+        return None
+    tiles = spatial_tiles(positions, MAX_TILE)
+    found: list[tuple[np.ndarray, TileModel]] = []
+    for inside in tiles:
+        key = tile_key(inside, pairs, gps, focal_px, seed)
+        if known_tiles is not None and key in known_tiles:
+            models = known_tiles[key]
+        else:
+            models = tile_models(keypoints, pairs, gps, focal_px, inside, seed=seed)
+        found += [(inside, m) for m in models or []]
+    if not found:
+        return None
+    placed = _by_centrality(found, positions) if len(tiles) > 1 else [m for _, m in found]
+    placed += left_out_models(keypoints, pairs, gps, focal_px, placed, seed=seed,
+                              known_tiles=known_tiles)
+    return structure_of(placed, len(positions), gps)
+
+
+def left_out_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
+                    gps: np.ndarray, focal_px: float | None, models: list[TileModel], *,
+                    seed: int = 0,
+                    known_tiles: dict[str, list[TileModel] | None] | None = None,
+                    ) -> list[TileModel]:
+    """Models of the tied images that none of ``models`` places, reconstructed again on
+    their own, each aligned to its own GPS.
+
+    Where a survey turns, its images are banked and see the ground obliquely: they tie
+    strongly to one another and weakly to the level images around them, and the mapper
+    either leaves them out or, from a handful of chance matches across the fields, attaches
+    them far from where they are (seneca-uav's IMG_0451-0456, 30 to 200 m off, dropped by
+    the alignment). Reconstructed apart from the rest, the five that tie to one another make
+    a model of their own that lies within 2.5 m of their GPS, and the frames over that turn
+    register instead of falling back on a position between map images. ``keypoints``,
+    ``pairs`` and ``gps`` (:func:`tags`) are the whole map's; ``known_tiles`` as in
+    :func:`reconstruct`.
+    """
+    placed = np.zeros(len(gps), bool)
+    tied = np.zeros(len(gps), bool)
+    for m in models:
+        placed[m.images] = True
+    for p in pairs:
+        tied[[p.a, p.b]] = True
+    left = np.flatnonzero(tied & ~placed)
+    if len(left) < 3:
+        return []
+    key = tile_key(left, pairs, gps, focal_px, seed)
+    if known_tiles is not None and key in known_tiles:
+        return list(known_tiles[key] or [])
+    return tile_models(keypoints, pairs, gps, focal_px, left, seed=seed) or []
+
+
+def tile_pairs(pairs: list[PairMatches], inside: np.ndarray) -> list[PairMatches]:
+    """The pairs with both images in the tile ``inside`` (map indices), by (a, b)."""
+    member = set(np.asarray(inside).tolist())
+    return sorted((p for p in pairs if p.a in member and p.b in member),
+                  key=lambda p: (p.a, p.b))
+
+
+def tile_key(inside: np.ndarray, pairs: list[PairMatches], gps: np.ndarray,
+             focal_px: float | None, seed: int) -> str:
+    """What a tile's reconstruction depends on, hashed: its images, their tags (:func:`tags`),
+    their pairs
+    (:func:`tile_pairs`), the focal length and the seed. A tile reconstructed elsewhere
+    (:mod:`workers.core.tiles`) is taken up where its key is the one the packing finds."""
+    inside = np.ascontiguousarray(inside, np.int64)
+    h = hashlib.sha1()
+    h.update(inside.tobytes())
+    h.update(np.ascontiguousarray(gps[inside], np.float64).tobytes())
+    h.update(repr((None if focal_px is None else float(focal_px), int(seed))).encode())
+    for p in tile_pairs(pairs, inside):
+        h.update(np.array([p.a, p.b, p.config], np.int64).tobytes())
+        h.update(np.ascontiguousarray(p.matches, np.int64).tobytes())
+    return h.hexdigest()
+
+
+def tile_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches], gps: np.ndarray,
+                focal_px: float | None, inside: np.ndarray, *,
+                seed: int = 0) -> list[TileModel] | None:
+    """COLMAP's models of the tile ``inside`` (map indices), aligned to their GPS; their
+    images are map indices. ``keypoints`` and ``gps`` (:func:`tags`) are the whole map's,
+    read by index."""
+    inside = np.asarray(inside, np.int64)
+    index = np.full(len(gps), -1)
+    index[inside] = np.arange(len(inside))
+    sub = [PairMatches(int(index[p.a]), int(index[p.b]), p.matches, p.config)
+           for p in tile_pairs(pairs, inside)]
+    if not sub:
+        return None
+    models = reconstruct_images(_Subset(keypoints, inside), sub, gps[inside], focal_px, seed)
+    for m in models or []:
+        m.images = inside[m.images]
+    return models
+
+
+def spatial_tiles(positions: np.ndarray, max_size: int) -> list[np.ndarray]:
+    """Overlapping tiles of at most about ``max_size`` map images each (indices, ascending):
+    the images halved along the longer side of their extent until each part is small
+    enough, each part then widened by :data:`TILE_MARGIN` median spacings."""
+    positions = np.asarray(positions, np.float64)
+    parts, done = [np.arange(len(positions))], []
+    while parts:
+        part = parts.pop()
+        if len(part) <= max_size:
+            done.append(part)
+            continue
+        xy = positions[part]
+        axis = int(np.argmax(np.ptp(xy, axis=0)))
+        order = part[np.argsort(xy[:, axis], kind="stable")]
+        parts += [order[:len(order) // 2], order[len(order) // 2:]]
+    if len(done) == 1:
+        return [np.sort(done[0])]
+    spacing, _ = cKDTree(positions).query(positions, k=2)
+    margin = TILE_MARGIN * float(np.median(spacing[:, 1]))
+    tiles = []
+    for part in done:
+        lo, hi = positions[part].min(axis=0) - margin, positions[part].max(axis=0) + margin
+        inside = np.all((positions >= lo) & (positions <= hi), axis=1)
+        tiles.append(np.flatnonzero(inside))
+    # a small map's widened tiles may hold one another: each is reconstructed once
+    sets = [set(t.tolist()) for t in tiles]
+    return [t for k, t in enumerate(tiles)
+            if not any(sets[k] < sets[j] or (sets[k] == sets[j] and j < k)
+                       for j in range(len(tiles)) if j != k)]
+
+
+class _Subset(Sequence):
+    """``items[index[k]]`` as item ``k``: a tile's view of the map's tie points."""
+
+    def __init__(self, items: Sequence, index: np.ndarray) -> None:
+        self._items, self._index = items, index
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+    def __getitem__(self, k: int):
+        return self._items[int(self._index[k])]
+
+
+def _by_centrality(found: list[tuple[np.ndarray, TileModel]],
+                   positions: np.ndarray) -> list[TileModel]:
+    """The tiles' models with each image kept only in the tile whose centre it is nearest
+    (the tile reconstructed most of what surrounds it)."""
+    best: dict[int, tuple[float, int]] = {}
+    for k, (inside, m) in enumerate(found):
+        centre = positions[inside].mean(axis=0)
+        for i in m.images.tolist():
+            d = float(np.hypot(*(positions[i] - centre)))
+            if i not in best or d < best[i][0]:
+                best[i] = (d, k)
+    out = []
+    for k, (_, m) in enumerate(found):
+        keep = np.array([best[i][1] == k for i in m.images.tolist()], bool)
+        if keep.sum() == 0:
+            continue
+        out.append(TileModel(m.images[keep], m.rotations[keep], m.centres[keep],
+                             [o for o, y in zip(m.observations, keep, strict=True) if y],
+                             [p for p, y in zip(m.points, keep, strict=True) if y],
+                             m.camera, m.residual_px))
+    return out
