@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import shutil
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,12 +122,11 @@ class BuildRunner(BackgroundRunner):
         folder = self.settings.packed_map_dir(str(map_id), revision)
         lens_files, image_files = await asyncio.to_thread(self._files, map_id)
         # The reconstruction's tie points, extracted over the images in parallel by the
-        # engine's workers into a folder beside the revision, their pairs matched and a large
-        # map's tiles reconstructed there, and the folder removed once the revision is
-        # packed. A build that fails leaves it: a retry packs the same revision and takes up
-        # the tie points, pairs and tiles found there (hours of work for a map of 50,000
-        # images) instead of computing them again.
-        tie_dir = folder.with_name(folder.name + ".ties")
+        # engine's workers into the map's store, their pairs matched and a large map's tiles
+        # reconstructed there. The store outlives the build: a rebuild extracts the tie
+        # points of new images only and matches only the pairs that changed, and a build
+        # that fails leaves its work for the retry (hours for a map of 50,000 images).
+        tie_dir = self.settings.tie_store_dir(str(map_id))
         await asyncio.to_thread(tie_dir.mkdir, parents=True, exist_ok=True)
         await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE,
                                 BuildStage.TIE_POINTS)
@@ -141,14 +139,13 @@ class BuildRunner(BackgroundRunner):
             self.engine, tasks.pack_map, url, str(map_id), revision, str(folder),
             lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir),
             job_id=str(job_id))
-        await asyncio.to_thread(shutil.rmtree, tie_dir, True)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
 
     async def _match_pairs(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
                            tie_dir: Path) -> None:
-        """The reconstruction's pairs of neighbouring images, matched from their tie points in
-        batches by the engine's workers (:mod:`vloc.workers.core.tiepairs`); the packing
-        reads the results from ``tie_dir``."""
+        """The reconstruction's pairs of neighbouring images that ``tie_dir`` does not hold
+        yet, matched from their tie points in batches by the engine's workers
+        (:mod:`vloc.workers.core.tiepairs`); the packing reads the results from there."""
         await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE + TIE_SHARE,
                                 BuildStage.MATCHING)
         plan = await run_task(self.engine, tasks.plan_tie_pairs, url, str(map_id),

@@ -95,30 +95,50 @@ def extract_ties(path: str | None, stem: str) -> int:
 
 
 def plan_tie_pairs(database_url: str, map_id: str, tie_dir: str) -> dict:
-    """The pairs of the map's images whose tie points its geometry matches (indices in map
-    order, :func:`vloc.workers.core.tiepairs.plan`) and the image ids they index, recorded
-    in ``tie_dir`` for :func:`pack_map`."""
+    """The pairs of the map's images whose tie points its geometry still has to match
+    (indices in map order, :func:`vloc.workers.core.tiepairs.plan`) and the image ids they
+    index.
+
+    ``tie_dir`` is the map's store of tie points and matched pairs, kept from build to
+    build: the pairs matched there before whose images are at the same places in the map's
+    order are kept (:func:`vloc.workers.core.tiepairs.keep_valid`) and left out of the
+    plan, and the tie points of images no longer in the map are deleted. ``planned`` is
+    the number of pairs the map's geometry matches in all."""
     from vloc.workers.core import tiepairs
 
     images = _read_images(database_url, map_id)
     ids = [img["id"] for img in images]
-    tiepairs.save_plan(tie_dir, ids)
+    kept = tiepairs.keep_valid(tie_dir, ids)
+    _forget_tie_points(Path(tie_dir), set(ids))
     pairs = tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
                           [img["alt"] for img in images])
-    return {"image_ids": ids, "pairs": pairs}
+    return {"image_ids": ids, "pairs": [p for p in pairs if tuple(p) not in kept],
+            "planned": len(pairs)}
+
+
+def _forget_tie_points(tie_dir: Path, image_ids: set[int]) -> None:
+    """Delete the tie points in ``tie_dir`` (:func:`tie_stem`) of images not in
+    ``image_ids``."""
+    from vloc.workers.core.mapbuild import TiePointFiles
+
+    for suffix in TiePointFiles.SUFFIXES:
+        for path in tie_dir.glob("*" + suffix):
+            stem = path.name[:-len(suffix)]
+            if stem.isdigit() and int(stem) not in image_ids:
+                path.unlink(missing_ok=True)
 
 
 def match_tie_pairs(tie_dir: str, image_ids: dict[int, int], pairs: list[tuple[int, int]],
                     batch: int) -> int:
     """Match a batch of the planned pairs (:func:`plan_tie_pairs`) from the tie points in
     ``tie_dir`` (``image_ids``: map index -> image id of the images they name); run by the
-    engine's workers, the results written to ``tie_dir`` for :func:`pack_map`. Returns how
-    many verified."""
+    engine's workers, the results written to ``tie_dir`` for :func:`pack_map` and later
+    builds. Returns how many verified."""
     from vloc.workers.core import tiepairs
 
     stems = {i: tie_stem(tie_dir, image_id) for i, image_id in image_ids.items()}
     return tiepairs.match_batch(stems, [tuple(p) for p in pairs],
-                                Path(tie_dir) / f"pairs-{batch:06d}.npz")
+                                Path(tie_dir) / f"pairs-{batch:06d}.npz", image_ids=image_ids)
 
 
 def plan_tiles(database_url: str, map_id: str, tie_dir: str,

@@ -23,6 +23,7 @@ from tests.app.conftest import (
 from tests.app.imagery import plain_jpeg, png, png_bomb
 from vloc.app.maps.codecs import decode_vocabulary
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
+from vloc.workers.core import tiepairs
 from vloc.workers.core.features import DESCRIPTOR_NAMES
 from vloc.workers.core.features.orb import extract_orb
 from vloc.workers.core.geo import GeoOrigin
@@ -249,9 +250,11 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     # The packed revision is the images' positions in a frame at their centroid.
     first = MapData.load(ctx.settings.packed_map_dir(map_id, 1))
     assert len(first) == 6 and first.revision == 1
-    # the tie points spilled to disk during the build are gone with it
-    assert not [p for p in ctx.settings.packed_map_dir(map_id, 1).parent.iterdir()
-                if p.name.endswith(".ties")]
+    # the map keeps its tie points and matched pairs for the next build
+    store = ctx.settings.tie_store_dir(map_id)
+    tie_files = sorted(store.glob("*.kp.npy"))
+    assert len(tie_files) == 6 and list(store.glob(tiepairs.RESULTS_GLOB))
+    stamps = {p: p.stat().st_mtime_ns for p in tie_files}
     origin = GeoOrigin(m["origin"]["lat"], m["origin"]["lon"], m["origin"]["alt"])
     images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
     assert origin.lat == pytest.approx(np.mean([i["lat"] for i in images]), abs=1e-12)
@@ -304,6 +307,24 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
     assert math.isclose(m["origin"]["lat"], np.mean([i["lat"] for i in images]), abs_tol=1e-12)
     assert [i["built_revision"] for i in images] == [1] * 6 + [2] * 4
+    # The rebuild took up the first build's tie points and pairs: it extracted the new
+    # images' tie points and matched only the pairs they take part in...
+    assert {p: p.stat().st_mtime_ns for p in tie_files} == stamps
+    assert len(list(store.glob("*.kp.npy"))) == 10
+    rematched = [(a, b) for path in store.glob(tiepairs.RESULTS_GLOB)
+                 if path.name != tiepairs.KEPT for a, b, _ in tiepairs.read_results(path)]
+    assert rematched and all(b >= 6 for _, b in rematched)
+    # ...and its map is the one a build of all ten images at once gives
+    fresh_id = new_map(c)
+    c.post(f"/v1/maps/{fresh_id}/images", files=jpeg_files(maps), headers=ADMIN)
+    assert wait_job(c, c.post(f"/v1/maps/{fresh_id}/build", headers=ADMIN)
+                    .json()["job_id"])["status"] == "done"
+    fresh = MapData.load(ctx.settings.packed_map_dir(fresh_id, 1))
+    assert (second.geometry is None) == (fresh.geometry is None)
+    if fresh.geometry is not None:
+        np.testing.assert_array_equal(second.geometry.centres, fresh.geometry.centres)
+        np.testing.assert_array_equal(second.geometry.points["sift"],
+                                      fresh.geometry.points["sift"])
 
 
 def _assert_vocabularies_stored(ctx, map_id: str, revision: int, packed: MapData) -> None:
@@ -424,7 +445,6 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
     pair it needs: packed with them, no pair is matched in the packing, and the map is the
     map the packing builds by matching them all itself."""
     from vloc.app.tasks import build as tasks
-    from vloc.workers.core import tiepairs
     from vloc.workers.core.geometry import pairs
 
     map_id, url, files = _built_six_image_map(module_client, shots)
@@ -457,13 +477,13 @@ def test_pairs_matched_by_the_workers_are_not_matched_again_and_change_nothing(
     np.testing.assert_array_equal(apart.positions, here.positions)
 
 
-def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, tmp_path,
-                                                          monkeypatch):
-    """A build that fails keeps its tie-point folder; the retry's tie points and pair
-    batches found there complete are not computed again, and those a changed plan, changed
-    inputs or an older results format have made stale are."""
+def test_a_rebuild_takes_up_what_an_earlier_build_left(module_client, shots, tmp_path,
+                                                       monkeypatch):
+    """A map's store of tie points and pairs outlives its builds (a failed one's too): the
+    next build's tie points and pairs found there are not computed again, and those an
+    older results format or a deleted image have made stale are."""
     from vloc.app.tasks import build as tasks
-    from vloc.workers.core import mapbuild, tiepairs
+    from vloc.workers.core import mapbuild
 
     map_id, url, files = _built_six_image_map(module_client, shots)
     ties = tmp_path / "ties"
@@ -475,13 +495,14 @@ def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, t
         plan = tasks.plan_tie_pairs(url, map_id, str(ties))
         ids, pairs = plan["image_ids"], plan["pairs"]
         batches = [pairs[k:k + 2] for k in range(0, len(pairs), 2)]
-        verified = [tasks.match_tie_pairs(str(ties), {i: ids[i] for p in b for i in p}, b, k)
-                    for k, b in enumerate(batches)]
-        return counts, verified
+        for k, b in enumerate(batches):
+            tasks.match_tie_pairs(str(ties), {i: ids[i] for p in b for i in p}, b, k)
+        found = tiepairs.load_results(ties, ids)
+        return counts, plan["planned"], len(pairs), {k: p is not None for k, p in found.items()}
 
-    first = attempt()
-    assert min(first[0]) > 0 and sum(first[1]) > 0
-    kept = [*ties.glob("*.kp.npy"), *ties.glob(tiepairs.RESULTS_GLOB)]
+    counts, planned, matched, first = attempt()
+    assert min(counts) > 0 and matched == planned == len(first) and any(first.values())
+    kept = list(ties.glob("*.kp.npy"))
     stamps = {p: p.stat().st_mtime_ns for p in kept}
 
     calls = {"tie": 0, "pair": 0}
@@ -495,21 +516,27 @@ def test_a_retried_build_takes_up_what_a_failed_one_left(module_client, shots, t
     monkeypatch.setattr(mapbuild, "extract_tie_points",
                         counted("tie", mapbuild.extract_tie_points))
     monkeypatch.setattr(tiepairs, "match_pair", counted("pair", tiepairs.match_pair))
-    assert attempt() == first
+    assert attempt() == (counts, planned, 0, first)
     assert calls == {"tie": 0, "pair": 0}
     assert {p: p.stat().st_mtime_ns for p in kept} == stamps
+    assert [p.name for p in ties.glob(tiepairs.RESULTS_GLOB)] == [tiepairs.KEPT]
 
-    # a batch the plane geometry's build left (pixels and homographies, no format) is
+    # results the plane geometry's build left (pixels and homographies, no format) are
     # matched again, to the same pairs
-    batch = sorted(ties.glob(tiepairs.RESULTS_GLOB))[0]
-    with np.load(batch) as z:
+    with np.load(ties / tiepairs.KEPT) as z:
         a, b = z["a"], z["b"]
-    np.savez(batch, a=a, b=b, verified=np.zeros(len(a), bool), counts=np.zeros(0, np.int64),
-             pa=np.zeros((0, 2)), pb=np.zeros((0, 2)), homographies=np.zeros((0, 3, 3)))
-    assert attempt() == first and calls["pair"] == len(a)
-    # results matched under another plan index other images: they go
-    tiepairs.save_plan(ties, sorted(files)[1:])
-    assert not list(ties.glob(tiepairs.RESULTS_GLOB))
-    assert attempt() == first and calls["pair"] > len(a)
+    np.savez(ties / tiepairs.KEPT, a=a, b=b, verified=np.zeros(len(a), bool),
+             counts=np.zeros(0, np.int64), pa=np.zeros((0, 2)), pb=np.zeros((0, 2)),
+             homographies=np.zeros((0, 3, 3)))
+    assert attempt() == (counts, planned, planned, first) and calls["pair"] == planned
+    # the map's first image deleted: the others move up the map's order, their pairs are
+    # matched again, and the deleted image's tie points go
+    gone = min(files)
+    assert module_client.delete(f"/v1/maps/{map_id}/images/{gone}",
+                                headers=ADMIN).status_code == 204
+    del files[gone]
+    _, again, rematched, _ = attempt()
+    assert rematched == again > 0 and calls["pair"] == planned + again
+    assert not list(ties.glob(f"{gone}.*"))
     # every file was written under a temporary name and renamed: none is left half written
     assert not list(ties.glob(".*"))

@@ -70,12 +70,11 @@ def test_batches_give_the_pairs_and_the_geometry_of_one_process(surveyed, tmp_pa
     stems = _write_ties(s, tmp_path)
     planned = tiepairs.plan(lat, lon, list(s.altitudes))
     ids = [100 + i for i in range(len(xy))]
-    tiepairs.save_plan(tmp_path, ids)
     verified = 0
     for k in range(0, len(planned), 3):           # batches of three, as workers would
         batch = planned[k:k + 3]
         verified += tiepairs.match_batch({i: stems[i] for p in batch for i in p}, batch,
-                                         tmp_path / f"pairs-{k:06d}.npz")
+                                         tmp_path / f"pairs-{k:06d}.npz", image_ids=ids)
     known = tiepairs.load_results(tmp_path, ids)
     assert set(known) == set(planned)
     assert verified == sum(p is not None for p in known.values()) >= len(xy)
@@ -101,33 +100,65 @@ def test_pairs_with_missing_tie_points_are_left_to_the_packing(surveyed, tmp_pat
     stems = _write_ties(s, tmp_path)
     (tmp_path / "img2.kp.npy").unlink()
     planned = tiepairs.plan(lat, lon, list(s.altitudes))
-    tiepairs.save_plan(tmp_path, list(range(len(xy))))
-    tiepairs.match_batch(stems, planned, tmp_path / "pairs-000000.npz")
-    known = tiepairs.load_results(tmp_path, list(range(len(xy))))
+    ids = list(range(len(xy)))
+    tiepairs.match_batch(stems, planned, tmp_path / "pairs-000000.npz", image_ids=ids)
+    known = tiepairs.load_results(tmp_path, ids)
     assert set(known) == {p for p in planned if 2 not in p}
 
 
-def test_results_for_other_images_are_ignored(surveyed, tmp_path):
+def test_results_hold_while_their_images_keep_their_places(surveyed, tmp_path):
+    """A pair's result names its two images: it holds for a map whose images at its two
+    indices are still those (images added after them change nothing), not for one whose
+    order moved them (an image deleted before them)."""
+    s, lat, lon, xy = surveyed
+    stems = _write_ties(s, tmp_path)
+    planned = tiepairs.plan(lat, lon, list(s.altitudes))
+    ids = [10 + i for i in range(len(xy))]
+    tiepairs.match_batch(stems, planned, tmp_path / "pairs-000000.npz", image_ids=ids)
+    assert set(tiepairs.load_results(tmp_path, ids)) == set(planned)
+    assert set(tiepairs.load_results(tmp_path, ids + [99])) == set(planned)
+    last = len(ids) - 1
+    assert set(tiepairs.load_results(tmp_path, ids[:-1])) == \
+        {p for p in planned if last not in p}
+    assert set(tiepairs.load_results(tmp_path, [5] + ids[1:])) == \
+        {p for p in planned if 0 not in p}
+    assert tiepairs.load_results(tmp_path, ids[1:]) == {}        # every index moved
+    assert tiepairs.load_results(tmp_path / "nothing-here", ids) == {}
+
+
+def test_keep_valid_gathers_what_holds_and_deletes_the_rest(surveyed, tmp_path):
+    """Before a rebuild's batches, the results that still hold go into one file and the
+    others are deleted; the rebuild plans only the pairs left, and afterwards the map's
+    results are those of matching every pair afresh."""
     s, lat, lon, xy = surveyed
     stems = _write_ties(s, tmp_path)
     planned = tiepairs.plan(lat, lon, list(s.altitudes))
     ids = list(range(len(xy)))
-    tiepairs.match_batch(stems, planned, tmp_path / "pairs-000000.npz")
-    assert tiepairs.load_results(tmp_path, ids) == {}          # no plan recorded
-    tiepairs.save_plan(tmp_path, ids)
-    assert len(tiepairs.load_results(tmp_path, ids)) == len(planned)
-    # an image deleted after planning: indices would name other images
-    assert tiepairs.load_results(tmp_path, ids[:-1]) == {}
-    assert tiepairs.load_results(tmp_path / "nothing-here", ids) == {}
+    half = len(planned) // 2
+    for k, batch in enumerate([planned[:half], planned[half:]]):
+        tiepairs.match_batch(stems, batch, tmp_path / f"pairs-{k:06d}.npz", image_ids=ids)
+    everything = tiepairs.load_results(tmp_path, ids)
+    assert tiepairs.keep_valid(tmp_path, ids) == set(planned)
+    assert [p.name for p in tmp_path.glob(tiepairs.RESULTS_GLOB)] == [tiepairs.KEPT]
+    kept = tiepairs.load_results(tmp_path, ids)
+    assert kept.keys() == everything.keys()
+    for pair, p in everything.items():
+        assert (p is None) == (kept[pair] is None)
+        if p is not None:
+            np.testing.assert_array_equal(p.matches, kept[pair].matches)
+    stamp = (tmp_path / tiepairs.KEPT).stat().st_mtime_ns
+    assert tiepairs.keep_valid(tmp_path, ids) == set(planned)      # nothing to gather
+    assert (tmp_path / tiepairs.KEPT).stat().st_mtime_ns == stamp
+    # the map's first image deleted: the pairs of the others moved and are matched again
+    assert tiepairs.keep_valid(tmp_path, ids[1:]) == set()
+    assert tiepairs.load_results(tmp_path, ids) == {}
 
 
 def test_an_empty_batch_round_trips(tmp_path):
-    tiepairs.save_results([(0, 1, None)], tmp_path / "pairs-000000.npz")
-    tiepairs.save_plan(tmp_path, [7, 8])
+    tiepairs.save_results([(0, 1, None)], tmp_path / "pairs-000000.npz", image_ids=[7, 8])
     assert tiepairs.load_results(tmp_path, [7, 8]) == {(0, 1): None}
     # written under a hidden name first: a file cut short by a dying worker is never read
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["pairs-000000.npz",
-                                                           tiepairs.PLAN_FILE]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pairs-000000.npz"]
     (tmp_path / ".pairs-000001.npz").write_bytes(b"cut short")
     assert tiepairs.load_results(tmp_path, [7, 8]) == {(0, 1): None}
 
@@ -154,19 +185,22 @@ def test_results_of_another_format_are_ignored_and_matched_again(surveyed, tmp_p
     stems = _write_ties(s, tmp_path)
     planned = tiepairs.plan(lat, lon, list(s.altitudes))
     ids = list(range(len(xy)))
-    tiepairs.save_plan(tmp_path, ids)
     old = tmp_path / "pairs-000000.npz"
     np.savez(old, a=np.array([0]), b=np.array([1]), verified=np.array([True]),
              counts=np.array([2]), pa=np.zeros((2, 2)), pb=np.ones((2, 2)),
              homographies=np.eye(3)[None])
     assert tiepairs.read_results(old) == []
     assert tiepairs.load_results(tmp_path, ids) == {}
-    np.savez(old, format=np.array(3), a=np.array([0]), b=np.array([1]),
-             verified=np.array([False]), counts=np.zeros(0, np.int64),
-             matches=np.zeros((0, 2), np.int64), configs=np.zeros(0, np.int64))
-    assert tiepairs.load_results(tmp_path, ids) == {}   # a later format, neither
+    for version in (tiepairs.FORMAT - 1, tiepairs.FORMAT + 1):   # an earlier, a later one
+        np.savez(old, format=np.array(version), a=np.array([0]), b=np.array([1]),
+                 id_a=np.array([0]), id_b=np.array([1]), verified=np.array([False]),
+                 counts=np.zeros(0, np.int64), matches=np.zeros((0, 2), np.int64),
+                 configs=np.zeros(0, np.int64))
+        assert tiepairs.load_results(tmp_path, ids) == {}
+    assert tiepairs.keep_valid(tmp_path, ids) == set() and not old.exists()
     batch = planned[:3]
-    assert tiepairs.match_batch({i: stems[i] for p in batch for i in p}, batch, old) > 0
+    assert tiepairs.match_batch({i: stems[i] for p in batch for i in p}, batch, old,
+                                image_ids=ids) > 0
     known = tiepairs.load_results(tmp_path, ids)
     assert sorted(known) == batch
     assert all(p is None or p.matches.shape[1] == 2 for p in known.values())

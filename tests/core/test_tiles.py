@@ -96,6 +96,20 @@ def test_a_tile_done_for_other_inputs_is_redone(surveyed, small_tiles, tmp_path)
     assert (tmp_path / tiles.RESULT.format(0)).stat().st_mtime_ns == stamp
 
 
+def test_tiles_of_an_earlier_plan_go_when_a_plan_has_fewer(surveyed, small_tiles, tmp_path,
+                                                           monkeypatch):
+    """A map's store outlives its builds: tiles an earlier plan had beyond the new plan's
+    are deleted, and a map built whole keeps no tile at all."""
+    s, stems, pairs = surveyed
+    n = tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems)
+    assert n >= 2
+    tiles.reconstruct(tmp_path, n - 1)
+    assert (tmp_path / tiles.RESULT.format(n - 1)).is_file()
+    monkeypatch.setattr(tiling, "MAX_TILE", 10 ** 6)
+    assert tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems) == 0
+    assert not list(tmp_path.glob("tile-*"))
+
+
 def test_a_small_map_is_not_tiled(surveyed, tmp_path):
     s, stems, pairs = surveyed
     assert tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems) == 0
@@ -121,11 +135,10 @@ def test_the_packing_takes_up_every_tile_the_build_reconstructed(tmp_path, monke
     # the neighbour limit, not the reach, decides which pairs are tried
     assert max(np.bincount(np.ravel(planned))) > TIE_NEIGHBOURS
     ids = list(range(len(xy)))
-    tiepairs.save_plan(tmp_path, ids)
     for k in range(0, len(planned), 10):
         batch = planned[k:k + 10]
         tiepairs.match_batch({i: stems[i] for p in batch for i in p}, batch,
-                             tmp_path / f"pairs-{k:06d}.npz")
+                             tmp_path / f"pairs-{k:06d}.npz", image_ids=ids)
     known_pairs = tiepairs.load_results(tmp_path, ids)
     verified = [p for _, p in sorted(known_pairs.items()) if p is not None]
     far = [p for p in verified if np.hypot(*(xy[p.a] - xy[p.b])) > 2.5 * 9.0]

@@ -129,10 +129,13 @@ class TiePointFiles:
     it still has to match maps its two images' files only while it matches them.
     """
 
+    SUFFIXES: tuple[str, str] = (".kp.npy", ".desc.npy")
+    """The two files' names after the stem's: keypoints, descriptors."""
+
     def __init__(self, stem: str | Path) -> None:
         stem = Path(stem)
-        self._kp = stem.with_name(stem.name + ".kp.npy")
-        self._desc = stem.with_name(stem.name + ".desc.npy")
+        self._kp = stem.with_name(stem.name + self.SUFFIXES[0])
+        self._desc = stem.with_name(stem.name + self.SUFFIXES[1])
 
     @classmethod
     def find(cls, stem: str | Path) -> TiePointFiles | None:

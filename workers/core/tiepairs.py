@@ -2,12 +2,17 @@
 
 Matching the tie points of neighbouring map images (ratio test over three thousand SIFT
 each, then COLMAP's two-view geometry; :func:`~workers.core.geometry.match_pair`) is much of
-a map's geometry: about 75 ms a pair on one core. The pairs are independent, and each
-one's RANSAC is seeded by its indices alone, so a build plans them (:func:`plan`), lets the
-engine's workers match batches of them from the tie points on disk (:func:`match_batch`,
-one file of results per batch) and hands the results to the packing
-(:func:`load_results`), which matches only what is missing. The map comes out the same as
-when one process matches every pair.
+a map's geometry. The pairs are independent, and each one's RANSAC is seeded by its indices
+alone, so a build plans them (:func:`plan`), lets the engine's workers match batches of them
+from the tie points on disk (:func:`match_batch`, one file of results per batch) and hands
+the results to the packing (:func:`load_results`), which matches only what is missing. The
+map comes out the same as when one process matches every pair.
+
+Results name the images they matched, so they outlive the build: a map keeps its tie points
+and matched pairs, and a later build takes up every pair whose two images are still at the
+same places in the map's order (:func:`keep_valid`). Images added to a map come after the
+others, so rebuilding it matches only the pairs the new images take part in; deleting an
+image moves the images after it, and their pairs are matched again.
 """
 
 from __future__ import annotations
@@ -17,14 +22,16 @@ from pathlib import Path
 import numpy as np
 
 from .geometry import PairMatches, match_pair, tie_pairs
-from .mapbuild import TiePointFiles, load_tie_points, local_frame
+from .mapbuild import load_tie_points, local_frame
 
 RESULTS_GLOB = "pairs-*.npz"
-FORMAT = 2
-"""Version of the results files: 2 holds keypoint indices and two-view configurations; a
-failed build's results of another version are matched again."""
-PLAN_FILE = "pairs-plan.npy"
-"""The image ids, in map order, that the pairs' indices refer to."""
+KEPT = "pairs-kept.npz"
+"""The results earlier builds matched that still hold, gathered into one file."""
+FORMAT = 3
+"""Version of the results files, raised whenever what a pair's matching gives changes:
+3 names the images (ids) and holds keypoint indices and two-view configurations, matched
+with :data:`~workers.core.geometry.pairs.TIE_RANSAC_TRIALS`; results of another version are
+matched again."""
 
 
 def plan(lats, lons, alts) -> list[tuple[int, int]]:
@@ -34,42 +41,47 @@ def plan(lats, lons, alts) -> list[tuple[int, int]]:
     return tie_pairs(xy)
 
 
-def save_plan(folder: str | Path, image_ids: list[int]) -> None:
-    """Record which images the pairs matched into ``folder`` index (:func:`load_results`).
+def keep_valid(folder: str | Path, image_ids: list[int]) -> set[tuple[int, int]]:
+    """Gather the results in ``folder`` that hold for a map whose images are ``image_ids``
+    (in map order) into one file, delete the rest, and return the pairs they cover.
 
-    Results a failed build left in ``folder`` stay for its retry when they index the same
-    images; under another plan their indices name other images, and they are removed."""
+    A stored pair holds when the images it matched are at the same indices now: its
+    matches, and its RANSAC's seed, are then what matching it again would give. Results
+    of another format, and pairs that now index other images, go."""
     folder = Path(folder)
-    if (folder / PLAN_FILE).is_file() and not _planned_for(folder, image_ids):
-        for path in folder.glob(RESULTS_GLOB):
-            path.unlink()
-    np.save(folder / PLAN_FILE, np.asarray(image_ids, np.int64))
+    files = sorted(folder.glob(RESULTS_GLOB))
+    held: list[tuple[int, int, PairMatches | None]] = []
+    dropped = False
+    for path in files:
+        for a, b, p, ids in _read(path):
+            if _holds(a, b, ids, image_ids):
+                held.append((a, b, p))
+            else:
+                dropped = True
+    if dropped or len(files) > 1 or (files and files[0].name != KEPT):
+        held.sort(key=lambda r: (r[0], r[1]))
+        save_results(held, folder / KEPT, image_ids=image_ids)
+        for path in files:
+            if path.name != KEPT:
+                path.unlink()
+    return {(a, b) for a, b, _ in held}
 
 
-def _planned_for(folder: Path, image_ids: list[int]) -> bool:
-    """Whether ``folder``'s plan indexes exactly ``image_ids``."""
-    plan_file = folder / PLAN_FILE
-    return plan_file.is_file() and np.array_equal(np.load(plan_file),
-                                                  np.asarray(image_ids, np.int64))
+def _holds(a: int, b: int, ids: tuple[int, int] | None, image_ids: list[int]) -> bool:
+    return ids is not None and max(a, b) < len(image_ids) \
+        and (image_ids[a], image_ids[b]) == ids
 
 
 def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | Path, *,
-                seed: int = 0) -> int:
+                image_ids: dict[int, int] | list[int], seed: int = 0) -> int:
     """Match ``pairs`` of map images from their tie points and write the results to ``out``
     (:func:`save_results`).
 
     ``stems[i]`` is where image ``i``'s tie points were written
-    (:func:`~workers.core.mapbuild.save_tie_points`); a pair with an image whose tie points
-    are missing is left out, for the packing to match from the image's stored SIFT.
-    Returns the number of pairs that verified. Results already in ``out`` for exactly these
-    pairs (a failed build's, under the same plan: :func:`save_plan`) are kept as they are.
+    (:func:`~workers.core.mapbuild.save_tie_points`) and ``image_ids[i]`` the image's id; a
+    pair with an image whose tie points are missing is left out, for the packing to match
+    from the image's stored SIFT. Returns the number of pairs that verified.
     """
-    out = Path(out)
-    if out.is_file():
-        present = {i: TiePointFiles.find(stem) is not None for i, stem in stems.items()}
-        kept = read_results(out)
-        if [(a, b) for a, b, _ in kept] == [(a, b) for a, b in pairs if present[a] and present[b]]:
-            return sum(p is not None for _, _, p in kept)
     cache: dict[int, object] = {}
 
     def ties(i: int):
@@ -84,14 +96,16 @@ def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | 
             continue
         done.append((a, b, match_pair(a, b, ta.keypoints, ta.descriptors, tb.keypoints,
                                       tb.descriptors, seed=seed)))
-    save_results(done, out)
+    save_results(done, out, image_ids=image_ids)
     return sum(p is not None for _, _, p in done)
 
 
-def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Path) -> None:
+def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Path, *,
+                 image_ids: dict[int, int] | list[int] | None = None) -> None:
     """Matched pairs as one ``.npz``: each pair tried, whether it verified, and the matched
-    keypoint indices and two-view configuration of those that did. Written under a
-    temporary name and renamed, so a file under ``out`` is always whole."""
+    keypoint indices and two-view configuration of those that did; with ``image_ids``
+    (index -> id), the ids of the images each pair matched. Written under a temporary name
+    and renamed, so a file under ``out`` is always whole."""
     ok = [p for _, _, p in done if p is not None]
     arrays = {
         "format": np.array(FORMAT),
@@ -100,9 +114,12 @@ def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Pat
         "verified": np.array([p is not None for _, _, p in done], bool),
         "counts": np.array([len(p) for p in ok], np.int64),
         "matches": (np.concatenate([p.matches for p in ok]) if ok
-                    else np.zeros((0, 2), np.int64)),
+                    else np.zeros((0, 2), np.int64)).astype(np.int32),
         "configs": np.array([p.config for p in ok], np.int64),
     }
+    if image_ids is not None:
+        arrays["id_a"] = np.array([image_ids[a] for a, _, _ in done], np.int64)
+        arrays["id_b"] = np.array([image_ids[b] for _, b, _ in done], np.int64)
     out = Path(out)
     tmp = out.with_name("." + out.name)  # outside the results' glob until whole
     np.savez(tmp, **arrays)
@@ -111,34 +128,40 @@ def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Pat
 
 def load_results(folder: str | Path, image_ids: list[int],
                  ) -> dict[tuple[int, int], PairMatches | None]:
-    """Every pair matched into ``folder`` (:func:`match_batch`): (a, b) -> its tie points,
-    None where it did not verify. Empty when the plan was made for other images than
-    ``image_ids`` (the map changed in between; the packing then matches every pair)."""
+    """Every pair matched into ``folder`` (:func:`match_batch`) that holds for a map whose
+    images are ``image_ids`` (:func:`keep_valid`): (a, b) -> its tie points, None where it
+    did not verify."""
     out: dict[tuple[int, int], PairMatches | None] = {}
-    if not _planned_for(Path(folder), image_ids):
-        return out
     for path in sorted(Path(folder).glob(RESULTS_GLOB)):
-        for a, b, p in read_results(path):
-            out[(a, b)] = p
+        for a, b, p, ids in _read(path):
+            if _holds(a, b, ids, image_ids):
+                out[(a, b)] = p
     return out
 
 
 def read_results(path: str | Path) -> list[tuple[int, int, PairMatches | None]]:
     """The pairs one file of :func:`save_results` holds, in its order; none from a file of
     another format."""
+    return [(a, b, p) for a, b, p, _ in _read(path)]
+
+
+def _read(path: str | Path) -> list[tuple[int, int, PairMatches | None, tuple[int, int] | None]]:
+    """:func:`read_results` with each pair's image ids (None where the file names none)."""
     with np.load(path) as z:
         if "format" not in z.files or int(z["format"]) != FORMAT:
             return []
         a, b, verified, counts = z["a"], z["b"], z["verified"], z["counts"]
-        matches, configs = z["matches"], z["configs"]
+        matches, configs = z["matches"].astype(np.int64), z["configs"]
+        ids = list(zip(z["id_a"].tolist(), z["id_b"].tolist(), strict=True)) \
+            if "id_a" in z.files else [None] * len(a)
     ends = np.concatenate([[0], np.cumsum(counts)])
-    out: list[tuple[int, int, PairMatches | None]] = []
+    out: list[tuple[int, int, PairMatches | None, tuple[int, int] | None]] = []
     k = 0
-    for i, j, good in zip(a.tolist(), b.tolist(), verified.tolist(), strict=True):
+    for i, j, good, named in zip(a.tolist(), b.tolist(), verified.tolist(), ids, strict=True):
         if good:
             out.append((i, j, PairMatches(i, j, matches[ends[k]:ends[k + 1]],
-                                          int(configs[k]))))
+                                          int(configs[k])), named))
             k += 1
         else:
-            out.append((i, j, None))
+            out.append((i, j, None, named))
     return out

@@ -43,9 +43,10 @@ def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
     ``times`` the capture times (s, NaN unknown)."""
     positions = np.asarray(positions, np.float64)
     tiles = spatial_tiles(positions, tiling.MAX_TILE)
+    folder = Path(folder)
+    _forget_tiles_from(folder, len(tiles) if len(tiles) > 1 else 0)
     if len(tiles) < 2:
         return 0
-    folder = Path(folder)
     np.savez(folder / PLAN_FILE, tags=tags(positions, altitudes, times),
              focal=np.array(np.nan if focal_px is None else float(focal_px)),
              seed=np.array(int(seed)), stems=np.array(stems, dtype=str),
@@ -55,6 +56,15 @@ def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
         save_results([(p.a, p.b, p) for p in tile_pairs(verified, inside)],
                      folder / INPUT.format(k))
     return len(tiles)
+
+
+def _forget_tiles_from(folder: Path, n: int) -> None:
+    """Delete the inputs and results in ``folder`` of tiles ``n`` and above: an earlier
+    build's, of a plan with more tiles. (A tile below ``n`` whose inputs changed is
+    reconstructed again over its result: :func:`reconstruct`.)"""
+    for path in [*folder.glob(RESULTS_GLOB), *folder.glob(INPUT.replace("{:05d}", "?????"))]:
+        if int(path.name[5:10]) >= n:
+            path.unlink(missing_ok=True)
 
 
 def reconstruct(folder: str | Path, tile: int) -> int:
