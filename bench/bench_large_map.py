@@ -179,17 +179,19 @@ def extract_pending(ctx, map_id: str) -> int:
     return len(todo)
 
 
-def build(client, map_id: str) -> tuple[dict, dict[str, float]]:
-    """Start a build job over the API and wait for it; the job's record and the wall
-    seconds spent in each of its stages (polled every half second)."""
+def build(client, map_id: str, headers: dict[str, str] = ADMIN,
+          ) -> tuple[dict, dict[str, float]]:
+    """Start a build job over the API (``client``: a test client or an ``httpx.Client``)
+    and wait for it; the job's record and the wall seconds spent in each of its stages
+    (polled every half second)."""
     # forced: a map built before (a rerun measuring the build again) is up to date
-    r = client.post(f"/v1/maps/{map_id}/build", params={"force": "true"}, headers=ADMIN)
+    r = client.post(f"/v1/maps/{map_id}/build", params={"force": "true"}, headers=headers)
     r.raise_for_status()
     job_id = r.json()["job_id"]
     stages: dict[str, float] = {}
     current, since = None, time.perf_counter()
     while True:
-        job = client.get(f"/v1/jobs/{job_id}", headers=ADMIN).json()
+        job = client.get(f"/v1/jobs/{job_id}", headers=headers).json()
         now = time.perf_counter()
         if job.get("stage") != current:
             if current is not None:
