@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import shutil
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +47,13 @@ map's reconstruction included) is the rest."""
 PAIR_BATCH = 256
 """Pairs of map images matched per engine call: a few seconds of work, so that a call's
 overhead is small and the progress still moves."""
+
+
+def _drop_revision_tie_folders(map_dir: Path) -> None:
+    """Delete the tie-point folders that builds before the map's store kept beside a
+    revision (``rev-NNNNNN.ties``, left by a failed build): nothing reads them now."""
+    for old in map_dir.glob("rev-*.ties"):
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
@@ -128,6 +136,7 @@ class BuildRunner(BackgroundRunner):
         # that fails leaves its work for the retry (hours for a map of 50,000 images).
         tie_dir = self.settings.tie_store_dir(str(map_id))
         await asyncio.to_thread(tie_dir.mkdir, parents=True, exist_ok=True)
+        await asyncio.to_thread(_drop_revision_tie_folders, folder.parent)
         await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE,
                                 BuildStage.TIE_POINTS)
         await self._fan_out(job_id, [run_task(

@@ -287,6 +287,11 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     assert first.sift_counts()[2] <= stored.n_keypoints
 
     # Four more images: the map waits for a build; the rebuild extracts only those four.
+    # (A failed build of an earlier version left its tie points beside its revision: the
+    # rebuild deletes them.)
+    left = ctx.settings.packed_map_dir(map_id, 2).with_name("rev-000002.ties")
+    left.mkdir()
+    (left / "7.kp.npy").write_bytes(b"")
     c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(maps[6:]), headers=ADMIN)
     m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
     assert (m["status"], m["revision"], m["pending_images"]) == ("unbuilt", 1, 4)
@@ -296,6 +301,7 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     assert (m["status"], m["revision"], m["pending_images"], m["image_count"]) == \
         ("ready", 2, 0, 10)
     second = MapData.load(ctx.settings.packed_map_dir(map_id, 2))
+    assert not left.exists()
     assert len(second) == 10 and list(second.names) == [s.name for s in maps]
     # The vocabularies are trained anew on all ten images, and revision 1 keeps its own.
     _assert_vocabularies_stored(ctx, map_id, 2, second)
