@@ -535,6 +535,9 @@ def test_a_rebuild_takes_up_what_an_earlier_build_left(module_client, shots, tmp
              counts=np.zeros(0, np.int64), pa=np.zeros((0, 2)), pb=np.zeros((0, 2)),
              homographies=np.zeros((0, 3, 3)))
     assert attempt() == (counts, planned, planned, first) and calls["pair"] == planned
+    assert [p.name for p in ties.glob(tiepairs.RESULTS_GLOB)] != [tiepairs.KEPT]
+    assert tiepairs.keep_valid(ties, sorted(files)) == set(first)
+    assert [p.name for p in ties.glob(tiepairs.RESULTS_GLOB)] == [tiepairs.KEPT]
     # the map's first image deleted: the others move up the map's order, their pairs are
     # matched again, and the deleted image's tie points go
     gone = min(files)

@@ -198,6 +198,12 @@ def test_results_of_another_format_are_ignored_and_matched_again(surveyed, tmp_p
                  configs=np.zeros(0, np.int64))
         assert tiepairs.load_results(tmp_path, ids) == {}
     assert tiepairs.keep_valid(tmp_path, ids) == set() and not old.exists()
+    kept = tmp_path / tiepairs.KEPT                  # under the kept file's name too
+    np.savez(kept, a=np.array([0]), b=np.array([1]))
+    assert tiepairs.keep_valid(tmp_path, ids) == set()
+    with np.load(kept) as z:                         # written again, empty, in this format
+        assert int(z["format"]) == tiepairs.FORMAT and len(z["a"]) == 0
+    kept.unlink()
     batch = planned[:3]
     assert tiepairs.match_batch({i: stems[i] for p in batch for i in p}, batch, old,
                                 image_ids=ids) > 0

@@ -53,7 +53,9 @@ def keep_valid(folder: str | Path, image_ids: list[int]) -> set[tuple[int, int]]
     held: list[tuple[int, int, PairMatches | None]] = []
     dropped = False
     for path in files:
-        for a, b, p, ids in _read(path):
+        found = _read(path)
+        dropped |= found is None                    # a file of another format
+        for a, b, p, ids in found or []:
             if _holds(a, b, ids, image_ids):
                 held.append((a, b, p))
             else:
@@ -133,7 +135,7 @@ def load_results(folder: str | Path, image_ids: list[int],
     did not verify."""
     out: dict[tuple[int, int], PairMatches | None] = {}
     for path in sorted(Path(folder).glob(RESULTS_GLOB)):
-        for a, b, p, ids in _read(path):
+        for a, b, p, ids in _read(path) or []:
             if _holds(a, b, ids, image_ids):
                 out[(a, b)] = p
     return out
@@ -142,14 +144,16 @@ def load_results(folder: str | Path, image_ids: list[int],
 def read_results(path: str | Path) -> list[tuple[int, int, PairMatches | None]]:
     """The pairs one file of :func:`save_results` holds, in its order; none from a file of
     another format."""
-    return [(a, b, p) for a, b, p, _ in _read(path)]
+    return [(a, b, p) for a, b, p, _ in _read(path) or []]
 
 
-def _read(path: str | Path) -> list[tuple[int, int, PairMatches | None, tuple[int, int] | None]]:
-    """:func:`read_results` with each pair's image ids (None where the file names none)."""
+def _read(path: str | Path,
+          ) -> list[tuple[int, int, PairMatches | None, tuple[int, int] | None]] | None:
+    """:func:`read_results` with each pair's image ids (None where the file names none);
+    None for a file of another format."""
     with np.load(path) as z:
         if "format" not in z.files or int(z["format"]) != FORMAT:
-            return []
+            return None
         a, b, verified, counts = z["a"], z["b"], z["verified"], z["counts"]
         matches, configs = z["matches"].astype(np.int64), z["configs"]
         ids = list(zip(z["id_a"].tolist(), z["id_b"].tolist(), strict=True)) \
