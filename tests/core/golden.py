@@ -16,7 +16,9 @@ refuses, which is the same everywhere. Record them with::
 
 The first records this platform's answers and removes every other platform's, which the
 change has made stale; the second adds this platform's answers beside the others, and is
-only right when the code is the one they were recorded with.
+only right when the code is the one they were recorded with. Both run with the BLAS's own
+thread count, as the tests do (they refuse ``OMP_NUM_THREADS`` and the like: one thread
+gives the same machine another fingerprint).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import argparse
 import contextlib
 import hashlib
 import json
+import os
 import tempfile
 from pathlib import Path
 from unittest import mock
@@ -222,6 +225,10 @@ def load_answers(platform: str) -> dict[str, list[list]] | None:
     return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
 
 
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+"""Variables that pin the BLAS's threads: recording refuses to run under them."""
+
+
 def main() -> None:
     from tests.conftest import shared_dir
 
@@ -231,6 +238,12 @@ def main() -> None:
                         help="keep the other platforms' answers (only when the code is the one "
                              "they were recorded with)")
     args = parser.parse_args()
+    pinned = [name for name in THREAD_VARIABLES if name in os.environ]
+    if pinned:
+        # the fingerprint covers BLAS results, whose last bits depend on the thread count
+        parser.error(f"{', '.join(pinned)} set: the tests run with the BLAS's own thread "
+                     "count, and answers recorded with another belong to another platform "
+                     "fingerprint; run this without them")
     platform = platform_fingerprint()
     stored = load_answers(platform) or {}
     with tempfile.TemporaryDirectory() as tmp, repeatable_features():

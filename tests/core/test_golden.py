@@ -84,3 +84,13 @@ def test_every_platform_holds_every_case():
     assert platforms
     for platform in platforms:
         assert set(golden.load_answers(platform)) == names, platform
+
+
+def test_recording_refuses_a_pinned_blas(monkeypatch):
+    """One BLAS thread gives the platform another fingerprint than the tests see: recording
+    under it would leave the tests nothing to compare with."""
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    monkeypatch.setattr("sys.argv", ["golden", "--seneca"])
+    with pytest.raises(SystemExit) as stop:
+        golden.main()
+    assert stop.value.code == 2
