@@ -104,8 +104,9 @@ def save_tie_points(tie: SiftFeatures, stem: str | Path) -> None:
     last: their file says the pair is complete.
     """
     stem = Path(stem)
-    for suffix, arr in ((".desc.npy", np.ascontiguousarray(tie.descriptors, np.uint8)),
-                        (".kp.npy", np.ascontiguousarray(tie.keypoints, np.float32))):
+    kp_suffix, desc_suffix = TiePointFiles.SUFFIXES
+    for suffix, arr in ((desc_suffix, np.ascontiguousarray(tie.descriptors, np.uint8)),
+                        (kp_suffix, np.ascontiguousarray(tie.keypoints, np.float32))):
         out = stem.with_name(stem.name + suffix)
         tmp = out.with_name("." + out.name)
         with tmp.open("wb") as f:
