@@ -36,6 +36,8 @@ log = logging.getLogger("vloc.app")
 STREAMS_CLOSE_TIMEOUT_S = 5.0
 SWEEP_INTERVAL_S = 30.0
 SETTLE_INTERVAL_S = 1.0
+FOLLOW_INTERVAL_S = 2.0
+"""How often an API process reads the revisions of the maps its live sessions follow."""
 
 
 def create_app(settings: Settings | None = None, *, configure_logging: bool = False) -> FastAPI:
@@ -58,7 +60,8 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     ctx = AppContext(settings=settings, db_engine=db_engine, db_sessions=db_sessions,
                      admin_key_hash=hash_secret(ensure_admin_key(settings)), metrics=metrics,
                      engine=engine, hub=hub, runtime=runtime,
-                     builds=BuildRunner(settings, db_sessions, engine, metrics),
+                     builds=BuildRunner(settings, db_sessions, engine, metrics,
+                                        on_revised=runtime.map_revised),
                      routes=RouteRunner(settings, db_sessions, engine))
 
     app = FastAPI(title="vloc", version="0.1.0", lifespan=_lifespan, docs_url=None,
@@ -99,12 +102,14 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     await ctx.hub.start()
     sweeper = asyncio.create_task(_expire_sessions(ctx))
     settler = asyncio.create_task(_settle_gone(ctx)) if ctx.engine.shared else None
+    follower = asyncio.create_task(_follow_maps(ctx))
     log.info("vloc ready", extra={"workers": ctx.engine.n_workers,
                                   "database": ctx.db_engine.dialect.name})
     try:
         yield
     finally:
         sweeper.cancel()
+        follower.cancel()
         if settler is not None:
             settler.cancel()
         await ctx.builds.cancel_all()
@@ -138,6 +143,17 @@ async def _expire_sessions(ctx: AppContext) -> None:
             await ctx.runtime.expire_idle()
         except Exception:  # noqa: BLE001 - the next round tries again
             log.exception("expiring idle sessions failed")
+
+
+async def _follow_maps(ctx: AppContext) -> None:
+    """Move the sessions that follow their map to its new revision when another API process
+    built or restored it (this process tells its own sessions at once), every so often."""
+    while True:
+        await asyncio.sleep(FOLLOW_INTERVAL_S)
+        try:
+            await ctx.runtime.follow_maps()
+        except Exception:  # noqa: BLE001 - the next round tries again
+            log.exception("moving sessions to their maps' new revisions failed")
 
 
 async def _settle_gone(ctx: AppContext) -> None:

@@ -11,6 +11,7 @@ import asyncio
 import logging
 import shutil
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,6 +105,9 @@ class BuildRunner(BackgroundRunner):
     db_sessions: sessionmaker[Session]
     engine: Engine
     metrics: Metrics
+    on_revised: Callable[[str, int], None] | None = None
+    """Told the map and its new revision once a build is done (the sessions that follow
+    the map move to it)."""
     loop: asyncio.AbstractEventLoop | None = None
 
     task_name = "build"
@@ -149,6 +153,8 @@ class BuildRunner(BackgroundRunner):
             lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir),
             job_id=str(job_id))
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
+        if self.on_revised is not None:
+            self.on_revised(str(map_id), revision)
 
     async def _match_pairs(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
                            tie_dir: Path) -> None:

@@ -3,8 +3,9 @@ the map to an earlier one, drop those no longer wanted (and their disk).
 
 Every build packs a new revision beside the others (:mod:`vloc.app.jobs.service`) and records
 it in ``map_revisions``. Restoring makes an earlier revision the current one again: new
-sessions and single-image localisations use it, sessions already open keep the revision they
-were created on, and images added since wait for the next build (which packs a revision after
+sessions and single-image localisations use it, open sessions that follow the map move to it
+before their next frame (those that pinned a revision keep theirs), and images added since
+wait for the next build (which packs a revision after
 every one the map has had, never over one). A revision is dropped only when it is not the
 current one and no active session localises against it; its files go, its record stays
 (marked dropped), so that its number is never used again.

@@ -158,11 +158,13 @@ def list_revisions(map_: MapDep, db: DbSession, settings: SettingsDep) -> list[R
 @router.post("/{map_id}/revisions/{revision}/restore", response_model=MapRead,
              responses={409: {"description": "A build is running, or the revision cannot be "
                                              "restored"}})
-def restore_revision(map_: MapDep, db: DbSession, settings: SettingsDep,
+def restore_revision(map_: MapDep, db: DbSession, ctx: Ctx,
                      revision: int = RevisionNumber) -> MapRead:
     """Make an earlier (or later) revision the current one again: new sessions use it,
-    open sessions keep theirs, images it does not hold wait for the next build."""
-    history.restore_revision(db, map_=map_, revision=revision, settings=settings)
+    open sessions that follow the map move to it before their next frame (those that pin
+    a revision keep theirs), images it does not hold wait for the next build."""
+    history.restore_revision(db, map_=map_, revision=revision, settings=ctx.settings)
+    ctx.runtime.map_revised(str(map_.id), revision)
     return service.read_map(db, map_=map_)
 
 

@@ -51,6 +51,13 @@ class LiveSession:
     last_active: datetime = field(default_factory=utcnow)
     """The last frame accepted or keep-alive; the session expires ``ttl_s`` after it."""
 
+    follows_map: bool = False
+    """Whether it moves to its map's new revision (:meth:`SessionRuntime.follow`)."""
+    moving: asyncio.Future | None = None
+    """Resolves once a move to another revision, under way, is done (or given up)."""
+    refused_revision: int | None = None
+    """A revision the session could not move to: not tried again."""
+
     last_frame: tuple[int, bytes] | None = None
     """The latest accepted frame (seq, image bytes), for viewers; kept in memory only, and
     only up to :data:`LAST_FRAME_MAX_BYTES`."""

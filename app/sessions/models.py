@@ -8,6 +8,7 @@ from datetime import datetime
 from sqlalchemy import (
     JSON,
     BigInteger,
+    Boolean,
     Column,
     Float,
     ForeignKey,
@@ -35,7 +36,10 @@ class LocalisationSession(Base):
     map_id: Mapped[uuid.UUID] = mapped_column(
         ForeignKey("maps.id", ondelete="CASCADE"), index=True)
     map_revision: Mapped[int] = mapped_column(Integer)
-    """The packed map revision the session localises against, fixed at creation."""
+    """The packed map revision the session localises against now."""
+    follows_map: Mapped[bool] = mapped_column(Boolean, default=True)
+    """Whether the session moves to the map's new revision when the map is rebuilt or
+    restored (false: it stays on ``map_revision``, given or current at its creation)."""
     mode: Mapped[str] = mapped_column(String(16))
     params: Mapped[dict] = mapped_column(JSON)
     """Normalised localiser parameters, defaults filled in."""
@@ -75,6 +79,9 @@ class Pose(Base):
         Column("session_id", Uuid(), ForeignKey("sessions.id", ondelete="CASCADE"),
                nullable=False, index=True),
         Column("seq", BigInteger(), nullable=False),
+        # the revision the estimate was made on; null for poses stored before sessions
+        # followed their maps (they were made on the session's revision)
+        Column("map_revision", Integer(), nullable=True),
         *pose_columns(),
         UniqueConstraint("session_id", "seq"),
     )

@@ -125,9 +125,14 @@ class Outcomes:
             if live is None:
                 return None
             spec = live.spec
+            # the revision the worker stepped on: a session following its map may have
+            # moved since (or, on a shared engine, another process moved it)
+            revision = outcome.revision if outcome.revision is not None else spec.revision
+            folder = spec.map_folder if revision == spec.revision else str(
+                self.settings.packed_map_dir(spec.map_id, revision))
             ctx = pose.FrameContext(
                 session_id=outcome.session_id, seq=outcome.seq, map_id=spec.map_id,
-                map_revision=spec.revision, map_folder=spec.map_folder, captured_at=captured,
+                map_revision=revision, map_folder=folder, captured_at=captured,
                 received_at=arrival.received_at if arrival is not None else utcnow(),
                 metadata=arrival.metadata if arrival is not None else None,
                 decode_ms=outcome.decode_ms, latency_ms=latency_ms)

@@ -132,6 +132,17 @@ class _SessionCreate(BaseModel):
     navigation: NavigationCreate | None = Field(
         None, description="Follow a route: each pose then carries the path following")
 
+    map_revision: int | None = Field(
+        None, ge=1, strict=True,
+        description="Localise against this revision of the map (one of its recorded "
+                    "revisions whose files are kept) and stay on it; the map's current "
+                    "revision when unset")
+    follow_map: bool | None = Field(
+        None, strict=True,
+        description="Move to the map's new revision, between two frames and with the "
+                    "filter's state, whenever the map is rebuilt or restored: true by "
+                    "default; false stays on the revision the session starts on, as does "
+                    "a session given map_revision or a route to follow")
     ttl_s: int | None = Field(None, ge=10, strict=True,
                               description="Seconds without a frame or keep-alive after which "
                                           "the session expires; the server's default "

@@ -11,8 +11,10 @@ derived from it here:
 
 So a field is added to the schema (and to the migration that adds its column), and nowhere
 else. An object or list field (other than ``cov``) is stream-only: it has no column, and
-must have a default so that a stored pose reads back without it. ``cov`` is stored as four columns; the session's map and revision are the session's,
-not stored per pose; ``geopose`` is computed from the other fields.
+must have a default so that a stored pose reads back without it. ``cov`` is stored as four
+columns; the map is the session's, and the revision has a column of the table's own (a
+session following its map moves between revisions); ``geopose`` is computed from the other
+fields.
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ from vloc.workers.core.accuracy import horizontal_accuracy
 from vloc.workers.core.estimate import Status
 
 NOT_STORED = ("type", "session_id", "seq", "map_id", "map_revision")
-"""Fields that are no column of their own: the key, and the session's map."""
+"""Fields that are no generated column: the key, the session's map, and the revision (a
+column of the table's own, :class:`~app.sessions.models.Pose`)."""
 COV_COLUMNS = ("cov_xx", "cov_xy", "cov_yx", "cov_yy")
 JSON_FIELDS = ("navigation",)
 """Object fields that are stored whole, as one JSON column."""
@@ -134,10 +137,12 @@ def to_row(msg: dict) -> dict:
 
 
 def from_row(row, *, map_id: uuid.UUID, map_revision: int) -> PoseEstimate:
-    """A stored pose (a :class:`~app.sessions.models.Pose`) as its schema."""
+    """A stored pose (a :class:`~app.sessions.models.Pose`) as its schema; ``map_revision``
+    (the session's) where the row names none."""
     values = {n: getattr(row, n) for n in stored_fields() if n != "cov"}
     return PoseEstimate(session_id=row.session_id, seq=row.seq, map_id=map_id,
-                        map_revision=map_revision,
+                        map_revision=row.map_revision if row.map_revision is not None
+                        else map_revision,
                         cov=[getattr(row, c) for c in COV_COLUMNS], **values)
 
 

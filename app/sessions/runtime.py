@@ -78,6 +78,9 @@ class SessionRuntime:
         self.loop: asyncio.AbstractEventLoop | None = None
         self._live: dict[str, LiveSession] = {}
         self._opening: dict[str, asyncio.Future] = {}
+        self._current: dict[str, int] = {}
+        """The current revision of the maps of live sessions that follow their map, as
+        this process last heard (:meth:`map_revised`, :meth:`follow_maps`)."""
         self._seq_floor: dict[str, int] = {}
         """Last seq of a live session dropped for a reload, until the reload reads it."""
         self._lock = threading.Lock()
@@ -140,7 +143,8 @@ class SessionRuntime:
             self.engine.close_session(spec.session_id)
             raise
         live = LiveSession(str(row.id), row.token_hash, spec, row.last_seq,
-                           ttl_s=row.ttl_s, last_active=row.last_active_at or utcnow())
+                           ttl_s=row.ttl_s, last_active=row.last_active_at or utcnow(),
+                           follows_map=row.follows_map)
         with self._lock:
             self._live[live.id] = live
         self.metrics.live_sessions.set(len(self._live))
@@ -184,7 +188,8 @@ class SessionRuntime:
         await self._restore(spec, row.state, last_seq)
         live = LiveSession(spec.session_id, row.token_hash, spec, last_seq,
                            converged=converged, ttl_s=row.ttl_s,
-                           last_active=row.last_active_at or row.created_at)
+                           last_active=row.last_active_at or row.created_at,
+                           follows_map=row.follows_map)
         with self._lock:
             self._live[live.id] = live
         self.metrics.live_sessions.set(len(self._live))
@@ -315,6 +320,106 @@ class SessionRuntime:
         with self.db_sessions() as db:
             return store.take_interrupted(db, session_id=session_id)
 
+    # -- sessions following their map ---------------------------------------------------------
+
+    def map_revised(self, map_id: str, revision: int) -> None:
+        """The map's current revision changed (built, or restored) in this process: its
+        sessions that follow it move before their next frame (:meth:`follow`). Callable
+        from any thread."""
+        with self._lock:
+            self._current[str(map_id)] = int(revision)
+        if self.loop is not None and not self.loop.is_closed():
+            self.loop.call_soon_threadsafe(self._spawn_moves, str(map_id))
+
+    def _spawn_moves(self, map_id: str) -> None:
+        """Event loop: move the idle following sessions of the map now (the busy ones
+        move at their next frame, or here once a frame has gone)."""
+        for live in list(self._live.values()):
+            if live.spec.map_id == map_id and self._behind(live) is not None:
+                task = self.loop.create_task(self.follow(live), name=f"follow-{live.id}")
+                task.add_done_callback(_log_failure)
+
+    async def follow_maps(self) -> int:
+        """Read the current revision of the maps that live sessions follow (another API
+        process may have built or restored them) and move those sessions; how many
+        moved."""
+        maps = {live.spec.map_id for live in list(self._live.values()) if live.follows_map}
+        if not maps:
+            return 0
+        current = await asyncio.to_thread(self._read_revisions, maps)
+        with self._lock:
+            self._current.update(current)
+        moved = 0
+        for live in list(self._live.values()):
+            if self._behind(live) is not None:
+                moved += await self.follow(live)
+        return moved
+
+    def _read_revisions(self, maps: set[str]) -> dict[str, int]:
+        from sqlalchemy import select
+
+        from vloc.app.maps.models import Map
+
+        with self.db_sessions() as db:
+            rows = db.execute(select(Map.id, Map.revision).where(
+                Map.id.in_([uuid.UUID(m) for m in maps]))).all()
+        return {str(i): int(r) for i, r in rows if r}
+
+    def _behind(self, live: LiveSession) -> int | None:
+        """The revision a following session should move to, or None."""
+        if not live.follows_map:
+            return None
+        current = self._current.get(live.spec.map_id)
+        if current is None or current in (live.spec.revision, live.refused_revision):
+            return None
+        return current
+
+    async def follow(self, live: LiveSession) -> bool:
+        """Move a session that follows its map to the map's current revision, between two
+        frames: every frame accepted before runs on the old revision, every frame after
+        on the new one (the engine's worker carries the filter's state across,
+        :meth:`workers.core.localisers.base.Localiser.set_state`). Whether it moved; a
+        revision it cannot move to (its files gone, a localiser that cannot move) is
+        logged and not tried again, and the session goes on where it is."""
+        while live.moving is not None:
+            await asyncio.shield(live.moving)
+        revision = self._behind(live)
+        if revision is None:
+            return False
+        live.moving = self.loop.create_future()
+        try:
+            return await self._move(live, revision)
+        finally:
+            live.moving.set_result(None)
+            live.moving = None
+
+    async def _move(self, live: LiveSession, revision: int) -> bool:
+        from dataclasses import replace
+
+        spec = replace(live.spec, revision=revision, map_folder=str(
+            self.settings.packed_map_dir(live.spec.map_id, revision)))
+        try:
+            check_revision(spec)
+            await self.control(live, "move", spec=spec)
+        except Exception as exc:  # noqa: BLE001 - the session stays where it is
+            live.refused_revision = revision
+            log.warning("session %s stays on map revision %d: moving to %d failed (%s)",
+                        live.id, live.spec.revision, revision, exc)
+            return False
+        previous, live.spec = live.spec.revision, spec
+        await asyncio.to_thread(self._write_revision, uuid.UUID(live.id), revision)
+        log.info("session %s moved from map revision %d to %d", live.id, previous, revision)
+        return True
+
+    def _write_revision(self, session_id: uuid.UUID, revision: int) -> None:
+        from sqlalchemy import update
+
+        with self.db_sessions() as db:
+            db.execute(update(LocalisationSession)
+                       .where(LocalisationSession.id == session_id)
+                       .values(map_revision=revision))
+            db.commit()
+
     # -- frames (event loop) ----------------------------------------------------------------
 
     async def accept(self, live: LiveSession, data: bytes, *, seq: int | None,
@@ -342,6 +447,9 @@ class SessionRuntime:
         if self._closing:
             raise Problem(503, "the server is shutting down; send the frame again later",
                           kind=ProblemKind.SHUTTING_DOWN, headers={"Retry-After": "5"})
+        if live.moving is not None or self._behind(live) is not None:
+            # the map has a new revision: this frame and the next run on it
+            await self.follow(live)
         if not self.engine.shared:
             seq = next_seq(live.last_seq, seq)
         if len(live.arrivals) >= self.settings.max_pending_frames:
@@ -485,3 +593,9 @@ def _resolve(fut: asyncio.Future, value=None, *, exception: BaseException | None
         fut.exception()  # retrieved: a WebSocket frame's refusal is reported elsewhere
     else:
         fut.set_result(value)
+
+
+def _log_failure(task: asyncio.Task) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("moving a session to its map's new revision failed",
+                  exc_info=task.exception())

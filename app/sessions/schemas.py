@@ -109,8 +109,9 @@ class PoseFields(BaseModel):
     """
 
     map_id: uuid.UUID = Field(description="The map localised against")
-    map_revision: int = Field(description="Its packed revision (a session's is fixed at "
-                                          "creation)")
+    map_revision: int = Field(description="Its packed revision that gave the estimate (a "
+                                          "session following its map moves to a new "
+                                          "revision between two frames)")
     status: Status = Field(
         description="initialising (no converged estimate yet, since the start or a reset), "
                     "tracking, or lost (the estimate spread out after converging)")
@@ -217,7 +218,10 @@ class NavigationRead(BaseModel):
 class SessionRead(BaseModel):
     id: uuid.UUID
     map_id: uuid.UUID
-    map_revision: int
+    map_revision: int = Field(description="The map revision the session localises "
+                                          "against now")
+    follows_map: bool = Field(description="Whether it moves to the map's new revision when "
+                                          "the map is rebuilt or restored")
     mode: Literal[MODES]
     params: dict[str, Any]
     seed: int

@@ -131,6 +131,9 @@ def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
                           kind=ProblemKind.MAP_NOT_BUILT)
         map_id, revision = map_.id, map_.revision
         navigation = _navigation(db, body, map_id)
+        follows = _follows(body, navigation)
+        if body.map_revision is not None:
+            revision = _pinned_revision(db, map_id, body.map_revision)
     try:
         params = validate_params(body.mode, body.given_params())
     except ValueError as exc:
@@ -148,8 +151,34 @@ def _plan(db_sessions: sessionmaker[Session], body: SessionCreate,
                               token_hash=hash_secret(token), frames_processed=0,
                               frames_failed=0, last_seq=None, status=store.ACTIVE,
                               ttl_s=ttl_s, last_active_at=utcnow(),
-                              navigation=navigation)
+                              navigation=navigation, follows_map=follows)
     return row, token
+
+
+def _follows(body: SessionCreate, navigation: dict | None) -> bool:
+    """Whether the session follows its map: by default, unless it pins a revision or
+    follows a route (its path was taught against the revision it starts on)."""
+    fixed = ("map_revision" if body.map_revision is not None
+             else "navigation" if navigation is not None else None)
+    if fixed is None:
+        return body.follow_map is not False
+    if body.follow_map:
+        raise Problem(422, f"follow_map cannot be true for a session given {fixed}: it stays "
+                      "on the revision it starts on", kind=ProblemKind.BAD_PARAMS)
+    return False
+
+
+def _pinned_revision(db: Session, map_id, revision: int) -> int:
+    """A revision a session may pin: recorded for the map and not dropped (404
+    otherwise)."""
+    from vloc.app.maps.models import MapRevision
+
+    row = db.get(MapRevision, (map_id, revision))
+    if row is None or row.dropped_at is not None:
+        raise Problem(404, f"map {map_id} has no revision {revision}"
+                      + (" any more: it was dropped" if row is not None else ""),
+                      kind=ProblemKind.NOT_FOUND)
+    return revision
 
 
 def _navigation(db: Session, body: SessionCreate, map_id) -> dict | None:
@@ -237,7 +266,8 @@ def read_session(db: Session, *, row: LocalisationSession,
         latency_ms_p50=_quantile(latencies, 0.5), latency_ms_p99=_quantile(latencies, 0.99),
         processing_ms_mean=float(mean_ms) if mean_ms is not None else None)
     return SessionRead(
-        id=row.id, map_id=row.map_id, map_revision=row.map_revision, mode=row.mode,
+        id=row.id, map_id=row.map_id, map_revision=row.map_revision,
+        follows_map=row.follows_map, mode=row.mode,
         params=row.params, seed=row.seed, created_at=row.created_at, last_seq=row.last_seq,
         frames_processed=row.frames_processed, frames_failed=row.frames_failed,
         frames_pending=pending, stats=stats,

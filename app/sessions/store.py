@@ -143,7 +143,8 @@ def _apply(db: Session, row: LocalisationSession, outcome: Outcome,
     if outcome.state is not None and (row.state_seq is None or outcome.seq >= row.state_seq):
         row.state, row.state_seq = outcome.state, outcome.seq
     if msg is not None:
-        db.add(Pose(session_id=row.id, seq=outcome.seq, **pose.to_row(msg)))
+        db.add(Pose(session_id=row.id, seq=outcome.seq, map_revision=msg["map_revision"],
+                    **pose.to_row(msg)))
     return frame
 
 

@@ -155,4 +155,4 @@ def test_an_object_field_is_streamed_not_stored(monkeypatch):
     monkeypatch.setattr(pose, "PoseEstimate", extended)
     assert "particles" not in pose.stored_fields()
     assert {c.name for c in pose.pose_columns()} == set(Pose.__table__.columns.keys()) - {
-        "id", "session_id", "seq"}
+        "id", "session_id", "seq", "map_revision"}

@@ -3,6 +3,7 @@ they gave, dropped with their files, on SQLite and PostgreSQL."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from tests.app.conftest import ADMIN, FAST, PROBLEM, UNKNOWN_ID, jpeg_files, snapshot, wait_job
@@ -64,11 +65,11 @@ def test_a_map_restored_to_an_earlier_revision_answers_as_it_did(module_client, 
     assert listed[0]["geometry"] == c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()[
         "geometry"]
 
-    # a session on revision 2 keeps it through the restore
+    # a session that does not follow the map keeps revision 2 through the restore
     r = c.post("/v1/sessions", json={"map_id": map_id, "mode": "hybrid", "params": FAST,
-                                     "seed": 1}, headers=ADMIN)
+                                     "seed": 1, "follow_map": False}, headers=ADMIN)
     session = r.json()["id"]
-    assert r.json()["map_revision"] == 2
+    assert (r.json()["map_revision"], r.json()["follows_map"]) == (2, False)
     assert [x["active_sessions"] for x in _revisions(c, map_id)] == [1, 0]
 
     r = c.post(f"/v1/maps/{map_id}/revisions/1/restore", headers=ADMIN)
@@ -135,3 +136,92 @@ def test_revisions_need_the_admin_key(module_client, path):
     method = "get" if path == "revisions" else "post"
     r = getattr(module_client, method)(f"/v1/maps/{UNKNOWN_ID}/{path}")
     assert r.status_code == 401
+
+
+def _session(c, map_id: str, **extra) -> tuple[str, dict]:
+    r = c.post("/v1/sessions", json={"map_id": map_id, "mode": "hybrid", "params": FAST,
+                                     "seed": 2, **extra}, headers=ADMIN)
+    assert r.status_code == 201, r.text
+    return r.json()["id"], {"Authorization": f"Bearer {r.json()['token']}"}
+
+
+def _localise(c, sid: str, auth: dict, shot) -> dict:
+    r = c.post(f"/v1/sessions/{sid}/frames", content=shot.jpeg, params={"wait": "true"},
+               headers={**auth, "Content-Type": "image/jpeg"})
+    assert r.status_code == 200 and r.json()["type"] == "pose", r.text
+    return r.json()
+
+
+def test_sessions_follow_their_map_to_each_new_revision_and_pinned_ones_stay(module_client,
+                                                                            shots):
+    """A session follows its map by default: restored to revision 1, then built again as
+    revision 3, the map takes the session along between two frames, with its filter's
+    state, no frame lost, each pose naming the revision it was made on. A session that
+    pinned revision 1 and one that chose not to follow stay where they started."""
+    c = module_client
+    images, queries = shots[0], shots[1]
+    map_id = c.post("/v1/maps", json={"name": "followed"}, headers=ADMIN).json()["id"]
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(images[:7]), headers=ADMIN)
+    _build(c, map_id)
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(images[7:]), headers=ADMIN)
+    _build(c, map_id)
+
+    follows, f_auth = _session(c, map_id)
+    pinned, p_auth = _session(c, map_id, map_revision=1)
+    stays, s_auth = _session(c, map_id, follow_map=False)
+    read = {sid: c.get(f"/v1/sessions/{sid}", headers=ADMIN).json()
+            for sid in (follows, pinned, stays)}
+    assert [(read[s]["map_revision"], read[s]["follows_map"])
+            for s in (follows, pinned, stays)] == [(2, True), (1, False), (2, False)]
+
+    def walk(frames) -> list[dict]:
+        return [_localise(c, sid, auth, q) for q in frames
+                for sid, auth in ((follows, f_auth), (pinned, p_auth), (stays, s_auth))]
+
+    before = walk(queries[:3])
+    assert [p["map_revision"] for p in before] == [2, 1, 2] * 3
+    assert c.post(f"/v1/maps/{map_id}/revisions/1/restore", headers=ADMIN).status_code == 200
+    after = walk(queries[3:6])
+    assert [p["map_revision"] for p in after] == [1, 1, 2] * 3
+    assert _build(c, map_id)["revision"] == 3
+    last = walk(queries[6:9])
+    assert [p["map_revision"] for p in last] == [3, 1, 2] * 3
+
+    stored = c.get(f"/v1/sessions/{follows}/poses", headers=f_auth).json()
+    assert [(p["seq"], p["map_revision"]) for p in stored] == [
+        (i, r) for i, r in enumerate([2] * 3 + [1] * 3 + [3] * 3)]
+    got = c.get(f"/v1/sessions/{follows}", headers=ADMIN).json()
+    assert (got["map_revision"], got["follows_map"], got["frames_processed"],
+            got["frames_failed"]) == (3, True, 9, 0)
+    assert c.get(f"/v1/sessions/{pinned}", headers=ADMIN).json()["map_revision"] == 1
+    # the filter kept its belief across the moves: it tracks the true positions in each
+    # revision's frame as well as the sessions that never moved
+    def error(p, shot) -> float:
+        return float(np.hypot((p["lat"] - shot.lat) * 111_320.0,
+                              (p["lon"] - shot.lon) * 111_320.0 * np.cos(np.radians(shot.lat))))
+
+    moved = [error(p, q) for p, q in zip(after[0::3] + last[0::3], queries[3:9], strict=True)]
+    fixed = [error(p, q) for p, q in zip(after[2::3] + last[2::3], queries[3:9], strict=True)]
+    assert max(moved) <= max(fixed) + 5.0, (moved, fixed)
+    # revision 2 is no longer used by an active session that follows; the one that stays
+    # holds it
+    assert [x["active_sessions"] for x in _revisions(c, map_id)] == [1, 1, 1]
+
+
+def test_a_pinned_revision_must_exist_and_a_pinned_session_cannot_follow(module_client,
+                                                                        shots):
+    c = module_client
+    images = shots[0]
+    map_id = c.post("/v1/maps", json={"name": "pinned"}, headers=ADMIN).json()["id"]
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(images[:6]), headers=ADMIN)
+    _build(c, map_id)
+    before = snapshot(c)
+    _problem(c.post("/v1/sessions", json={"map_id": map_id, "map_revision": 4},
+                    headers=ADMIN), 404, "not-found")
+    p = _problem(c.post("/v1/sessions", json={"map_id": map_id, "map_revision": 1,
+                                              "follow_map": True}, headers=ADMIN),
+                 422, "bad-params")
+    assert "follow_map" in p["detail"]
+    assert c.post("/v1/sessions", json={"map_id": map_id, "map_revision": 0},
+                  headers=ADMIN).status_code == 422
+    assert snapshot(c) == before

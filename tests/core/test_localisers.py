@@ -15,6 +15,7 @@ from vloc.workers.core.features.shortlist import PlaceCodes
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.image import prepare
 from vloc.workers.core.localisers import MODES, filtering, make_localiser, validate_params
+from vloc.workers.core.localisers.base import pack_state, unpack_state
 from vloc.workers.core.mapbuild import assemble_map, extract_image_features
 from vloc.workers.core.mapdata import MapData
 from vloc.workers.core.metadata import FrameMetadata
@@ -162,6 +163,66 @@ def test_state_from_another_mode_is_refused(small_map):
         make_localiser("hybrid", small_map, {}, seed=0).set_state(blob)
     with pytest.raises(ValueError):
         make_localiser("hybrid", small_map, {}, seed=0).set_state(b"garbage")
+
+
+def _revision(features, revision: int, origin: GeoOrigin) -> MapData:
+    """A revision of map "m" over the first ``len(features)`` map images, in ``origin``'s
+    frame (the places are those of :data:`ORIGIN`'s frame, wherever the origin is)."""
+    east = MAP_EAST[:len(features)]
+    lat, lon = ORIGIN.to_wgs84(east, np.zeros_like(east))
+    return assemble_map(names=[f"m{i}" for i in range(len(east))], lats=lat, lons=lon,
+                        alts=[300.0] * len(east), features=features,
+                        captured_at=1000.0 + east / 2.0, origin=origin, map_id="m",
+                        revision=revision, geometry=False)
+
+
+@pytest.mark.parametrize("mode", ["hybrid", "sift"])
+def test_a_state_moves_to_a_new_revision_of_its_map_and_keeps_tracking(world, map_features,
+                                                                        mode):
+    """A session's state taken on revision 1 (the first 40 images) is taken up by
+    revision 2 (all 56, its frame's origin 180 m east and 40 m north of revision 1's):
+    every particle stays at the same place on the ground, and the filter goes on
+    tracking into the part of the map only revision 2 holds."""
+    first = _revision(map_features[:40], 1, ORIGIN)
+    lat, lon = ORIGIN.to_wgs84(180.0, 40.0)
+    second = _revision(map_features, 2, GeoOrigin(float(lat), float(lon), 310.0))
+    queries, truth = _queries(world, start=250.0, n=50)
+    a = make_localiser(mode, first, {}, seed=4)
+    for q in queries[:12]:
+        a.step(q)
+    b = make_localiser(mode, second, {}, seed=999)
+    b.set_state(a.get_state())
+    here = np.column_stack(second.origin.to_wgs84(b.pf.xy[:, 0], b.pf.xy[:, 1]))
+    there = np.column_stack(first.origin.to_wgs84(a.pf.xy[:, 0], a.pf.xy[:, 1]))
+    assert np.abs(here - there).max() < 1e-8  # degrees: a millimetre
+    assert np.array_equal(a.pf.w, b.pf.w)
+    assert abs(a.pf.xy[:, 0].mean() - b.pf.xy[:, 0].mean() - 180.0) < 1.0
+    # on to 495 m east, where only revision 2 has images; truth in revision 2's frame
+    errors = []
+    for q, (e, n) in zip(queries[12:], truth[12:], strict=True):
+        est = b.step(q)
+        errors.append(np.hypot(est.x - (e - 180.0), est.y - (n - 40.0)))
+    assert np.median(errors[-10:]) <= 10.0, errors
+
+
+def test_a_state_of_another_map_or_an_unrecorded_revision_is_refused(map_features):
+    first = _revision(map_features[:40], 1, ORIGIN)
+    blob = make_localiser("hybrid", first, {}, seed=0).get_state()
+    other = assemble_map(names=[f"m{i}" for i in range(40)], lats=[48.6] * 40,
+                         lons=9.0 + np.arange(40) * 1e-4, alts=[300.0] * 40,
+                         features=map_features[:40], origin=ORIGIN, map_id="other",
+                         revision=1, geometry=False)
+    with pytest.raises(ValueError, match="another map"):
+        make_localiser("hybrid", other, {}, seed=0).set_state(blob)
+    # a state saved before states named their revision: only the same map size is taken
+    arrays, meta = unpack_state(blob)
+    for key in ("origin", "map_id", "revision"):
+        meta.pop(key)
+    old = pack_state(arrays, meta)
+    make_localiser("hybrid", first, {}, seed=0).set_state(old)
+    with pytest.raises(ValueError, match="another map"):
+        make_localiser("hybrid", _revision(map_features, 2, ORIGIN), {},
+                       seed=0).set_state(old)
 
 
 def test_reset_and_initial_pose(world, small_map):

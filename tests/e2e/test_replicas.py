@@ -148,6 +148,64 @@ def test_frames_alternated_between_replicas_keep_their_order_and_stream_on_the_o
     assert (read["last_seq"], read["frames_processed"], read["frames_failed"]) == (7, 8, 0)
 
 
+def test_a_session_follows_its_map_to_a_revision_restored_through_the_other_replica(
+        replicas, shots):
+    """The map restored to its first revision through a, while its session streams on b
+    and takes frames from both: the session moves between two frames (through a at once,
+    through b when b next reads the map's revision), with no frame lost, its frames in
+    order, and each pose naming the revision it was made on, streamed and stored alike."""
+    a, b, _ = replicas
+    maps, queries = shots
+
+    async def post(http: httpx.AsyncClient, sid: str, token: str, jpeg: bytes) -> dict:
+        r = await http.post(f"/v1/sessions/{sid}/frames?wait=true", content=jpeg,
+                            headers={"Authorization": f"Bearer {token}",
+                                     "Content-Type": "image/jpeg"})
+        assert r.status_code == 200 and r.json()["type"] == "pose", r.text
+        return r.json()
+
+    async def scenario():
+        async with httpx.AsyncClient(base_url=a.base_url, headers=_admin(), timeout=120) \
+                as ha, httpx.AsyncClient(base_url=b.base_url, timeout=120) as hb:
+            map_id = await _build_map(ha, maps[:7])
+            files = [("files", (s.name, s.jpeg, "image/jpeg")) for s in maps[7:]]
+            assert (await ha.post(f"/v1/maps/{map_id}/images", files=files)).status_code == 201
+            job_id = (await ha.post(f"/v1/maps/{map_id}/build")).json()["job_id"]
+            for _ in range(1200):
+                job = (await ha.get(f"/v1/jobs/{job_id}")).json()
+                if job["status"] in ("done", "failed"):
+                    break
+                await asyncio.sleep(0.1)
+            assert (job["status"], job["revision"]) == ("done", 2), job
+            r = await hb.post("/v1/sessions", headers=_admin(), json={
+                "map_id": map_id, "mode": "hybrid", "params": {"n_particles": 100},
+                "seed": 6})
+            assert r.status_code == 201 and r.json()["follows_map"], r.text
+            sid, token = r.json()["id"], r.json()["token"]
+            answers = []
+            async with _stream(b, sid, token) as ws:
+                for i in range(4):
+                    answers.append(await post(ha if i % 2 else hb, sid, token,
+                                              queries[i].jpeg))
+                r = await ha.post(f"/v1/maps/{map_id}/revisions/1/restore")
+                assert r.status_code == 200, r.text
+                for i in range(4, 9):  # through a first, which moves the session at once
+                    answers.append(await post(hb if i % 2 else ha, sid, token,
+                                              queries[i].jpeg))
+                streamed = [json.loads(await asyncio.wait_for(ws.recv(), 60))
+                            for _ in range(9)]
+            stored = await _settled(hb, sid, 9)
+            read = (await hb.get(f"/v1/sessions/{sid}", headers=_admin())).json()
+        return answers, streamed, stored, read
+
+    answers, streamed, stored, read = asyncio.run(scenario())
+    revisions = [p["map_revision"] for p in answers]
+    assert revisions == [2] * 4 + [1] * 5
+    assert [(m["seq"], m["map_revision"]) for m in streamed] == \
+        [(p["seq"], p["map_revision"]) for p in stored] == list(enumerate(revisions))
+    assert (read["map_revision"], read["frames_processed"], read["frames_failed"]) == (1, 9, 0)
+
+
 def test_a_killed_shard_resumes_the_session_and_every_frame_is_answered_or_reported(
         replicas, session, shots):
     a, b, namespace = replicas

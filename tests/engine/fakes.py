@@ -55,8 +55,11 @@ def wait_for_file(path: str, timeout: float = 30.0) -> bool:
 class CountingLocaliser:
     """Counts its steps; x is the count, y the mean grey level of the last frame.
 
-    Its whole state is the count, so a restored checkpoint shows in the next estimate.
+    Its whole state is the count, so a restored checkpoint shows in the next estimate; a
+    session of it can move to another map revision (it has no map) with its count.
     """
+
+    moves_between_revisions = True
 
     def __init__(self, offset: float = 0.0, step_s: float = 0.0) -> None:
         self.count = 0

@@ -173,6 +173,47 @@ def test_killed_worker_is_replaced_and_its_sessions_resume(outcomes, tmp_path):
         engine.close()
 
 
+def test_a_session_moved_to_another_revision_stays_there_when_its_worker_is_replaced(
+        outcomes, tmp_path):
+    """``move`` runs between two frames: the frames before it name revision 1, those
+    after name revision 2 and go on counting; a worker that dies afterwards is replaced
+    and reopens the session on revision 2 from its checkpoint."""
+    from dataclasses import replace
+
+    engine = LocalEngine(1, on_outcome=outcomes.put)
+    engine.start()
+    try:
+        first = replace(counting_spec("s"), map_id="m", revision=1)
+        engine.open_session(first).result(TIMEOUT)
+        for seq in range(2):
+            engine.submit_frame("s", seq, grey_png(1))
+        moved = engine.control("s", "move", spec=replace(first, revision=2))
+        engine.submit_frame("s", 2, grey_png(1))
+        assert moved.result(TIMEOUT) == 2
+        got = _take(outcomes, 4)
+        frames = [o for o in got if isinstance(o, FrameDone)]
+        assert [(o.seq, o.revision, o.estimate["x"]) for o in frames] == [
+            (0, 1, 1.0), (1, 1, 2.0), (2, 2, 3.0)]
+        assert [type(o) for o in got].index(Checkpoint) == 2  # between frames 1 and 2
+        # moving to where it is changes nothing; a move to another map is refused
+        assert engine.control("s", "move", spec=replace(first, revision=2)).result(
+            TIMEOUT) == 2
+        with pytest.raises(ValueError, match="own map"):
+            engine.control("s", "move", spec=replace(first, map_id="n")).result(TIMEOUT)
+        _take(outcomes, 1)  # the checkpoint of the move that changed nothing
+        (victim,) = engine.worker_pids()
+        os.kill(victim, signal.SIGKILL)
+        engine.submit_frame("s", 3, grey_png(1))
+        (after,) = _take(outcomes, 1)
+        while isinstance(after, FrameFailed):  # sent while the worker was dying
+            engine.submit_frame("s", after.seq + 1, grey_png(1))
+            (after,) = _take(outcomes, 1)
+        assert isinstance(after, FrameDone) and after.revision == 2
+        assert after.estimate["x"] == 4.0
+    finally:
+        engine.close()
+
+
 def test_closed_engine_refuses_work(outcomes):
     eng = LocalEngine(1, on_outcome=outcomes.put)
     eng.start()

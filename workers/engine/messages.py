@@ -64,7 +64,9 @@ class FrameTask:
 
 @dataclass(frozen=True, slots=True)
 class ControlTask:
-    """``reset``, ``set_initial_pose`` (x, y or lat, lon; sigma) or ``stats`` on a session."""
+    """``reset``, ``set_initial_pose`` (x, y or lat, lon; sigma), ``stats`` or ``move``
+    (``spec``: the session's :class:`SessionSpec` on another revision of its map) on a
+    session."""
 
     call_id: int
     session_id: str
@@ -123,6 +125,9 @@ class FrameDone:
     """The seq of the outcome its worker reported for the session just before this one (None
     for the first since the session opened there): outcomes that reach a viewer by different
     paths can be put back in order with it."""
+    revision: int | None = None
+    """The map revision the estimate was made on (a session following its map moves to a
+    new revision between two frames)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -103,6 +103,9 @@ class LocalEngine:
         self._lock = threading.RLock()
         self._slots: list[Slot] = []
         self._specs: dict[str, SessionSpec] = {}
+        self._moves: dict[int, SessionSpec] = {}
+        """Sessions' specs on the revision a ``move`` control (by call id) takes them to:
+        theirs once it is done, so that a worker replacing theirs reopens them there."""
         self._pinned: dict[str, int] = {}
         self._states: dict[str, bytes] = {}
         self._counts: dict[str, int] = {}
@@ -250,12 +253,15 @@ class LocalEngine:
             return sum(1 for sid, _ in self._slots[index].frames if sid == session_id)
 
     def control(self, session_id: str, op: str, **kwargs) -> Future:
-        """``reset`` / ``set_initial_pose`` / ``stats``, in order with the session's frames."""
+        """``reset`` / ``set_initial_pose`` / ``stats`` / ``move``, in order with the
+        session's frames."""
         fut: Future = Future()
         with self._lock:
             self._check_running()
             slot = self._usable(self._slots[self._pinned[session_id]])
             call_id = next(self._call_ids)
+            if op == "move":
+                self._moves[call_id] = kwargs["spec"]
             slot.calls[call_id] = fut
             slot.tasks.put(ControlTask(call_id, session_id, op, kwargs))
         return fut
@@ -366,6 +372,9 @@ class LocalEngine:
         if isinstance(msg, CallDone):
             with self._lock:
                 fut = slot.calls.pop(msg.call_id, None)
+                moved = self._moves.pop(msg.call_id, None)
+                if moved is not None and msg.ok and msg.session_id in self._specs:
+                    self._specs[msg.session_id] = moved
                 checkpoint = msg.state is not None and msg.session_id in self._pinned
                 if checkpoint:
                     self._states[msg.session_id] = msg.state
@@ -398,8 +407,10 @@ class LocalEngine:
     def _fail_slot(self, slot: Slot, reason: str) -> None:
         with self._lock:
             frames, slot.frames = list(slot.frames), {}
-            calls, slot.calls = list(slot.calls.values()), {}
-        for fut in calls:
+            calls, slot.calls = slot.calls, {}
+            for call_id in calls:
+                self._moves.pop(call_id, None)  # never done: the session stays where it was
+        for fut in calls.values():
             _settle(fut, error=WorkerDied(reason))
         for session_id, seq in frames:
             self._emit(FrameFailed(session_id, seq, "worker_died", reason))

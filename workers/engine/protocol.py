@@ -55,7 +55,8 @@ class Engine(Protocol):
         is being replaced."""
     def pending_frames(self, session_id: str) -> int: ...
     def control(self, session_id: str, op: str, **kwargs) -> Future:
-        """``reset`` / ``set_initial_pose`` / ``stats``, after the frames queued before."""
+        """``reset`` / ``set_initial_pose`` / ``stats`` / ``move`` (to another revision of
+        the session's map, ``spec=``), after the frames queued before."""
     def close_session(self, session_id: str) -> None: ...
     def last_state(self, session_id: str) -> bytes | None: ...
 

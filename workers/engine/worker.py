@@ -86,6 +86,8 @@ class WorkerState:
         outcome = self._step(task, held[1])
         prev = self.reported.get(task.session_id)
         self.reported[task.session_id] = task.seq
+        if isinstance(outcome, FrameDone):
+            outcome = replace(outcome, revision=held[0].revision)
         return replace(outcome, prev_seq=prev)
 
     def _step(self, task: FrameTask, localiser) -> FrameDone | FrameFailed:
@@ -132,9 +134,33 @@ class WorkerState:
             localiser.set_initial_pose(x, y, float(task.kwargs.get("sigma", 5.0)), **heading)
         elif task.op == "stats":
             return dict(getattr(localiser, "stats", {})), None
+        elif task.op == "move":
+            return self._move(spec, localiser, task.kwargs["spec"])
         else:
             raise ValueError(f"unknown control {task.op!r}")
         return None, localiser.get_state()
+
+    def _move(self, spec: SessionSpec, localiser, to: SessionSpec) -> tuple[int, bytes]:
+        """Move a session to another revision of its map between two frames: a localiser
+        on the new revision takes up the old one's state (:meth:`Localiser.set_state`
+        carries it into the new revision's frame). Moving to the revision it is on
+        changes nothing. Returns the revision and the state."""
+        if (to.session_id, to.map_id) != (spec.session_id, spec.map_id):
+            raise ValueError("a session moves to another revision of its own map only")
+        if to.revision == spec.revision:
+            return spec.revision, localiser.get_state()
+        if not getattr(localiser, "moves_between_revisions", False):
+            raise ValueError(f"a session of factory {spec.factory} stays on the revision it "
+                             "was created on")
+        map_data = self._map(to) if to.map_folder else None
+        moved = resolve(to.factory)(to.mode, map_data, dict(to.params), seed=to.seed)
+        moved.set_state(localiser.get_state())
+        reported = self.reported.get(spec.session_id)
+        self._close(spec.session_id)
+        self.sessions[to.session_id] = (to, moved)
+        if reported is not None:
+            self.reported[to.session_id] = reported
+        return to.revision, moved.get_state()
 
     def _local_xy(self, spec: SessionSpec, kwargs: dict) -> tuple[float, float]:
         """x/y as given, or lat/lon converted in the frame of the session's map revision."""

@@ -11,6 +11,7 @@ from dataclasses import fields
 import numpy as np
 
 from ..estimate import Estimate, Status
+from ..geo import GeoOrigin
 from ..image import Frame
 from ..mapdata import MapData
 from ..metadata import FrameMetadata
@@ -60,6 +61,20 @@ def as_query(frame: Frame | QueryFrame, captured_at: float | None,
     return QueryFrame(frame, captured_at, metadata=metadata)
 
 
+def reframe(source: GeoOrigin, target: GeoOrigin):
+    """A function taking ``(n, 2)`` east/north metres in the local frame of ``source`` to
+    those of the same places in the frame of ``target`` (identity for the same origin)."""
+    def move(xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        if source == target or not len(xy):
+            return xy.copy()
+        lat, lon = source.to_wgs84(xy[:, 0], xy[:, 1])
+        east, north = target.to_local(lat, lon)
+        return np.column_stack([np.atleast_1d(east), np.atleast_1d(north)])
+
+    return move
+
+
 def pack_state(arrays: dict[str, np.ndarray], meta: dict) -> bytes:
     """Arrays and JSON metadata as one ``.npz`` byte string (exact, no pickle)."""
     buf = io.BytesIO()
@@ -87,6 +102,9 @@ class Localiser(ABC):
     """
 
     mode: str = ""
+    moves_between_revisions = True
+    """A localiser on another revision of the map takes up this one's state
+    (:meth:`set_state`): a session can follow its map as it is rebuilt."""
 
     def __init__(self, map_data: MapData, params: dict, seed: int) -> None:
         self.map = map_data
@@ -123,19 +141,54 @@ class Localiser(ABC):
             heading_sigma_deg=None if heading is None else float(heading[1]))
 
     def get_state(self) -> bytes:
-        """Everything needed to resume bit-for-bit, as bytes."""
+        """Everything needed to resume bit-for-bit, as bytes, with the map revision it was
+        taken on (so that another revision of the same map can take it up)."""
         arrays, meta = self._state()
+        origin = self.map.origin
         meta.update(mode=self.mode, seed=self.seed, stats=self.stats,
-                    rng=self.rng.bit_generator.state, n_map=len(self.map))
+                    rng=self.rng.bit_generator.state, n_map=len(self.map),
+                    map_id=self.map.map_id, revision=self.map.revision,
+                    origin=[origin.lat, origin.lon, origin.alt])
         return pack_state(arrays, meta)
 
     def set_state(self, data: bytes) -> None:
+        """Resume from :meth:`get_state`'s bytes.
+
+        A state taken on another revision of this localiser's map (a map rebuilt or
+        restored while a session ran on it) is carried over: its positions are moved from
+        that revision's local frame into this one's, through WGS84; what it learnt of the
+        frames (the particles' spread, the tracked velocity, the previous frame's features)
+        is kept. Anything else (another mode, another map) is refused with ValueError.
+        """
         arrays, meta = unpack_state(data)
-        if meta.get("mode") != self.mode or meta.get("n_map") != len(self.map):
-            raise ValueError("state belongs to another mode or map")
+        if meta.get("mode") != self.mode:
+            raise ValueError("state belongs to another mode")
+        if not self._same_revision(meta):
+            if not self.map.map_id or meta.get("map_id") != self.map.map_id \
+                    or meta.get("origin") is None:
+                raise ValueError("state belongs to another map")
+            arrays, meta = self._carried(arrays, meta,
+                                         reframe(GeoOrigin(*meta["origin"]), self.map.origin))
         self.rng.bit_generator.state = meta["rng"]
         self.stats = dict(meta["stats"])
         self._load(arrays, meta)
+
+    def _same_revision(self, meta: dict) -> bool:
+        """Whether a state was taken on this localiser's own map revision (states from
+        before revisions were recorded in them are judged by the map's size alone)."""
+        if meta.get("n_map") != len(self.map):
+            return False
+        if meta.get("origin") is None:
+            return True
+        origin = self.map.origin
+        return (meta.get("map_id"), meta.get("revision"), list(meta["origin"])) == (
+            self.map.map_id, self.map.revision, [origin.lat, origin.lon, origin.alt])
+
+    def _carried(self, arrays: dict[str, np.ndarray], meta: dict, to_here,
+                 ) -> tuple[dict[str, np.ndarray], dict]:
+        """A state of another revision of the map, its positions moved by ``to_here``
+        (``(n, 2)`` east/north there -> here); the default has no positions to move."""
+        return arrays, meta
 
     # -- subclass hooks -------------------------------------------------------------------
 

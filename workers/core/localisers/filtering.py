@@ -384,6 +384,18 @@ class FilterLocaliser(Localiser):
             self.prev_sift = None
         self.prev_key = None
 
+    def _carried(self, arrays: dict[str, np.ndarray], meta: dict, to_here,
+                 ) -> tuple[dict[str, np.ndarray], dict]:
+        """The particles and the last anchored position in this revision's frame; weights,
+        velocities (local frames a few kilometres apart differ by hundredths of a degree)
+        and the switching state as they were."""
+        arrays = dict(arrays, pf_xy=to_here(arrays["pf_xy"]))
+        if meta.get("anchor") is not None:
+            clock, x, y = meta["anchor"]
+            (x, y), = to_here([[x, y]])
+            meta = dict(meta, anchor=[clock, float(x), float(y)])
+        return arrays, meta
+
     def reset(self) -> None:
         self.pf.initialise()
         self.switch = SwitchState(switching.start(self.pinned))
