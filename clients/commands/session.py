@@ -35,8 +35,9 @@ def session_group() -> None:
 
 def _describe(s) -> str:
     st = s.stats
-    lines = [f"{s.id}  mode {s.mode} on map {s.map_id} (revision {s.map_revision}), "
-             f"seed {s.seed}",
+    follows = {True: ", follows the map", False: ", stays on it"}.get(s.follows_map, "")
+    lines = [f"{s.id}  mode {s.mode} on map {s.map_id} (revision {s.map_revision}"
+             f"{follows}), seed {s.seed}",
              f"  frames: {s.frames_processed} processed, {s.frames_failed} failed, "
              f"{s.frames_pending} pending; last seq {s.last_seq}"]
     if st.sift_share is not None:
@@ -60,15 +61,25 @@ def _describe(s) -> str:
 @click.option("--ttl", "ttl_s", type=click.IntRange(10), metavar="SECONDS",
               help="Seconds without a frame or keep-alive after which the session expires "
                    "[default: the server's, VLOC_SESSION_TTL_S].")
+@click.option("--revision", "map_revision", type=click.IntRange(1), metavar="N",
+              help="Localise against this revision of the map and stay on it [default: the "
+                   "current one, followed as the map is rebuilt or restored].")
+@click.option("--no-follow", "no_follow", is_flag=True,
+              help="Stay on the revision the session starts on when the map is rebuilt or "
+                   "restored.")
 @click.option("--json", "as_json", is_flag=True)
 @server_options
 @reports_errors
-def create_cmd(map_id: str, mode: str, param_items, seed, ttl_s, as_json: bool, server: str,
-               admin_key: str | None) -> None:
-    """Open a session on a built map. Prints `ID TOKEN`."""
+def create_cmd(map_id: str, mode: str, param_items, seed, ttl_s, map_revision, no_follow,
+               as_json: bool, server: str, admin_key: str | None) -> None:
+    """Open a session on a built map. Prints `ID TOKEN`.
+
+    The session follows the map: when the map is rebuilt or restored, it moves to the new
+    revision between two frames, keeping what its filter has learnt."""
     with make_client(server, admin_key) as vloc:
         s = vloc.create_session(map_id, mode=mode, params=parse_params(param_items), seed=seed,
-                                ttl_s=ttl_s)
+                                ttl_s=ttl_s, map_revision=map_revision,
+                                follow_map=False if no_follow else None)
     print_json(model_json(s)) if as_json else click.echo(f"{s.id} {s.token}")
 
 

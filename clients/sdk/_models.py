@@ -303,6 +303,10 @@ class Session(_Model):
     id: str
     map_id: str
     map_revision: int = 0
+    """The map revision the session localises against now."""
+    follows_map: bool | None = None
+    """Whether it moves to the map's new revisions; None from a server older than this
+    field."""
     mode: str
     params: dict[str, Any] = Field(default_factory=dict)
     seed: int | None = None

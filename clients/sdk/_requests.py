@@ -219,10 +219,15 @@ def list_routes(map_id: str) -> Call:
 
 def create_session(map_id: str, *, mode: str, params: dict[str, Any] | None,
                    seed: int | None, navigation: dict[str, Any] | None = None,
-                   ttl_s: int | None = None) -> Call:
+                   ttl_s: int | None = None, map_revision: int | None = None,
+                   follow_map: bool | None = None) -> Call:
     body: dict[str, Any] = {"map_id": str(map_id), "mode": mode, "params": dict(params or {})}
     if seed is not None:
         body["seed"] = seed
+    if map_revision is not None:
+        body["map_revision"] = int(map_revision)
+    if follow_map is not None:
+        body["follow_map"] = bool(follow_map)
     if ttl_s is not None:
         body["ttl_s"] = int(ttl_s)
     if navigation is not None:

@@ -103,7 +103,7 @@ class Routes(ABC):
 
     def restore_revision(self, map_id: str, revision: int) -> Map:
         """Make ``revision`` the map's current revision again (new sessions use it; open
-        ones keep theirs); returns the map."""
+        ones that follow the map move to it); returns the map."""
         return self._call(rq.restore_revision(map_id, revision))
 
     def drop_revision(self, map_id: str, revision: int) -> None:
@@ -118,16 +118,21 @@ class Routes(ABC):
                        params: dict[str, Any] | None = None,
                        seed: int | None = None,
                        navigation: dict[str, Any] | None = None,
-                       ttl_s: int | None = None) -> Session:
+                       ttl_s: int | None = None, map_revision: int | None = None,
+                       follow_map: bool | None = None) -> Session:
         """Open a session on a built map; the returned Session carries its token.
 
         ``navigation`` (``route_id``, optionally ``from_node``, ``to_node`` and ``params``)
         makes the session follow a ready route: each pose then carries the path following.
         ``ttl_s``: seconds without a frame or keep-alive after which it expires (the
-        server's default when None).
+        server's default when None). The session follows the map to each new revision
+        (between two frames, keeping its state) unless ``follow_map`` is False or it pins
+        ``map_revision``, a recorded revision it then stays on.
         """
         return self._call(rq.create_session(map_id, mode=mode, params=params, seed=seed,
-                                            navigation=navigation, ttl_s=ttl_s))
+                                            navigation=navigation, ttl_s=ttl_s,
+                                            map_revision=map_revision,
+                                            follow_map=follow_map))
 
     def create_route(self, map_id: str, odometry: bytes, *, name: str = "route",
                      params: dict[str, Any] | None = None,

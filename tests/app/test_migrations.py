@@ -194,3 +194,46 @@ def test_0010_lists_the_current_revision_of_every_built_map(database_url):
             assert conn.execute(text("SELECT count(*) FROM map_images")).scalar() == 4
     finally:
         engine.dispose()
+
+
+def test_0011_keeps_earlier_sessions_on_their_revision_and_their_poses(database_url):
+    """Sessions created before 0011 were fixed to their revision and stay so (they do not
+    follow their map); their poses name no revision of their own (they read back with
+    the session's). Downgrading drops the two columns and nothing else."""
+    import uuid
+    from datetime import UTC, datetime
+
+    from sqlalchemy import text
+
+    engine = make_engine(database_url)
+    sid, mid = uuid.uuid4(), uuid.uuid4()
+    now = datetime.now(UTC)
+    ids = (lambda u: u.hex) if engine.dialect.name == "sqlite" else (lambda u: u)
+    try:
+        migrate.upgrade(engine, "0006")  # a pose as the 0007 test stores one
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                              "VALUES (:id, 'm', 'ready', 1, :t)"), {"id": ids(mid), "t": now})
+            conn.execute(text(
+                "INSERT INTO sessions (id, map_id, map_revision, mode, params, seed, token_hash,"
+                " frames_processed, frames_failed, created_at, updated_at) VALUES (:id, :m, 1,"
+                " 'hybrid', '{}', 1, 'h', 1, 0, :t, :t)"), {"id": ids(sid), "m": ids(mid), "t": now})
+            conn.execute(text(
+                "INSERT INTO pose_estimates (session_id, seq, received_at, x, y, lat, lon, "
+                "sigma_x, sigma_y, cov_xx, cov_xy, cov_yx, cov_yy, feature, next_feature, "
+                "n_particles, status, best_image, decode_ms, processing_ms, latency_ms) VALUES "
+                "(:s, 0, :t, 0, 0, 41, -83, 2, 2, 4, 0, 0, 4, 'sift', 'sift', 60, 'tracking', 3,"
+                " 1, 1, 1)"), {"s": ids(sid), "t": now})
+        migrate.upgrade(engine, "0010")
+        migrate.upgrade(engine)
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT follows_map FROM sessions")).scalar() in (False, 0)
+            assert conn.execute(text("SELECT map_revision FROM pose_estimates")).one() == (
+                None,)
+        migrate.downgrade(engine, "0010")
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT count(*) FROM pose_estimates")).scalar() == 1
+            assert conn.execute(text("SELECT map_revision FROM sessions")).scalar() == 1
+        assert "follows_map" not in {c["name"] for c in inspect(engine).get_columns("sessions")}
+    finally:
+        engine.dispose()

@@ -190,6 +190,13 @@ def test_session_commands(vloc, sdk, shots, dataset_dir, tmp_path):
 
     shown = vloc("session", "show", session_id, "--token", token).stdout
     assert "mode hybrid" in shown and "last pose: seq 11" in shown
+    assert "(revision 1, follows the map)" in shown
+    pinned, _ = vloc("session", "create", m.id, "--revision", "1").stdout.split()
+    stays, _ = vloc("session", "create", m.id, "--no-follow").stdout.split()
+    assert [(sdk.get_session(s).map_revision, sdk.get_session(s).follows_map)
+            for s in (pinned, stays)] == [(1, False), (1, False)]
+    assert "(revision 1, stays on it)" in vloc("session", "show", pinned).stdout
+    vloc("session", "create", m.id, "--revision", "7", code=1)
     stats = json.loads(vloc("session", "show", session_id, "--json").stdout)
     assert stats["frames_processed"] == 6 and stats["seed"] == 4
     vloc("session", "reset", session_id)
