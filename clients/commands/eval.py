@@ -26,7 +26,9 @@ def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
 
 @click.command("eval")
 @click.argument("dataset", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--map-pass", type=int, help="Pass number whose images build the map.")
+@click.option("--map-pass", "map_pass_text", metavar="N[,N...]",
+              help="Pass number whose images build the map; several (1,3) make a map of "
+                   "several flights.")
 @click.option("--query-pass", type=int, help="Pass number replayed as the query sequence.")
 @click.option("--split", "rule", type=click.Choice(["pass", "alternate"]), default="pass",
               show_default=True, help="Split by pass, or alternate images (even map, odd query).")
@@ -61,7 +63,7 @@ def _csv(value: str, allowed: tuple[str, ...], what: str) -> list[str]:
                    "with the machine's load (a small matrix product that waits for a busy "
                    "core costs many times its work), as the service's workers run.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
-def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photometric, starts,
+def eval_cmd(dataset: Path, map_pass_text, query_pass, rule, modes, configs, photometric, starts,
              skip, seed, param_items, retrieval_grid, plot, use_metadata, gps_accuracy,
              heading_sigma, threads, as_json) -> None:
     """Run the localisers over DATASET (a folder of geotagged images, optionally with a CSV
@@ -88,6 +90,7 @@ def eval_cmd(dataset: Path, map_pass, query_pass, rule, modes, configs, photomet
     if photometric not in VARIANTS:
         raise click.BadParameter(f"valid: {', '.join(VARIANTS)}", param_hint="--photometric")
     params = parse_params(param_items)
+    map_pass = _passes(map_pass_text)
     say = (lambda *a, **k: None) if as_json else click.echo
     try:
         exp = load_experiment(dataset, rule=rule, map_pass=map_pass, query_pass=query_pass,
@@ -186,3 +189,15 @@ def _metadata_summary(exp, metas, kinds: tuple[str, ...], skip: int) -> dict:
         text += f"; GPS alone: mean {err.mean():.1f} m, median {np.median(err):.1f} m"
     out["text"] = text
     return out
+
+
+def _passes(text: str | None) -> int | tuple[int, ...] | None:
+    """``--map-pass``: one pass number, or several separated by commas."""
+    if text is None:
+        return None
+    try:
+        passes = tuple(int(p) for p in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: pass numbers separated by commas, e.g. 1,3",
+                                 param_hint="--map-pass") from None
+    return passes[0] if len(passes) == 1 else passes

@@ -278,6 +278,15 @@ def eval_json(dataset, *args) -> dict:
 FIGURES = ("mean_error_m", "median_error_m", "sift_step_share", "within_25m")
 
 
+def test_eval_takes_several_map_passes_and_refuses_what_is_not_one(dataset_dir):
+    bad = CliRunner().invoke(cli, ["eval", str(dataset_dir), "--map-pass", "1,x"])
+    assert bad.exit_code == 2 and "pass numbers separated by commas" in bad.output
+    both = CliRunner().invoke(cli, ["eval", str(dataset_dir), "--map-pass", "1,2",
+                                    "--query-pass", "2"])
+    assert both.exit_code == 1 and "pass 2 is both a map pass and the query pass" in \
+        both.output
+
+
 @pytest.fixture(scope="module")
 def replayed(live_server, dataset_dir) -> dict:
     """hybrid and sift replayed over HTTP on a map built by the replay itself."""

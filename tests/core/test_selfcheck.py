@@ -111,6 +111,27 @@ def test_self_check_accepts_the_right_geometry_with_its_figures(surveyed):
     assert figures["every_image_mean_m"] >= figures["mean_m"]
 
 
+def test_a_map_of_two_flights_gets_the_figures_of_each(surveyed):
+    """The survey's first five images flown in the morning, the rest in the afternoon: the
+    check reports each flight's registered figures, which make up the map's."""
+    s, data, geo = surveyed
+    hour = 3600.0
+    times = np.where(np.arange(len(s)) < 5, 8 * hour, 15 * hour) + np.arange(len(s))
+    flown = replace(data, captured_at=times)
+    figures = self_check(flown, replace(geo, self_check={})).self_check
+    per_image = _per_image(data, replace(geo, self_check={}))
+    flights = figures["flights"]
+    assert [(f["flight"], f["images"]) for f in flights] == [(0, 5), (1, len(s) - 5)]
+    for f, part in zip(flights, (per_image[:5], per_image[5:]), strict=True):
+        errors = np.array([e for e, _ in part if e is not None])
+        assert f["registered"] == pytest.approx(len(errors) / len(part))
+        assert f["mean_m"] == pytest.approx(errors.mean())
+        assert f["median_m"] == pytest.approx(np.median(errors))
+        assert f["within_5m"] == pytest.approx(np.mean(errors <= 5.0))
+    # one flight: no per-flight figures
+    assert "flights" not in geo.self_check
+
+
 @pytest.mark.parametrize("shift", [(30.0, 0.0, 0.0), (0.0, -25.0, 10.0)],
                          ids=["30 m east", "25 m south, 10 m up"])
 def test_self_check_refuses_a_geometry_that_places_the_images_wrong(surveyed, shift):

@@ -28,6 +28,7 @@ import math
 
 import numpy as np
 
+from .flights import flight_labels
 from .geometry import MapGeometry
 from .image import WORK_SIZE
 from .localisers.refine import refine_sift
@@ -79,7 +80,9 @@ def self_check(data: MapData, geometry: MapGeometry, *, seed: int = 0) -> MapGeo
     ``sigma_m`` (the standard deviation registrations are fused with) and ``trusted``, all
     over the placed images; and ``every_image_mean_m``, ``every_image_median_m`` and
     ``every_image_within_5m`` over a spread sample of every map image, placed or not
-    (:func:`_localise_own`, an image no pose reaches counted at its floor).
+    (:func:`_localise_own`, an image no pose reaches counted at its floor). A map of several
+    flights adds ``flights``: per flight (``flight``, numbered in time order), its checked
+    ``images``, ``registered`` share and their ``mean_m``, ``median_m`` and ``within_5m``.
     """
     positions = np.asarray(data.positions)
     placed = np.flatnonzero(geometry.reconstructed)
@@ -115,12 +118,36 @@ def self_check(data: MapData, geometry: MapGeometry, *, seed: int = 0) -> MapGeo
     figures.update(every_image_mean_m=float(every.mean()),
                    every_image_median_m=float(np.median(every)),
                    every_image_within_5m=float(np.mean(every <= 5.0)))
+    flights = _per_flight(data, sample.tolist(), checked)
+    if flights:
+        figures["flights"] = flights
     figures["trusted"] = ok = trusted(figures, geometry.gps_rms)
     figures["sigma_m"] = (max(SIGMA_FLOOR, 1.25 * figures["median_m"]) if len(errors_a)
                           else math.nan)
     geometry.self_check = figures
     return geometry if ok else None
 
+
+
+def _per_flight(data: MapData, sample: list[int],
+                checked: dict[int, tuple[float | None, float]]) -> list[dict]:
+    """The registered figures of each flight of a map of several
+    (:func:`workers.core.flights.flight_labels`); none for a map of one flight."""
+    labels = flight_labels(data.captured_at)
+    found = sorted({int(labels[i]) for i in sample if labels[i] >= 0})
+    if len(found) < 2:
+        return []
+    out = []
+    for flight in found:
+        mine = [i for i in sample if labels[i] == flight]
+        errors = np.array([checked[i][0] for i in mine if checked[i][0] is not None])
+        entry = {"flight": flight, "images": len(mine),
+                 "registered": len(errors) / len(mine)}
+        if len(errors):
+            entry.update(mean_m=float(errors.mean()), median_m=float(np.median(errors)),
+                         within_5m=float(np.mean(errors <= 5.0)))
+        out.append(entry)
+    return out
 
 
 def _localise_own(data: MapData, i: int, k: int) -> tuple[float | None, float]:

@@ -184,12 +184,30 @@ def test_pass_split_and_its_errors(tmp_path):
     assert split_by_pass(ds, 3, 1) == (q, m)
     with pytest.raises(DatasetError, match=r"pass 2 has no images; passes present: 1 \(3"):
         split_by_pass(ds, 1, 2)
-    with pytest.raises(DatasetError, match="both 1"):
+    with pytest.raises(DatasetError, match="pass 1 is both a map pass and the query pass"):
         split_by_pass(ds, 1, 1)
     single = tmp_path / "single"
     single.mkdir()
     with pytest.raises(DatasetError, match="only pass 4"):
         split(load_dataset(_line(single, 2, [4, 4])))
+
+
+def test_a_map_of_several_passes(tmp_path):
+    """A map of several flights: its images pass by pass in the order named, each pass in
+    capture order; the query defaults to the first pass not in the map."""
+    ds = load_dataset(_line(tmp_path, 8, [1, 2, 3, 1, 2, 3, 4, 2]))
+    m, q = split(ds, map_pass=(2, 1))
+    assert [im.pass_ for im in m] == [2, 2, 2, 1, 1]
+    assert [im.name for im in m[:3]] == ["f7.jpg", "f4.jpg", "f1.jpg"]
+    assert {im.pass_ for im in q} == {3}
+    assert split(ds, map_pass=[1, 2], query_pass=4)[1] == [im for im in ds.images
+                                                          if im.pass_ == 4]
+    with pytest.raises(DatasetError, match="pass 2 is both"):
+        split_by_pass(ds, (1, 2), 2)
+    with pytest.raises(DatasetError, match="name each pass once"):
+        split_by_pass(ds, (1, 1), 3)
+    with pytest.raises(DatasetError, match="pass 5 has no images"):
+        split_by_pass(ds, (1, 5), 3)
 
 
 def test_positions_enu_known_answer_and_reference(tmp_path):

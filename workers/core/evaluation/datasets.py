@@ -14,6 +14,7 @@ import math
 import os
 import re
 from collections import Counter
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -197,17 +198,23 @@ def load_dataset(folder: str | Path, *, csv_path: str | Path | None = None) -> D
                    images=tuple(_capture_order(images)), skipped=tuple(skipped))
 
 
-def split_by_pass(ds: Dataset, map_pass: int, query_pass: int,
+def split_by_pass(ds: Dataset, map_pass: int | Sequence[int], query_pass: int,
                   ) -> tuple[list[DatasetImage], list[DatasetImage]]:
-    """Images of ``map_pass`` and of ``query_pass``, each in capture order."""
+    """Images of ``map_pass`` and of ``query_pass``, each in capture order.
+
+    ``map_pass`` may name several passes: a map of several flights (over the same ground in
+    other light, say), its images pass by pass in the order given."""
     _require_passes(ds)
-    if map_pass == query_pass:
-        raise DatasetError(f"map and query pass are both {map_pass}")
+    map_passes = [map_pass] if isinstance(map_pass, int) else list(map_pass)
+    if not map_passes or len(set(map_passes)) < len(map_passes):
+        raise DatasetError(f"map passes {map_passes}: name each pass once")
+    if query_pass in map_passes:
+        raise DatasetError(f"pass {query_pass} is both a map pass and the query pass")
     present = ", ".join(f"{p} ({n} images)" for p, n in ds.passes.items())
-    for p in (map_pass, query_pass):
+    for p in (*map_passes, query_pass):
         if p not in ds.passes:
             raise DatasetError(f"pass {p} has no images; passes present: {present}")
-    return ([im for im in ds.images if im.pass_ == map_pass],
+    return ([im for p in map_passes for im in ds.images if im.pass_ == p],
             [im for im in ds.images if im.pass_ == query_pass])
 
 
@@ -219,7 +226,7 @@ def split_alternate(ds: Dataset) -> tuple[list[DatasetImage], list[DatasetImage]
     return list(ds.images[0::2]), list(ds.images[1::2])
 
 
-def split(ds: Dataset, rule: str = "pass", map_pass: int | None = None,
+def split(ds: Dataset, rule: str = "pass", map_pass: int | Sequence[int] | None = None,
           query_pass: int | None = None) -> tuple[list[DatasetImage], list[DatasetImage]]:
     """Split into (map images, query images) by a named rule.
 
@@ -237,7 +244,8 @@ def split(ds: Dataset, rule: str = "pass", map_pass: int | None = None,
     if map_pass is None:
         map_pass = passes[0]
     if query_pass is None:
-        others = [p for p in passes if p != map_pass]
+        used = {map_pass} if isinstance(map_pass, int) else set(map_pass)
+        others = [p for p in passes if p not in used]
         if not others:
             raise DatasetError(f"{ds.folder.name} has only pass {map_pass}; "
                                "the query needs another pass")

@@ -58,7 +58,8 @@ def truth_positions(images: list[DatasetImage], map_data: MapData) -> np.ndarray
     return np.column_stack([np.atleast_1d(e), np.atleast_1d(n)])
 
 
-def load_experiment(folder: str | Path, *, rule: str = "pass", map_pass: int | None = None,
+def load_experiment(folder: str | Path, *, rule: str = "pass",
+                    map_pass: int | tuple[int, ...] | None = None,
                     query_pass: int | None = None, photometric: str = "none",
                     seed: int = 0, geometry: bool = True) -> Experiment:
     """Load, split, build the map and prepare the (possibly relit) query frames; the map
