@@ -111,7 +111,9 @@ def plan_tie_pairs(database_url: str, map_id: str, tie_dir: str) -> dict:
     kept = tiepairs.keep_valid(tie_dir, ids)
     _forget_tie_points(Path(tie_dir), set(ids))
     pairs = tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
-                          [img["alt"] for img in images])
+                          [img["alt"] for img in images],
+                          [np.nan if img["captured_at"] is None else img["captured_at"]
+                           for img in images])
     return {"image_ids": ids, "pairs": [p for p in pairs if p not in kept],
             "planned": len(pairs)}
 

@@ -216,15 +216,15 @@ class MapData:
         return self._steps
 
     def median_spacing(self) -> float:
-        """Median distance from each map image to its nearest neighbour (metres).
+        """Median distance from each map image to its nearest neighbour of the same flight
+        (metres; :func:`workers.core.flights.flight_spacing`: a second flight over the same
+        ground leaves it as it was).
 
         Computed once: refinement asks for it on every step of a map without geometry."""
         if self._spacing is None:
-            if len(self) < 2:
-                self._spacing = 1.0
-            else:
-                d, _ = self.tree.query(np.asarray(self.positions), k=2)
-                self._spacing = float(np.median(d[:, 1]))
+            from .flights import flight_spacing
+
+            self._spacing = flight_spacing(np.asarray(self.positions), self.captured_at)
         return self._spacing
 
     @classmethod

@@ -16,9 +16,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
+from ..flights import flight_spacing
 from ..image import WORK_SIZE
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .mapgeometry import MapGeometry
@@ -43,21 +43,23 @@ TIE_NEIGHBOURS: int = 12
 (within :func:`tie_reach`)."""
 
 
-def tie_reach(positions: np.ndarray) -> float:
+def tie_reach(positions: np.ndarray, times: np.ndarray | None = None) -> float:
     """How far apart (m) two map images may be for their tie points to be matched: views
     overlap over a few spacings, and surveys have gaps: six median spacings to the nearest
-    image (lewis-uav, with gaps of up to 96 m: 23 of 28 images placed, 20 at 4.5)."""
-    # A KD-tree, not a distance matrix: the matrix of a 50,000-image map is 20 GB.
-    nearest, _ = cKDTree(positions).query(positions, k=2)
-    return max(6.0 * float(np.median(nearest[:, 1])), 1.0)
+    image of the same flight (lewis-uav, with gaps of up to 96 m: 23 of 28 images placed, 20
+    at 4.5; a second flight over the same waypoints does not shrink it,
+    :func:`~workers.core.flights.flight_spacing`)."""
+    return max(6.0 * flight_spacing(positions, times), 1.0)
 
 
-def tie_pairs(positions: np.ndarray) -> list[tuple[int, int]]:
-    """The pairs of map images whose tie points :func:`build_geometry` matches."""
+def tie_pairs(positions: np.ndarray, times: np.ndarray | None = None,
+              ) -> list[tuple[int, int]]:
+    """The pairs of map images whose tie points :func:`build_geometry` matches (``times``:
+    capture times, NaN unknown, which tell the map's flights apart)."""
     positions = np.asarray(positions, np.float64)
     if len(positions) < 3:
         return []
-    return candidate_pairs(positions, max_distance=tie_reach(positions),
+    return candidate_pairs(positions, max_distance=tie_reach(positions, times),
                            neighbours=TIE_NEIGHBOURS)
 
 
@@ -102,7 +104,7 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
         return None
     # One BLAS thread, as in the engine's workers: a map build is the same wherever it runs.
     with threadpool_limits(limits=1, user_api="blas"):
-        pairs = match_pairs(keypoints, descriptors, tie_pairs(positions), seed=seed,
+        pairs = match_pairs(keypoints, descriptors, tie_pairs(positions, times), seed=seed,
                             known=known_pairs)
         structure = reconstruct(keypoints, pairs, positions, altitudes, focal_px, seed=seed,
                                 times=times, known_tiles=known_tiles)
