@@ -176,16 +176,22 @@ def _revision(features, revision: int, origin: GeoOrigin) -> MapData:
                         revision=revision, geometry=False)
 
 
-@pytest.mark.parametrize("mode", ["hybrid", "sift"])
-def test_a_state_moves_to_a_new_revision_of_its_map_and_keeps_tracking(world, map_features,
-                                                                        mode):
-    """A session's state taken on revision 1 (the first 40 images) is taken up by
-    revision 2 (all 56, its frame's origin 180 m east and 40 m north of revision 1's):
-    every particle stays at the same place on the ground, and the filter goes on
-    tracking into the part of the map only revision 2 holds."""
-    first = _revision(map_features[:40], 1, ORIGIN)
+@pytest.fixture(scope="module")
+def revisions(map_features) -> tuple[MapData, MapData]:
+    """Revision 1 of map "m" (the first 40 images) and revision 2 (all 56, its frame's
+    origin 180 m east and 40 m north of revision 1's)."""
     lat, lon = ORIGIN.to_wgs84(180.0, 40.0)
-    second = _revision(map_features, 2, GeoOrigin(float(lat), float(lon), 310.0))
+    return (_revision(map_features[:40], 1, ORIGIN),
+            _revision(map_features, 2, GeoOrigin(float(lat), float(lon), 310.0)))
+
+
+@pytest.mark.parametrize("mode", ["hybrid", "sift"])
+def test_a_state_moves_to_a_new_revision_of_its_map_and_keeps_tracking(world, revisions,
+                                                                        mode):
+    """A session's state taken on revision 1 is taken up by revision 2: every particle
+    stays at the same place on the ground, and the filter goes on tracking into the part
+    of the map only revision 2 holds."""
+    first, second = revisions
     queries, truth = _queries(world, start=250.0, n=50)
     a = make_localiser(mode, first, {}, seed=4)
     for q in queries[:12]:
@@ -205,13 +211,10 @@ def test_a_state_moves_to_a_new_revision_of_its_map_and_keeps_tracking(world, ma
     assert np.median(errors[-10:]) <= 10.0, errors
 
 
-def test_a_state_of_another_map_or_an_unrecorded_revision_is_refused(map_features):
-    first = _revision(map_features[:40], 1, ORIGIN)
+def test_a_state_of_another_map_or_an_unrecorded_revision_is_refused(revisions):
+    first, second = revisions
     blob = make_localiser("hybrid", first, {}, seed=0).get_state()
-    other = assemble_map(names=[f"m{i}" for i in range(40)], lats=[48.6] * 40,
-                         lons=9.0 + np.arange(40) * 1e-4, alts=[300.0] * 40,
-                         features=map_features[:40], origin=ORIGIN, map_id="other",
-                         revision=1, geometry=False)
+    other = replace(first, map_id="other")
     with pytest.raises(ValueError, match="another map"):
         make_localiser("hybrid", other, {}, seed=0).set_state(blob)
     # a state saved before states named their revision: only the same map size is taken
@@ -221,8 +224,7 @@ def test_a_state_of_another_map_or_an_unrecorded_revision_is_refused(map_feature
     old = pack_state(arrays, meta)
     make_localiser("hybrid", first, {}, seed=0).set_state(old)
     with pytest.raises(ValueError, match="another map"):
-        make_localiser("hybrid", _revision(map_features, 2, ORIGIN), {},
-                       seed=0).set_state(old)
+        make_localiser("hybrid", second, {}, seed=0).set_state(old)
 
 
 def test_reset_and_initial_pose(world, small_map):
