@@ -45,6 +45,9 @@ class Metrics:
             "vloc_worker_restarts", "Worker processes replaced since start", registry=r)
         self.build_jobs = Counter(
             "vloc_build_jobs", "Finished map build jobs", ["status"], registry=r)
+        self.session_moves = Counter(
+            "vloc_session_moves", "Sessions moved to their map's new revision, or kept where "
+            "they were when the move failed", ["outcome"], registry=r)
 
 
 class MetricsMiddleware:

@@ -403,10 +403,12 @@ class SessionRuntime:
             await self.control(live, "move", spec=spec)
         except Exception as exc:  # noqa: BLE001 - the session stays where it is
             live.refused_revision = revision
+            self.metrics.session_moves.labels("failed").inc()
             log.warning("session %s stays on map revision %d: moving to %d failed (%s)",
                         live.id, live.spec.revision, revision, exc)
             return False
         previous, live.spec = live.spec.revision, spec
+        self.metrics.session_moves.labels("moved").inc()
         await asyncio.to_thread(self._write_revision, uuid.UUID(live.id), revision)
         log.info("session %s moved from map revision %d to %d", live.id, previous, revision)
         return True

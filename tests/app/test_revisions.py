@@ -206,6 +206,8 @@ def test_sessions_follow_their_map_to_each_new_revision_and_pinned_ones_stay(mod
     # revision 2 is no longer used by an active session that follows; the one that stays
     # holds it
     assert [x["active_sessions"] for x in _revisions(c, map_id)] == [1, 1, 1]
+    metrics = c.get("/metrics", headers=ADMIN).text
+    assert 'vloc_session_moves_total{outcome="moved"} 2.0' in metrics
 
 
 def test_a_pinned_revision_must_exist_and_a_pinned_session_cannot_follow(module_client,
