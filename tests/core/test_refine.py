@@ -236,6 +236,29 @@ def test_uav_world_frames_register_with_orb(uav_world):
     assert np.median(errors) < 1.0
 
 
+def test_refine_orb_registers_nothing_where_the_best_image_matches_thinly(uav_world,
+                                                                         monkeypatch):
+    """Fewer than ORB_FIRST_MATCHES ratio-test matches with the best-ranked image: no pose,
+    and the images ranked after it are not matched at all."""
+    from vloc.workers.core.localisers import refine as refine_module
+
+    data = uav_world.map_data
+    q, truth = uav_world.queries[3], uav_world.truth[3]
+    near = np.argsort(np.linalg.norm(np.asarray(data.positions) - truth, axis=1))[:3]
+    shape = q.frame.grey.shape
+    assert refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape) is not None
+    real, asked = refine_module.hamming_ratio_matches, []
+
+    def thinned(a, b, ratio):
+        asked.append(len(b))
+        m = real(a, b, ratio=ratio)
+        return m[:refine_module.ORB_FIRST_MATCHES - 1]
+
+    monkeypatch.setattr(refine_module, "hamming_ratio_matches", thinned)
+    assert refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape) is None
+    assert len(asked) == 1
+
+
 def test_refine_orb_needs_geometry_and_matches(uav_world):
     data = uav_world.map_data
     q = uav_world.queries[3]
