@@ -100,9 +100,18 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     ctx.builds.loop = loop
     ctx.routes.loop = loop
     await ctx.hub.start()
-    sweeper = asyncio.create_task(_expire_sessions(ctx))
-    settler = asyncio.create_task(_settle_gone(ctx)) if ctx.engine.shared else None
-    follower = asyncio.create_task(_follow_maps(ctx))
+    # idle sessions released; sessions moved to the revision another API process built or
+    # restored (this process tells its own at once); on a shared engine, the frames dead
+    # API processes left queued reported
+    sweeper = asyncio.create_task(_every(
+        min(SWEEP_INTERVAL_S, ctx.settings.session_ttl_s / 4), ctx.runtime.expire_idle,
+        "expiring idle sessions failed"))
+    follower = asyncio.create_task(_every(
+        FOLLOW_INTERVAL_S, ctx.runtime.follow_maps,
+        "moving sessions to their maps' new revisions failed"))
+    settler = asyncio.create_task(_every(
+        SETTLE_INTERVAL_S, ctx.runtime.settle_gone,
+        "settling the frames of dead API processes failed")) if ctx.engine.shared else None
     log.info("vloc ready", extra={"workers": ctx.engine.n_workers,
                                   "database": ctx.db_engine.dialect.name})
     try:
@@ -135,36 +144,15 @@ async def drain(app: FastAPI, timeout: float | None = None) -> None:
     await ctx.hub.going_away(STREAMS_CLOSE_TIMEOUT_S)
 
 
-async def _expire_sessions(ctx: AppContext) -> None:
-    """Release the sessions idle past their time to live, every so often."""
+async def _every(interval_s: float, work, failed: str) -> None:
+    """Run ``work()`` every ``interval_s`` seconds until cancelled; a round that fails is
+    logged (``failed``) and the next one tries again."""
     while True:
-        await asyncio.sleep(min(SWEEP_INTERVAL_S, ctx.settings.session_ttl_s / 4))
+        await asyncio.sleep(interval_s)
         try:
-            await ctx.runtime.expire_idle()
+            await work()
         except Exception:  # noqa: BLE001 - the next round tries again
-            log.exception("expiring idle sessions failed")
-
-
-async def _follow_maps(ctx: AppContext) -> None:
-    """Move the sessions that follow their map to its new revision when another API process
-    built or restored it (this process tells its own sessions at once), every so often."""
-    while True:
-        await asyncio.sleep(FOLLOW_INTERVAL_S)
-        try:
-            await ctx.runtime.follow_maps()
-        except Exception:  # noqa: BLE001 - the next round tries again
-            log.exception("moving sessions to their maps' new revisions failed")
-
-
-async def _settle_gone(ctx: AppContext) -> None:
-    """Shared engine: report the frames that dead API processes left queued, every so
-    often."""
-    while True:
-        await asyncio.sleep(SETTLE_INTERVAL_S)
-        try:
-            await ctx.runtime.settle_gone()
-        except Exception:  # noqa: BLE001 - the next round tries again
-            log.exception("settling the frames of dead API processes failed")
+            log.exception(failed)
 
 
 def _prepare_database(ctx: AppContext) -> None:

@@ -26,6 +26,7 @@ import logging
 import threading
 import time
 import uuid
+from dataclasses import replace
 from datetime import datetime
 
 from sqlalchemy.orm import Session, sessionmaker
@@ -394,8 +395,6 @@ class SessionRuntime:
             live.moving = None
 
     async def _move(self, live: LiveSession, revision: int) -> bool:
-        from dataclasses import replace
-
         spec = replace(live.spec, revision=revision, map_folder=str(
             self.settings.packed_map_dir(live.spec.map_id, revision)))
         try:

@@ -69,6 +69,27 @@ def test_each_step_downgrades_and_upgrades_again(database_url):
         engine.dispose()
 
 
+def _a_session_with_a_pose_at_0006(engine, sid, mid, now) -> None:
+    """Upgrade to 0006 and store a map, a session on it and one pose as 0006 had them."""
+    from sqlalchemy import text
+
+    ids = (lambda u: u.hex) if engine.dialect.name == "sqlite" else (lambda u: u)
+    migrate.upgrade(engine, "0006")
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                          "VALUES (:id, 'm', 'ready', 1, :t)"), {"id": ids(mid), "t": now})
+        conn.execute(text(
+            "INSERT INTO sessions (id, map_id, map_revision, mode, params, seed, token_hash,"
+            " frames_processed, frames_failed, created_at, updated_at) VALUES (:id, :m, 1,"
+            " 'hybrid', '{}', 1, 'h', 1, 0, :t, :t)"), {"id": ids(sid), "m": ids(mid), "t": now})
+        conn.execute(text(
+            "INSERT INTO pose_estimates (session_id, seq, received_at, x, y, lat, lon, "
+            "sigma_x, sigma_y, cov_xx, cov_xy, cov_yx, cov_yy, feature, next_feature, "
+            "n_particles, status, best_image, decode_ms, processing_ms, latency_ms) VALUES "
+            "(:s, 0, :t, 0, 0, 41, -83, 2, 2, 4, 0, 0, 4, 'sift', 'sift', 60, 'tracking', 3,"
+            " 1, 1, 1)"), {"s": ids(sid), "t": now})
+
+
 def test_0007_keeps_stored_poses_and_gives_them_an_accuracy(database_url):
     """A pose stored at 0006 is still there at 0007, with the 68 % radius of its
     covariance, no heading and an active session with the default time to live."""
@@ -82,22 +103,7 @@ def test_0007_keeps_stored_poses_and_gives_them_an_accuracy(database_url):
     sid, mid = uuid.uuid4(), uuid.uuid4()
     now = datetime.now(UTC)
     try:
-        migrate.upgrade(engine, "0006")
-        with engine.begin() as conn:
-            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
-                              "VALUES (:id, 'm', 'ready', 1, :t)"), {"id": mid.hex, "t": now}
-                         if engine.dialect.name == "sqlite" else {"id": mid, "t": now})
-            ids = (lambda u: u.hex) if engine.dialect.name == "sqlite" else (lambda u: u)
-            conn.execute(text(
-                "INSERT INTO sessions (id, map_id, map_revision, mode, params, seed, token_hash,"
-                " frames_processed, frames_failed, created_at, updated_at) VALUES (:id, :m, 1,"
-                " 'hybrid', '{}', 1, 'h', 1, 0, :t, :t)"), {"id": ids(sid), "m": ids(mid), "t": now})
-            conn.execute(text(
-                "INSERT INTO pose_estimates (session_id, seq, received_at, x, y, lat, lon, "
-                "sigma_x, sigma_y, cov_xx, cov_xy, cov_yx, cov_yy, feature, next_feature, "
-                "n_particles, status, best_image, decode_ms, processing_ms, latency_ms) VALUES "
-                "(:s, 0, :t, 0, 0, 41, -83, 2, 2, 4, 0, 0, 4, 'sift', 'sift', 60, 'tracking', 3,"
-                " 1, 1, 1)"), {"s": ids(sid), "t": now})
+        _a_session_with_a_pose_at_0006(engine, sid, mid, now)
         migrate.upgrade(engine)
         with engine.connect() as conn:
             pose = conn.execute(text("SELECT horizontal_accuracy_m, heading_deg, image_id, "
@@ -208,22 +214,8 @@ def test_0011_keeps_earlier_sessions_on_their_revision_and_their_poses(database_
     engine = make_engine(database_url)
     sid, mid = uuid.uuid4(), uuid.uuid4()
     now = datetime.now(UTC)
-    ids = (lambda u: u.hex) if engine.dialect.name == "sqlite" else (lambda u: u)
     try:
-        migrate.upgrade(engine, "0006")  # a pose as the 0007 test stores one
-        with engine.begin() as conn:
-            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
-                              "VALUES (:id, 'm', 'ready', 1, :t)"), {"id": ids(mid), "t": now})
-            conn.execute(text(
-                "INSERT INTO sessions (id, map_id, map_revision, mode, params, seed, token_hash,"
-                " frames_processed, frames_failed, created_at, updated_at) VALUES (:id, :m, 1,"
-                " 'hybrid', '{}', 1, 'h', 1, 0, :t, :t)"), {"id": ids(sid), "m": ids(mid), "t": now})
-            conn.execute(text(
-                "INSERT INTO pose_estimates (session_id, seq, received_at, x, y, lat, lon, "
-                "sigma_x, sigma_y, cov_xx, cov_xy, cov_yx, cov_yy, feature, next_feature, "
-                "n_particles, status, best_image, decode_ms, processing_ms, latency_ms) VALUES "
-                "(:s, 0, :t, 0, 0, 41, -83, 2, 2, 4, 0, 0, 4, 'sift', 'sift', 60, 'tracking', 3,"
-                " 1, 1, 1)"), {"s": ids(sid), "t": now})
+        _a_session_with_a_pose_at_0006(engine, sid, mid, now)
         migrate.upgrade(engine, "0010")
         migrate.upgrade(engine)
         with engine.connect() as conn:

@@ -20,6 +20,12 @@ async def _build_map(http: httpx.AsyncClient, shots) -> str:
     files = [("files", (s.name, s.jpeg, "image/jpeg")) for s in shots]
     r = await http.post(f"/v1/maps/{map_id}/images", files=files)
     assert r.status_code == 201 and len(r.json()["accepted"]) == len(shots), r.text
+    await _build(http, map_id)
+    return map_id
+
+
+async def _build(http: httpx.AsyncClient, map_id: str) -> dict:
+    """Build the map and wait for the job to end; the job, done."""
     job_id = (await http.post(f"/v1/maps/{map_id}/build")).json()["job_id"]
     for _ in range(1200):
         job = (await http.get(f"/v1/jobs/{job_id}")).json()
@@ -27,7 +33,7 @@ async def _build_map(http: httpx.AsyncClient, shots) -> str:
             break
         await asyncio.sleep(0.1)
     assert job["status"] == "done", job
-    return map_id
+    return job
 
 
 def test_map_build_and_a_streamed_sequence(server):
