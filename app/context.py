@@ -1,4 +1,5 @@
-"""What one running application holds: settings, database, engine, fan-out, runtime."""
+"""What one running application holds: settings, database, engine, fan-out, the live
+sessions, their frame intake, and the build and route runners."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ from vloc.app.metrics import Metrics
 if TYPE_CHECKING:
     from vloc.app.engine import Engine
     from vloc.app.jobs.service import BuildRunner
-    from vloc.app.sessions.runtime import SessionRuntime
+    from vloc.app.sessions.intake import FrameIntake
+    from vloc.app.sessions.registry import SessionRegistry
     from vloc.app.stream.hub import LocalHub
     from vloc.app.teach.service import RouteRunner
 
@@ -28,6 +30,7 @@ class AppContext:
     metrics: Metrics
     engine: Engine
     hub: LocalHub
-    runtime: SessionRuntime
+    sessions: SessionRegistry
+    intake: FrameIntake
     builds: BuildRunner
     routes: RouteRunner

@@ -23,8 +23,9 @@ from vloc.app.localize.router import router as localize_router
 from vloc.app.maps.router import router as maps_router
 from vloc.app.metrics import Metrics, MetricsMiddleware
 from vloc.app.security import hash_secret
+from vloc.app.sessions.intake import FrameIntake
+from vloc.app.sessions.registry import SessionRegistry
 from vloc.app.sessions.router import router as sessions_router
-from vloc.app.sessions.runtime import SessionRuntime
 from vloc.app.sessions.store import interrupt_left_queued
 from vloc.app.stream.hub import LocalHub
 from vloc.app.stream.router import router as stream_router
@@ -54,14 +55,16 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     metrics = Metrics()
     engine = engine_for(settings)
     hub = _make_hub(settings)
-    runtime = SessionRuntime(settings=settings, db_sessions=db_sessions, engine=engine,
-                             hub=hub, metrics=metrics)
-    engine.on_outcome = runtime.on_outcome
+    sessions = SessionRegistry(settings=settings, db_sessions=db_sessions, engine=engine,
+                               hub=hub, metrics=metrics)
+    intake = FrameIntake(settings=settings, db_sessions=db_sessions, sessions=sessions,
+                         engine=engine, hub=hub, metrics=metrics)
+    engine.on_outcome = intake.on_outcome
     ctx = AppContext(settings=settings, db_engine=db_engine, db_sessions=db_sessions,
                      admin_key_hash=hash_secret(ensure_admin_key(settings)), metrics=metrics,
-                     engine=engine, hub=hub, runtime=runtime,
+                     engine=engine, hub=hub, sessions=sessions, intake=intake,
                      builds=BuildRunner(settings, db_sessions, engine, metrics,
-                                        on_revised=runtime.map_revised),
+                                        on_revised=intake.following.map_revised),
                      routes=RouteRunner(settings, db_sessions, engine))
 
     app = FastAPI(title="vloc", version="0.1.0", lifespan=_lifespan, docs_url=None,
@@ -96,7 +99,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     loop = asyncio.get_running_loop()
     await asyncio.to_thread(_prepare_database, ctx)
     await asyncio.to_thread(ctx.engine.start)
-    ctx.runtime.start(loop)
+    ctx.intake.start(loop)
     ctx.builds.loop = loop
     ctx.routes.loop = loop
     await ctx.hub.start()
@@ -104,13 +107,13 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     # restored (this process tells its own at once); on a shared engine, the frames dead
     # API processes left queued reported
     sweeper = asyncio.create_task(_every(
-        min(SWEEP_INTERVAL_S, ctx.settings.session_ttl_s / 4), ctx.runtime.expire_idle,
+        min(SWEEP_INTERVAL_S, ctx.settings.session_ttl_s / 4), ctx.sessions.expire_idle,
         "expiring idle sessions failed"))
     follower = asyncio.create_task(_every(
-        FOLLOW_INTERVAL_S, ctx.runtime.follow_maps,
+        FOLLOW_INTERVAL_S, ctx.intake.following.follow_maps,
         "moving sessions to their maps' new revisions failed"))
     settler = asyncio.create_task(_every(
-        SETTLE_INTERVAL_S, ctx.runtime.settle_gone,
+        SETTLE_INTERVAL_S, ctx.intake.settle_gone,
         "settling the frames of dead API processes failed")) if ctx.engine.shared else None
     log.info("vloc ready", extra={"workers": ctx.engine.n_workers,
                                   "database": ctx.db_engine.dialect.name})
@@ -123,9 +126,9 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             settler.cancel()
         await ctx.builds.cancel_all()
         await ctx.routes.cancel_all()
-        await ctx.runtime.drain(ctx.settings.drain_timeout_s)
+        await ctx.intake.drain(ctx.settings.drain_timeout_s)
         await asyncio.to_thread(ctx.engine.close)
-        await asyncio.to_thread(ctx.runtime.stop)
+        await asyncio.to_thread(ctx.intake.stop)
         await asyncio.sleep(0)  # let the last publications run
         await ctx.hub.stop()
         ctx.db_engine.dispose()
@@ -138,8 +141,8 @@ async def drain(app: FastAPI, timeout: float | None = None) -> None:
     ``timeout``, by default ``VLOC_DRAIN_TIMEOUT_S``), let every stream send their
     messages, then close the streams with 1001 (going away)."""
     ctx: AppContext = app.state.ctx
-    await ctx.runtime.drain(ctx.settings.drain_timeout_s if timeout is None else timeout)
-    if (left := ctx.runtime.pending_total()):
+    await ctx.intake.drain(ctx.settings.drain_timeout_s if timeout is None else timeout)
+    if (left := ctx.intake.pending_total()):
         log.warning("closing the streams with %d frame(s) still unanswered", left)
     await ctx.hub.going_away(STREAMS_CLOSE_TIMEOUT_S)
 

@@ -164,7 +164,7 @@ def restore_revision(map_: MapDep, db: DbSession, ctx: Ctx,
     open sessions that follow the map move to it before their next frame (those that pin
     a revision keep theirs), images it does not hold wait for the next build."""
     history.restore_revision(db, map_=map_, revision=revision, settings=ctx.settings)
-    ctx.runtime.map_revised(str(map_.id), revision)
+    ctx.intake.following.map_revised(str(map_.id), revision)
     return service.read_map(db, map_=map_)
 
 

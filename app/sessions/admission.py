@@ -1,4 +1,4 @@
-"""What a session and a frame must satisfy to enter the runtime: the session's spec and its
+"""What a session and a frame must satisfy to be let in: the session's spec and its
 map revision on disk, and the frame's sequence number (never reused, never past the last)."""
 
 from __future__ import annotations

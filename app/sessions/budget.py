@@ -4,7 +4,7 @@ sessions.
 A frame's bytes are held from the moment its body starts to arrive until its outcome comes
 back: the body as it is read, the accepted frame until the engine takes it, the engine's
 own queue until a worker reads it. :class:`FrameBudget` counts the bodies being read; the
-runtime counts the frames accepted and not answered. A frame is let in only when both
+intake counts the frames accepted and not answered. A frame is let in only when both
 bounds (``VLOC_MAX_QUEUED_BYTES``, ``VLOC_MAX_QUEUED_FRAMES``) hold after it:
 
 - over a bound: 503 ``server-busy`` with ``Retry-After``, whoever sends it;

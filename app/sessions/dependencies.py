@@ -15,7 +15,7 @@ from vloc.app.problems import Problem, ProblemKind, not_found
 from vloc.app.security import matches, presented_secret
 from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.models import LocalisationSession
-from vloc.app.sessions.runtime import expired_problem
+from vloc.app.sessions.registry import expired_problem
 from vloc.app.validation import check_metadata
 
 
@@ -55,12 +55,12 @@ async def get_live_session(session_id: str, conn: HTTPConnection, ctx: Ctx,
     secret = presented_secret(conn)
     if secret is None:
         raise unauthenticated("a session token is required: Authorization: Bearer <token>")
-    live = await ctx.runtime.get(parse_id(session_id, "session"))
+    live = await ctx.sessions.get(parse_id(session_id, "session"))
     if live is None:
         raise not_found("session", session_id)
     authorise(secret, live.token_hash, ctx, session_id)
     if live.expired() and not live.arrivals:
-        await ctx.runtime.expire(live)
+        await ctx.sessions.expire(live)
         raise expired_problem(session_id)
     return live
 

@@ -52,7 +52,7 @@ class LiveSession:
     """The last frame accepted or keep-alive; the session expires ``ttl_s`` after it."""
 
     follows_map: bool = False
-    """Whether it moves to its map's new revision (:meth:`SessionRuntime.follow`)."""
+    """Whether it moves to its map's new revision (:meth:`app.sessions.following.MapFollowing.follow`)."""
     moving: asyncio.Future | None = None
     """Resolves once a move to another revision, under way, is done (or given up)."""
     refused_revision: int | None = None

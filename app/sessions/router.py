@@ -39,7 +39,7 @@ FAILED_FRAME_STATUS = {"bad_image": 422, "worker_died": 503, "not_open": 503, "e
 async def create_session(body: SessionCreate, ctx: Ctx, response: Response) -> SessionCreated:
     """Open a localisation session on a built map; the token is shown only here."""
     read, token = await service.create_session(db_sessions=ctx.db_sessions, body=body,
-                                               runtime=ctx.runtime)
+                                               sessions=ctx.sessions)
     response.headers["Location"] = f"/v1/sessions/{read.id}"
     return SessionCreated(**read.model_dump(), token=token)
 
@@ -48,20 +48,20 @@ async def create_session(body: SessionCreate, ctx: Ctx, response: Response) -> S
 def list_sessions(db: DbSession, ctx: Ctx, limit: int = Query(100, ge=1, le=1000),
                   offset: int = Query(0, ge=0, le=2**31)) -> list[SessionRead]:
     """Sessions, oldest first: ``limit`` of them from ``offset``."""
-    return service.list_sessions(db, runtime=ctx.runtime, limit=limit, offset=offset)
+    return service.list_sessions(db, sessions=ctx.sessions, limit=limit, offset=offset)
 
 
 @router.get("/{session_id}", response_model=SessionRead)
 def get_session(row: SessionDep, db: DbSession, ctx: Ctx) -> SessionRead:
     """A session: mode, parameters, state and time to live, counters, latency statistics
     and the last pose."""
-    return service.read_session(db, row=row, runtime=ctx.runtime)
+    return service.read_session(db, row=row, sessions=ctx.sessions)
 
 
 @router.delete("/{session_id}", status_code=204)
 def delete_session(row: SessionDep, db: DbSession, ctx: Ctx) -> Response:
     """Close and delete a session with its poses; its streams are closed."""
-    service.delete_session(db, row=row, runtime=ctx.runtime)
+    service.delete_session(db, row=row, sessions=ctx.sessions)
     return Response(status_code=204)
 
 
@@ -131,32 +131,32 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
     if declared is None:
         raise Problem(415, "send the frame as the raw body with Content-Type image/jpeg or "
                       "image/png", kind=ProblemKind.UNSUPPORTED_MEDIA_TYPE)
-    runtime = ctx.runtime
+    intake = ctx.intake
     limit = ctx.settings.max_frame_bytes
     try:
         captured = check_captured_at(captured_at)
         # the body's room is taken before it is read: bodies in flight are what fills memory
-        with runtime.budget.reading(live.id, _declared_size(request, limit)):
+        with intake.budget.reading(live.id, _declared_size(request, limit)):
             data = await read_body(request, limit)
             check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
-            seq, queued = await runtime.accept(live, data, seq=seq, captured_at=captured,
-                                               t0=t0, metadata=metadata, admitted=True)
+            seq, queued = await intake.accept(live, data, seq=seq, captured_at=captured,
+                                              t0=t0, metadata=metadata, admitted=True)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or ProblemKind.BAD_IMAGE).inc()
         raise
-    fut = runtime.waiter(live, seq) if wait else None
+    fut = intake.waiter(live, seq) if wait else None
     try:
         # Answered once the frame is recorded: an accepted frame survives a crash.
         await asyncio.shield(queued)
     except BaseException:  # refused, or the client went away
-        runtime.drop_waiter(live, seq)
+        intake.drop_waiter(live, seq)
         raise
     if fut is None:
         return JSONResponse({"seq": seq}, status_code=202)
     try:
         msg = await asyncio.wait_for(fut, ctx.settings.frame_wait_timeout_s)
     except TimeoutError:
-        runtime.drop_waiter(live, seq)
+        intake.drop_waiter(live, seq)
         raise Problem(504, f"no estimate for frame {seq} within "
                       f"{ctx.settings.frame_wait_timeout_s:g} s; it will still be streamed",
                       kind=ProblemKind.ESTIMATE_TIMEOUT, seq=seq) from None
@@ -176,7 +176,7 @@ def _declared_size(request: Request, limit: int) -> int:
 async def reset(live: LiveSessionDep, ctx: Ctx) -> SessionRead:
     """Global re-initialisation of the filter, after the frames already queued."""
     await _control(ctx, live, "reset")
-    ctx.runtime.restart_convergence(live)
+    ctx.sessions.restart_convergence(live)
     return await asyncio.to_thread(_read, ctx, live.id)
 
 
@@ -197,7 +197,7 @@ async def set_initial_pose(body: InitialPose, live: LiveSessionDep, ctx: Ctx) ->
         if body.heading_sigma_deg is not None:
             args["heading_sigma_deg"] = body.heading_sigma_deg
     await _control(ctx, live, "set_initial_pose", sigma=body.sigma, **args)
-    ctx.runtime.restart_convergence(live)
+    ctx.sessions.restart_convergence(live)
     return await asyncio.to_thread(_read, ctx, live.id)
 
 
@@ -205,14 +205,14 @@ async def set_initial_pose(body: InitialPose, live: LiveSessionDep, ctx: Ctx) ->
              responses={410: {"description": "The session has expired (session-expired)"}})
 async def keep_alive(live: LiveSessionDep, ctx: Ctx) -> SessionRead:
     """Restart the session's time to live without sending a frame."""
-    await ctx.runtime.keep_alive_stored(live)
+    await ctx.sessions.keep_alive_stored(live)
     return await asyncio.to_thread(_read, ctx, live.id)
 
 
 async def _control(ctx, live, op: str, **kwargs) -> None:
     try:
         # in order after the frames already accepted
-        await ctx.runtime.control(live, op, **kwargs)
+        await ctx.intake.control(live, op, **kwargs)
     except ValueError as exc:
         raise Problem(422, str(exc), kind=ProblemKind.BAD_CONTROL) from None
     except (KeyError, RuntimeError) as exc:
@@ -227,4 +227,4 @@ def _read(ctx, session_id: str) -> SessionRead:
         row = db.get(LocalisationSession, uuid.UUID(session_id))
         if row is None:
             raise Problem(404, f"session {session_id} was deleted", kind=ProblemKind.NOT_FOUND)
-        return service.read_session(db, row=row, runtime=ctx.runtime)
+        return service.read_session(db, row=row, sessions=ctx.sessions)

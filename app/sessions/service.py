@@ -22,7 +22,7 @@ from vloc.app.sessions import pose, store
 from vloc.app.sessions.admission import revision_missing
 from vloc.app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
 from vloc.app.sessions.params import SessionCreate
-from vloc.app.sessions.runtime import SessionRuntime
+from vloc.app.sessions.registry import SessionRegistry
 from vloc.app.sessions.schemas import (
     FrameError,
     InitialPose,
@@ -89,18 +89,18 @@ def resolve_seed(body: SessionCreate) -> int:
 
 
 async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCreate,
-                         runtime: SessionRuntime) -> tuple[SessionRead, str]:
+                         sessions: SessionRegistry) -> tuple[SessionRead, str]:
     """Validate, create the localiser in the engine, store; the session and its token.
 
     The engine may take a while (the worker loads the map, it may be busy with frames);
     nothing holds a database connection or a request thread while it does.
     """
-    row, token = await asyncio.to_thread(_plan, db_sessions, body, runtime.settings)
+    row, token = await asyncio.to_thread(_plan, db_sessions, body, sessions.settings)
     # The row takes its place under the cap before the engine opens it: concurrent creates
     # cannot all pass the count while each waits for the engine.
-    await asyncio.to_thread(_reserve, db_sessions, row, runtime.settings.max_sessions)
+    await asyncio.to_thread(_reserve, db_sessions, row, sessions.settings.max_sessions)
     try:
-        await runtime.open_new(row)
+        await sessions.open_new(row)
     except BaseException as exc:
         await asyncio.to_thread(_unreserve, db_sessions, row.id)
         if isinstance(exc, ValueError):
@@ -111,9 +111,9 @@ async def create_session(*, db_sessions: sessionmaker[Session], body: SessionCre
                           kind=ProblemKind.ENGINE_UNAVAILABLE) from None
         raise
     try:
-        read = await asyncio.to_thread(_read_new, db_sessions, row.id, runtime)
+        read = await asyncio.to_thread(_read_new, db_sessions, row.id, sessions)
     except BaseException:
-        runtime.forget(row.id)
+        sessions.forget(row.id)
         raise
     return read, token
 
@@ -232,25 +232,25 @@ def _unreserve(db_sessions: sessionmaker[Session], session_id) -> None:
 
 
 def _read_new(db_sessions: sessionmaker[Session], session_id,
-              runtime: SessionRuntime) -> SessionRead:
+              sessions: SessionRegistry) -> SessionRead:
     with db_sessions() as db:
-        return read_session(db, row=db.get(LocalisationSession, session_id), runtime=runtime)
+        return read_session(db, row=db.get(LocalisationSession, session_id), sessions=sessions)
 
 
-def list_sessions(db: Session, *, runtime: SessionRuntime, limit: int | None = None,
+def list_sessions(db: Session, *, sessions: SessionRegistry, limit: int | None = None,
                   offset: int = 0) -> list[SessionRead]:
     rows = db.scalars(select(LocalisationSession)
                       .order_by(LocalisationSession.created_at, LocalisationSession.id)
                       .offset(offset).limit(limit))
-    return [read_session(db, row=row, runtime=runtime) for row in list(rows)]
+    return [read_session(db, row=row, sessions=sessions) for row in list(rows)]
 
 
 def read_session(db: Session, *, row: LocalisationSession,
-                 runtime: SessionRuntime) -> SessionRead:
+                 sessions: SessionRegistry) -> SessionRead:
     # The frames still pending are counted before the session is read (again): when none
     # is, every frame accepted until now is stored, and the counters below include it. The
     # read transaction is ended first, since SQLite would otherwise keep its older snapshot.
-    pending = runtime.pending(row.id)
+    pending = sessions.pending(row.id)
     db.commit()
     db.refresh(row)
     total, sift, mean_ms = db.execute(
@@ -305,11 +305,11 @@ def list_poses(db: Session, *, row: LocalisationSession, after_seq: int | None,
     return sorted(found, key=lambda m: m.seq)[:limit]
 
 
-def delete_session(db: Session, *, row: LocalisationSession, runtime: SessionRuntime) -> None:
+def delete_session(db: Session, *, row: LocalisationSession, sessions: SessionRegistry) -> None:
     session_id = row.id
     db.delete(row)
     db.commit()
-    runtime.forget(session_id)
+    sessions.forget(session_id)
 
 
 def pose_read(p: Pose, row: LocalisationSession) -> PoseEstimate:

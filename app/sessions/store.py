@@ -1,4 +1,4 @@
-"""The session runtime's writes: frame records, frame outcomes, and the frames a stopped
+"""The frame intake's writes: frame records, frame outcomes, and the frames a stopped
 server left queued.
 
 Isolation: a batch (frames of many sessions) is written in one transaction; when the
@@ -62,7 +62,7 @@ class OutcomeRecord:
 
 
 class FrameStore:
-    """Writes for :class:`~app.sessions.runtime.SessionRuntime`, from its writer thread."""
+    """Writes for :class:`~app.sessions.intake.FrameIntake`, from its writer thread."""
 
     def __init__(self, db_sessions: sessionmaker[Session], *, owner: str) -> None:
         self.db_sessions = db_sessions

@@ -1,4 +1,4 @@
-"""The session runtime's writer thread: stores what the runtime queues, in order and in
+"""The frame intake's writer thread: stores what the intake queues, in order and in
 batches, and hands each batch back to the event loop to settle.
 
 Items: :class:`Accepted` (a frame's record, stored before the frame goes to a worker),

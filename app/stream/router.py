@@ -51,7 +51,7 @@ from vloc.app.limits import too_large
 from vloc.app.problems import Problem, ProblemKind
 from vloc.app.security import TOKEN_SUBPROTOCOL, matches, presented_secret
 from vloc.app.sessions.live import LiveSession
-from vloc.app.sessions.runtime import expired_problem
+from vloc.app.sessions.registry import expired_problem
 from vloc.app.sessions.schemas import Seq
 from vloc.app.stream.geojson import GEOJSON_SUBPROTOCOL, as_feature
 from vloc.app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
@@ -96,7 +96,7 @@ async def stream(websocket: WebSocket, session_id: str) -> None:
     if live is None:
         return
     # Taken before subscribing: they come before any frame this stream will see.
-    interrupted = await ctx.runtime.interrupted(live)
+    interrupted = await ctx.sessions.interrupted(live)
     sub = ctx.hub.subscribe(live.id, after_seq=live.last_seq)
     ctx.metrics.stream_subscribers.inc()
     sender = asyncio.create_task(_send_loop(websocket, sub, as_feature if geojson else None))
@@ -123,7 +123,7 @@ async def _authorise(websocket: WebSocket, ctx: AppContext, session_id: str,
             "unauthorized", "a session token is required (Authorization: Bearer)"))
         return None
     try:
-        live = await ctx.runtime.get(uuid.UUID(session_id))
+        live = await ctx.sessions.get(uuid.UUID(session_id))
     except ValueError:
         live = None
     except Problem as p:
@@ -141,7 +141,7 @@ async def _authorise(websocket: WebSocket, ctx: AppContext, session_id: str,
             "forbidden", "this token does not open this session"))
         return None
     if live.expired() and not live.arrivals:  # as its HTTP routes would answer 410
-        await ctx.runtime.expire(live)
+        await ctx.sessions.expire(live)
         await websocket.close(4410, close_reason("session-expired",
                                                  expired_problem(session_id).detail))
         return None
@@ -190,7 +190,7 @@ async def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: by
         check_image(data, max_pixels=ctx.settings.max_pixels)
         captured = check_captured_at(meta.captured_at)
         metadata = check_metadata(meta.metadata or {})
-        _, queued = await ctx.runtime.accept(live, data, seq=meta.seq, captured_at=captured,
+        _, queued = await ctx.intake.accept(live, data, seq=meta.seq, captured_at=captured,
                                              t0=t0, metadata=metadata)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or ProblemKind.BAD_IMAGE).inc()

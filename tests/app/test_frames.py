@@ -76,7 +76,7 @@ def test_a_session_read_with_nothing_pending_counts_every_frame_stored(service, 
     ctx = c.app.state.ctx
 
     class StoredMeanwhile:
-        """A runtime whose last frame is stored just as its pending frames are counted."""
+        """A registry whose last frame is stored just as its pending frames are counted."""
 
         def pending(self, session_id):
             with ctx.db_sessions() as other:
@@ -89,7 +89,7 @@ def test_a_session_read_with_nothing_pending_counts_every_frame_stored(service, 
     with ctx.db_sessions() as db:
         row = db.get(LocalisationSession, uuid.UUID(sid))
         assert (row.frames_processed, row.last_seq) == (1, 0)  # read before the store
-        read = sessions_service.read_session(db, row=row, runtime=StoredMeanwhile())
+        read = sessions_service.read_session(db, row=row, sessions=StoredMeanwhile())
     assert (read.frames_pending, read.frames_processed, read.last_seq) == (0, 2, 1)
 
 
@@ -126,7 +126,7 @@ def test_a_row_the_database_refuses_costs_only_that_row(service):
     batch = [FrameRecord(a, 0, now, None), FrameRecord(b, 0, now, None),
              FrameRecord(b, 1, now, None), FrameRecord(b, MAX_SEQ + 9, now, None),
              OutcomeRecord(*good_a), OutcomeRecord(*bad_b), OutcomeRecord(*good_b)]
-    refused = c.app.state.ctx.runtime.store.write(batch)
+    refused = c.app.state.ctx.intake.store.write(batch)
     assert sorted(refused) == [3, 5]
     with c.app.state.ctx.db_sessions() as db:
         frames = {(str(f.session_id), f.seq): f.status for f in db.scalars(select(Frame).where(
@@ -139,7 +139,7 @@ def test_a_row_the_database_refuses_costs_only_that_row(service):
 
 def test_an_estimate_that_cannot_be_stored_is_reported_not_stored(service, shots, tmp_path):
     """The outcomes of one session cannot be stored (a fault injected between the engine and
-    the runtime); another session's frames, processed at the same time, are all stored."""
+    the intake); another session's frames, processed at the same time, are all stored."""
     c = service.client
     ctx = c.app.state.ctx
     a, a_auth = service.new_session()
@@ -185,9 +185,9 @@ def test_a_frame_that_cannot_be_recorded_is_refused_and_keeps_its_seq_free(servi
     ctx = c.app.state.ctx
     sid, auth = service.new_session()
     assert post_frame(c, sid, shots[1][0].jpeg, auth, wait="true").status_code == 200
-    live = c.portal.call(ctx.runtime.get, uuid.UUID(sid))
+    live = c.portal.call(ctx.sessions.get, uuid.UUID(sid))
     # Past the edge's bound, as a caller that skipped it would: the record is refused.
-    seq, queued = c.portal.call(lambda: ctx.runtime.accept(
+    seq, queued = c.portal.call(lambda: ctx.intake.accept(
         live, shots[1][1].jpeg, seq=MAX_SEQ + 1, captured_at=None, t0=0.0))
     assert seq == MAX_SEQ + 1
     problem = _failure(c, queued)

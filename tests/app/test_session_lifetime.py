@@ -20,7 +20,7 @@ def _age(client, sid: str, seconds: float) -> None:
     """Make the session idle for ``seconds`` (its live copy and its row)."""
     ctx = client.app.state.ctx
     past = utcnow() - timedelta(seconds=seconds)
-    live = ctx.runtime._live.get(sid)
+    live = ctx.sessions.find(sid)
     if live is not None:
         live.last_active = past
     with ctx.db_sessions() as db:
@@ -69,18 +69,18 @@ def test_an_idle_session_expires_and_keep_alive_prevents_it(service, shots):
     assert c.post(f"/v1/sessions/{sid}/keepalive", headers=auth).status_code == 410
     assert c.post(f"/v1/sessions/{sid}/reset", headers=auth).status_code == 410
     assert len(c.get(f"/v1/sessions/{sid}/poses", headers=auth).json()) >= 1
-    assert sid not in c.app.state.ctx.runtime._live
+    assert sid not in c.app.state.ctx.sessions
     assert c.delete(f"/v1/sessions/{sid}", headers=auth).status_code == 204
 
 
 def test_the_sweep_releases_idle_sessions_only(service, shots):
     c = service.client
-    runtime = c.app.state.ctx.runtime
+    sessions = c.app.state.ctx.sessions
     idle, idle_auth = service.new_session(ttl_s=30)
     busy, busy_auth = service.new_session(ttl_s=30)
     _age(c, idle, 60)
-    expired = asyncio.run_coroutine_threadsafe(runtime.expire_idle(), runtime.loop).result(30)
+    expired = asyncio.run_coroutine_threadsafe(sessions.expire_idle(), sessions.loop).result(30)
     assert expired >= 1
-    assert idle not in runtime._live and busy in runtime._live
+    assert idle not in sessions and busy in sessions
     assert c.get(f"/v1/sessions/{idle}", headers=idle_auth).json()["state"] == "expired"
     assert c.get(f"/v1/sessions/{busy}", headers=busy_auth).json()["state"] == "active"

@@ -108,7 +108,7 @@ def test_the_session_cap_holds_under_concurrent_creates(tmp_path_factory, shots,
             codes = [r.result().status_code for r in replies]
         assert sorted(codes) == [201] * 5 + [429] * 15
         listed = c.get("/v1/sessions", headers=ADMIN).json()
-        assert len(listed) == 5 and len(c.app.state.ctx.runtime._live) == 5
+        assert len(listed) == 5 and len(c.app.state.ctx.sessions) == 5
 
 
 def _literal_values(annotation) -> set:

@@ -334,7 +334,7 @@ def test_a_missing_map_revision_is_a_problem_without_the_data_path(service):
     sid, auth = service.new_session()
     folder = ctx.settings.packed_map_dir(service.map_id, 1)
     hidden = folder.with_name(folder.name + ".away")
-    ctx.runtime.forget(uuid.UUID(sid))  # as after a restart: restored on next use
+    ctx.sessions.forget(uuid.UUID(sid))  # as after a restart: restored on next use
     shutil.move(folder, hidden)
     try:
         before = snapshot(c)

@@ -15,8 +15,8 @@ from vloc.app.stream.router import MAX_REASON_BYTES, close_reason
 
 
 def _run(client, coro):
-    runtime = client.app.state.ctx.runtime
-    return asyncio.run_coroutine_threadsafe(coro, runtime.loop).result(30)
+    loop = client.app.state.ctx.intake.loop
+    return asyncio.run_coroutine_threadsafe(coro, loop).result(30)
 
 
 def _ending(ws) -> tuple[list[dict], int, str]:
@@ -52,7 +52,7 @@ def test_an_expiring_session_ends_its_stream_with_4410(service):
     with c.websocket_connect(f"/v1/sessions/{sid}/stream", headers=auth) as ws:
         assert ws.receive_json()["type"] == "hello"
         _age(c, sid, 60)
-        assert _run(c, c.app.state.ctx.runtime.expire_idle()) >= 1
+        assert _run(c, c.app.state.ctx.sessions.expire_idle()) >= 1
         got, code, reason = _ending(ws)
     assert [(m["type"], m["kind"]) for m in got] == [("closed", "session-expired")]
     assert "expired" in got[0]["reason"]
@@ -67,7 +67,7 @@ def test_an_expired_session_refuses_a_stream_with_4410(service, swept):
     sid, auth = service.new_session(ttl_s=30)
     _age(c, sid, 60)
     if swept:
-        assert _run(c, c.app.state.ctx.runtime.expire_idle()) >= 1
+        assert _run(c, c.app.state.ctx.sessions.expire_idle()) >= 1
     with pytest.raises(WebSocketDisconnect) as closed, \
             c.websocket_connect(f"/v1/sessions/{sid}/stream", headers=auth) as ws:
         ws.receive_json()

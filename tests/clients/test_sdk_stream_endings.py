@@ -23,8 +23,8 @@ from vloc.clients.sdk._stream import closed_error
 
 
 def _on_loop(app_client, coro):
-    runtime = app_client.app.state.ctx.runtime
-    return asyncio.run_coroutine_threadsafe(coro, runtime.loop).result(30)
+    loop = app_client.app.state.ctx.intake.loop
+    return asyncio.run_coroutine_threadsafe(coro, loop).result(30)
 
 
 def test_an_expiring_session_raises_session_expired_from_the_loop(vloc, app_client,
@@ -32,7 +32,7 @@ def test_an_expiring_session_raises_session_expired_from_the_loop(vloc, app_clie
     s = vloc.create_session(built_map, params=FAST, ttl_s=30)
     with vloc.stream(s, timeout=60) as poses:
         _age(app_client, s.id, 60)
-        _on_loop(app_client, app_client.app.state.ctx.runtime.expire_idle())
+        _on_loop(app_client, app_client.app.state.ctx.sessions.expire_idle())
         with pytest.raises(SessionExpired) as info:
             list(poses)
     assert isinstance(info.value, Gone) and info.value.kind == "session-expired"

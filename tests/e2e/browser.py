@@ -87,10 +87,10 @@ class LiveServer:
 
     @property
     def loop(self):
-        return self.app.state.ctx.runtime.loop
+        return self.app.state.ctx.intake.loop
 
     def publish(self, session_id: str, message: dict) -> None:
-        """Put a message on a session's stream, as the runtime does for an estimate."""
+        """Put a message on a session's stream, as the intake does for an estimate."""
         hub = self.app.state.ctx.hub
         self.loop.call_soon_threadsafe(hub.publish, session_id, message)
 

@@ -233,7 +233,7 @@ def test_a_worker_that_cannot_be_replaced_at_once_is_retried(outcomes):
         engine.open_session(counting_spec("s")).result(TIMEOUT)
         engine.submit_frame("s", 0, grey_png(1))
         _take(outcomes, 1)
-        real, attempts = engine._spawn, []
+        real, attempts = engine.supervisor._spawn, []
 
         def flaky(index):
             attempts.append(index)
@@ -241,7 +241,7 @@ def test_a_worker_that_cannot_be_replaced_at_once_is_retried(outcomes):
                 raise OSError("fork refused")
             return real(index)
 
-        engine._spawn = flaky
+        engine.supervisor._spawn = flaky
         os.kill(engine.worker_pids()[0], signal.SIGKILL)
         deadline = time.monotonic() + TIMEOUT
         while engine.restarts == 0 and time.monotonic() < deadline:

@@ -1,18 +1,15 @@
-"""The local engine: a pool of worker processes with per-worker queues and result pipes.
+"""The local engine: sessions and calls routed to a pool of worker processes.
 
-Why one result pipe per worker rather than one shared queue: a process killed while writing
-to a shared queue can leave half a message in it and corrupt it for everyone; a private pipe
-dies with its worker, and whatever whole messages it still holds are read before the
-worker's in-flight frames are reported as failed.
+Each session is pinned to one worker (the least busy when it opens) and its frames and
+controls go to that worker's queue in order; a call goes to the least busy worker. The
+processes themselves (started, watched, replaced when one dies) are
+:class:`~workers.engine.supervisor.WorkerSupervisor`'s; when it replaces a worker, the
+sessions that worker held reopen in the new one from their last checkpoints, and the frames
+and calls it held are reported failed.
 
-Threads: callers submit from any thread (the event loop, request threads); one reader
-thread waits on every result pipe and every process sentinel, dispatches outcomes, and
-replaces dead workers.
-
-Workers die with the API process: each holds the read end of a lifeline pipe whose write end
-only this process has, and exits when it reports end-of-file (see
-:func:`~workers.engine.worker.worker_main`). Each also stamps a heartbeat in shared memory,
-so that a worker that exists but does not run (stopped, starved) shows in :meth:`alive`.
+Threads: callers submit from any thread (the event loop, request threads); the
+supervisor's reader thread hands every worker message to :meth:`LocalEngine._on_message`,
+which settles calls and passes frame outcomes on to ``on_outcome``.
 """
 
 from __future__ import annotations
@@ -22,10 +19,8 @@ import logging
 import multiprocessing as mp
 import os
 import threading
-import time
 from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
-from multiprocessing.connection import wait
 
 from .messages import (
     CallDone,
@@ -38,23 +33,13 @@ from .messages import (
     FrameTask,
     OpenSession,
     Outcome,
-    Ready,
     SessionSpec,
-    Stop,
 )
 from .slots import EngineClosed, Slot, WorkerDied, remote_error
-from .worker import HEARTBEAT_S, THREAD_ENV, worker_main
+from .supervisor import STALL_S, WorkerSupervisor
+from .worker import THREAD_ENV
 
 log = logging.getLogger(__name__)
-
-RESPAWN_RETRY_S = 1.0
-"""How soon a worker that could not be replaced is tried again."""
-
-STALL_S = 5.0
-"""A worker whose heartbeat is older than this is not counted as alive."""
-
-PRELOAD = ["vloc.workers.engine.worker", "vloc.workers.core.localisers",
-           "vloc.workers.core.mapbuild"]
 
 
 class LocalEngine:
@@ -82,26 +67,19 @@ class LocalEngine:
     def __init__(self, n_workers: int, *, on_outcome: Callable[[Outcome], None] | None = None,
                  checkpoint_every: int = 1, max_pixels: int = 50_000_000,
                  start_method: str | None = None, stall_s: float = STALL_S) -> None:
-        if n_workers < 1:
-            raise ValueError("n_workers must be at least 1")
-        if stall_s <= HEARTBEAT_S:
-            raise ValueError(f"stall_s must be longer than the heartbeat ({HEARTBEAT_S} s)")
         if start_method is None:
             start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         if start_method == "fork":
             raise ValueError("the fork start method is unsafe with threads; use forkserver")
         self.shared = False
-        self.n_workers = n_workers
         self.on_outcome = on_outcome
         self.checkpoint_every = checkpoint_every
-        self.max_pixels = max_pixels
-        self.stall_s = stall_s
-        self.restarts = 0
-        self._ctx = mp.get_context(start_method)
-        if start_method == "forkserver":
-            self._ctx.set_forkserver_preload(PRELOAD)
         self._lock = threading.RLock()
-        self._slots: list[Slot] = []
+        self.supervisor = WorkerSupervisor(
+            n_workers, lock=self._lock, on_message=self._on_message, on_lost=self._on_lost,
+            reopen=self._reopen_tasks, start_method=start_method, max_pixels=max_pixels,
+            stall_s=stall_s)
+        self.n_workers = n_workers
         self._specs: dict[str, SessionSpec] = {}
         self._moves: dict[int, SessionSpec] = {}
         """Sessions' specs on the revision a ``move`` control (by call id) takes them to:
@@ -110,10 +88,6 @@ class LocalEngine:
         self._states: dict[str, bytes] = {}
         self._counts: dict[str, int] = {}
         self._call_ids = itertools.count(1)
-        self._running = False
-        self._reader: threading.Thread | None = None
-        self._wakeup_r, self._wakeup_w = self._ctx.Pipe(duplex=False)
-        self._lifeline_r, self._lifeline_w = None, None
 
     # -- life cycle -------------------------------------------------------------------------
 
@@ -122,74 +96,35 @@ class LocalEngine:
         for var in THREAD_ENV:
             # Inherited by the workers; the API process itself runs no numerics.
             os.environ.setdefault(var, "1")
-        # The write end never leaves this process (descriptors are not inheritable and only
-        # the read end is handed to the workers), so it closes exactly when we end.
-        self._lifeline_r, self._lifeline_w = self._ctx.Pipe(duplex=False)
-        with self._lock:
-            self._slots = [self._spawn(i) for i in range(self.n_workers)]
-            self._running = True
-        self._reader = threading.Thread(target=self._read_loop, name="engine-reader",
-                                        daemon=True)
-        self._reader.start()
-        for slot in list(self._slots):
-            if not slot.ready.wait(timeout):
-                self.close()
-                raise RuntimeError(f"worker {slot.index} did not start in {timeout:g} s")
+        self.supervisor.start(timeout)
 
     def close(self, timeout: float = 10.0) -> None:
         """Stop the workers after the tasks already queued; fail what is left."""
-        with self._lock:
-            if not self._running:
-                return
-            self._running = False
-            # A broken slot's worker is dead and its queue already closed.
-            slots = [s for s in self._slots if not s.broken]
-        for slot in slots:
-            slot.tasks.put(Stop())
-        for slot in slots:
-            slot.process.join(timeout)
-            if slot.process.is_alive():
-                slot.process.kill()
-                slot.process.join(1.0)
-        self._wakeup_w.send(None)
-        if self._reader is not None:
-            self._reader.join(timeout)
-        for slot in slots:
-            self._drain(slot)
-            self._fail_slot(slot, "the engine stopped")
-            slot.tasks.cancel_join_thread()
-            slot.tasks.close()
-            slot.conn.close()
-        # Whatever worker is still there (a replacement started during the stop) goes now.
-        self._lifeline_w.close()
-        self._lifeline_r.close()
-        with self._lock:
-            # Dropping the queues releases their semaphores now rather than at exit, which
-            # a server stopped by a signal never reaches.
-            self._slots = []
+        self.supervisor.close(timeout)
 
     @property
     def running(self) -> bool:
-        return self._running
+        return self.supervisor.running
+
+    @property
+    def restarts(self) -> int:
+        """Workers replaced since the start."""
+        return self.supervisor.restarts
 
     def worker_pids(self) -> list[int]:
-        with self._lock:
-            return [slot.process.pid for slot in self._slots]
+        return self.supervisor.worker_pids()
 
     def alive_count(self) -> int:
         """Worker processes running now."""
-        with self._lock:
-            if not self._running:
-                return 0
-            return sum(1 for s in self._slots if not s.broken and s.process.is_alive())
+        return self.supervisor.alive_count()
 
     def alive(self) -> bool:
         """Every worker process exists and has stamped its heartbeat within ``stall_s``."""
-        now = time.monotonic()
-        with self._lock:
-            return self._running and all(
-                not s.broken and s.process.is_alive() and now - s.heartbeat.value < self.stall_s
-                for s in self._slots)
+        return self.supervisor.alive()
+
+    @property
+    def _slots(self) -> list[Slot]:
+        return self.supervisor.slots
 
     # -- sessions ---------------------------------------------------------------------------
 
@@ -270,7 +205,7 @@ class LocalEngine:
         with self._lock:
             index = self._pinned.get(session_id)
             self._forget(session_id)
-            if index is not None and self._running and not self._slots[index].broken:
+            if index is not None and self.running and not self._slots[index].broken:
                 self._slots[index].tasks.put(CloseSession(session_id))
 
     def last_state(self, session_id: str) -> bytes | None:
@@ -294,7 +229,7 @@ class LocalEngine:
     # -- internals --------------------------------------------------------------------------
 
     def _check_running(self) -> None:
-        if not self._running:
+        if not self.supervisor.running:
             raise EngineClosed("the engine is not running")
 
     @staticmethod
@@ -312,55 +247,13 @@ class LocalEngine:
             self._states.pop(session_id, None)
             self._counts.pop(session_id, None)
 
-    def _spawn(self, index: int) -> Slot:
-        tasks = self._ctx.Queue()
-        reader, writer = self._ctx.Pipe(duplex=False)
-        # Counted from the start, so that a worker still importing is not taken for stalled.
-        heartbeat = self._ctx.RawValue("d", time.monotonic())
-        process = self._ctx.Process(
-            target=worker_main, name=f"vloc-worker-{index}", daemon=True,
-            args=(index, tasks, writer, self.max_pixels, self._lifeline_r, heartbeat))
-        process.start()
-        # Our copy of the write end must go, or the pipe never reports EOF when the worker dies.
-        writer.close()
-        return Slot(index, process, tasks, reader, heartbeat)
+    def _reopen_tasks(self, session_ids: list[str]) -> list[OpenSession]:
+        """Supervisor: the tasks that reopen a dead worker's sessions in its replacement."""
+        with self._lock:
+            return [OpenSession(self._specs[sid], self._states.get(sid)) for sid in session_ids]
 
-    def _read_loop(self) -> None:
-        while True:
-            with self._lock:
-                if not self._running:
-                    return
-                live = [s for s in self._slots if not s.broken]
-                broken = [s for s in self._slots if s.broken]
-            by_conn = {s.conn: s for s in live}
-            by_sentinel = {s.process.sentinel: s for s in live}
-            ready = wait([*by_conn, *by_sentinel, self._wakeup_r],
-                         timeout=RESPAWN_RETRY_S if broken else None)
-            dead: list[Slot] = []
-            for obj in ready:
-                if obj is self._wakeup_r:
-                    continue
-                slot = by_conn.get(obj) or by_sentinel.get(obj)
-                if slot in dead:
-                    continue
-                if obj in by_conn:
-                    try:
-                        msg = obj.recv()
-                    except (EOFError, OSError):
-                        dead.append(slot)
-                        continue
-                    self._dispatch(slot, msg)
-                elif not slot.process.is_alive():
-                    dead.append(slot)
-            for slot in dead:
-                self._replace(slot)
-            for slot in broken:
-                self._revive(slot)
-
-    def _dispatch(self, slot: Slot, msg) -> None:
-        if isinstance(msg, Ready):
-            slot.ready.set()
-            return
+    def _on_message(self, slot: Slot, msg) -> None:
+        """Supervisor's reader thread: a worker's message."""
         if isinstance(msg, FrameDone | FrameFailed):
             with self._lock:
                 slot.frames.pop((msg.session_id, msg.seq), None)
@@ -396,15 +289,8 @@ class LocalEngine:
         except Exception:  # noqa: BLE001 - a broken consumer must not kill the reader
             log.exception("engine: frame consumer failed")
 
-    def _drain(self, slot: Slot) -> None:
-        """Dispatch the whole messages a (dead or stopped) worker left in its pipe."""
-        try:
-            while slot.conn.poll():
-                self._dispatch(slot, slot.conn.recv())
-        except (EOFError, OSError, ValueError):
-            pass  # the rest is a message the worker did not finish writing
-
-    def _fail_slot(self, slot: Slot, reason: str) -> None:
+    def _on_lost(self, slot: Slot, reason: str) -> None:
+        """Supervisor: the slot's worker is gone; fail the frames and calls it held."""
         with self._lock:
             frames, slot.frames = list(slot.frames), {}
             calls, slot.calls = slot.calls, {}
@@ -414,47 +300,6 @@ class LocalEngine:
             _settle(fut, error=WorkerDied(reason))
         for session_id, seq in frames:
             self._emit(FrameFailed(session_id, seq, "worker_died", reason))
-
-    def _replace(self, slot: Slot) -> None:
-        """A worker died: report what it held, then start another in its place."""
-        self._drain(slot)
-        slot.process.join(1.0)
-        code = slot.process.exitcode
-        reason = f"worker process {slot.process.pid} exited (code {code}) before finishing it"
-        with self._lock:
-            if not self._running:
-                return
-            # From here on nothing is queued on the dead worker: submissions get WorkerDied
-            # until the replacement exists, and its in-flight work is failed below.
-            slot.broken = True
-        log.error("engine: worker %d (pid %s) died with code %s; replacing it",
-                  slot.index, slot.process.pid, code)
-        slot.tasks.cancel_join_thread()
-        slot.tasks.close()
-        slot.conn.close()
-        self._revive(slot)
-        # Reported after the replacement exists, so that whoever hears of the loss can
-        # already send the session its next frame.
-        self._fail_slot(slot, reason)
-
-    def _revive(self, slot: Slot) -> None:
-        """Start a worker in a dead worker's place and reopen its sessions from their last
-        checkpoints, before anything else reaches the new worker."""
-        with self._lock:
-            if not self._running:
-                return
-            try:
-                fresh = self._spawn(slot.index)
-            except Exception as exc:  # noqa: BLE001 - retried by the reader loop
-                log.error("engine: cannot start a worker in slot %d yet (%s); retrying",
-                          slot.index, exc)
-                return
-            fresh.sessions = set(slot.sessions)
-            for session_id in sorted(fresh.sessions):
-                fresh.tasks.put(OpenSession(self._specs[session_id],
-                                            self._states.get(session_id)))
-            self._slots[slot.index] = fresh
-            self.restarts += 1
 
 
 def _settle(fut: Future, *, value=None, error: BaseException | None = None) -> None:
