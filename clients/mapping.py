@@ -30,13 +30,19 @@ class ImportSummary:
         return self.accepted + len(self.rejected)
 
 
-def _batches(images: Sequence[DatasetImage]) -> list[list[DatasetImage]]:
-    """Consecutive runs: EXIF-positioned images grouped by count and size, the others alone."""
+def _batches(images: Sequence[DatasetImage],
+             flight_of: Callable[[DatasetImage], str | None] = lambda img: None,
+             ) -> list[list[DatasetImage]]:
+    """Consecutive runs of one flight: EXIF-positioned images grouped by count and size, the
+    others alone."""
     out: list[list[DatasetImage]] = []
     run: list[DatasetImage] = []
     size = 0
     for img in images:
         nbytes = img.path.stat().st_size
+        if run and flight_of(img) != flight_of(run[0]):
+            out.append(run)
+            run, size = [], 0
         if img.source != "exif":
             if run:
                 out.append(run)
@@ -55,11 +61,14 @@ def _batches(images: Sequence[DatasetImage]) -> list[list[DatasetImage]]:
 
 def import_images(client: Client, map_id: str, images: Sequence[DatasetImage], *,
                   on_progress: Callable[[int, ImportSummary], None] | None = None,
+                  flight_of: Callable[[DatasetImage], str | None] | None = None,
                   ) -> ImportSummary:
     """Upload data set images to a map, in the order given.
 
     Parameters
     ----------
+    flight_of : callable, optional
+        The flight an image belongs to (its upload's ``flight`` field), None for none.
     on_progress : callable, optional
         ``on_progress(n_files_sent_in_this_batch, summary_so_far)`` after every batch.
 
@@ -70,15 +79,18 @@ def import_images(client: Client, map_id: str, images: Sequence[DatasetImage], *
         already in the map) adds its files to ``rejected``; other errors propagate.
     """
     summary = ImportSummary()
-    for batch in _batches(images):
+    flight_of = flight_of or (lambda img: None)
+    for batch in _batches(images, flight_of):
         files = [(img.name, img.path.read_bytes()) for img in batch]
         single = batch[0] if batch[0].source != "exif" else None
+        flight = flight_of(batch[0])
         try:
             if single is not None:
                 result = client.upload_images(map_id, files, lat=single.lat, lon=single.lon,
-                                              alt=single.alt, captured_at=single.captured_at)
+                                              alt=single.alt, captured_at=single.captured_at,
+                                              flight=flight)
             else:
-                result = client.upload_images(map_id, files)
+                result = client.upload_images(map_id, files, flight=flight)
         except APIError as exc:
             listed = exc.body.get("rejected")
             if exc.kind != "no-image-accepted" or not isinstance(listed, list):

@@ -110,6 +110,9 @@ class MapImage(Base):
     north: Mapped[float | None] = mapped_column(Float)
     """Metres in the map's local frame of the last build that included the image."""
     captured_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    flight: Mapped[str | None] = mapped_column(String(64))
+    """The flight (or pass) the upload said the image belongs to; NULL where it did not
+    (:mod:`workers.core.flights`: grouped by capture time then)."""
     built_revision: Mapped[int | None] = mapped_column(Integer)
     """The first map revision that contained this image; NULL until then."""
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)

@@ -116,8 +116,15 @@ async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: Image
                                               allow_inf_nan=False, description="Metres"),
                      captured_at: datetime | None = Form(
                          None, description="ISO 8601; from 1990 to one day from now"),
+                     flight: str | None = Form(
+                         None, min_length=1, max_length=64,
+                         description="The flight (or pass) these images belong to, for a "
+                                     "map of several flights over the same ground: its "
+                                     "self-check reports each flight's accuracy"),
                      ) -> ImageUploadResult:
-    """Add geotagged images: GPS from EXIF, or ``lat``/``lon`` fields for one file."""
+    """Add geotagged images: GPS from EXIF, or ``lat``/``lon`` fields for one file;
+    ``flight`` names the flight they belong to (by default, images are grouped into flights
+    by their capture times: a pause of over 30 minutes starts another)."""
     if (lat is None) != (lon is None):
         raise Problem(422, "give both lat and lon, or neither", kind=ProblemKind.BAD_POSITION)
     position = None
@@ -129,7 +136,9 @@ async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: Image
                for f in files]
     return await service.add_images(db_sessions=ctx.db_sessions,
                                     map_id=parse_id(map_id, "map"), uploads=uploads,
-                                    position=position, settings=settings, verify=verify)
+                                    position=position, settings=settings, verify=verify,
+                                    flight=None if flight is None
+                                    else check_text(flight, "flight"))
 
 
 @router.post("/{map_id}/build", status_code=202, response_model=BuildAccepted)

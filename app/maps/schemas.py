@@ -38,6 +38,19 @@ class Origin(BaseModel):
     alt: float
 
 
+class FlightSelfCheck(BaseModel):
+    """The self-check's figures over the images of one of the map's flights."""
+
+    flight: int = Field(description="The flight, numbered from 0 in the order flown")
+    name: str | None = Field(None, description="Its name, where the upload named it")
+    images: int = Field(description="Its images localised by the check")
+    registered: float = Field(description="Share of them the geometry placed at all")
+    mean_m: float | None = Field(None, description="Mean distance of those placed from "
+                                                   "their GPS (m)")
+    median_m: float | None = Field(None, description="Their median distance (m)")
+    within_5m: float | None = Field(None, description="Share placed within 5 m")
+
+
 class MapSelfCheck(BaseModel):
     """The map's own images localised against the rest of it at build time, compared with
     their GPS: how well frames can expect to be placed."""
@@ -60,6 +73,9 @@ class MapSelfCheck(BaseModel):
                           "whole, holes included")
     every_image_median_m: float | None = Field(None, description="Their median (m)")
     every_image_within_5m: float | None = Field(None, description="Their share within 5 m")
+    flights: list[FlightSelfCheck] | None = Field(
+        None, description="The same figures per flight, for a map of several flights "
+                          "(named at upload, or apart in time by more than 30 minutes)")
 
 
 class MapGeometryRead(BaseModel):
@@ -143,6 +159,8 @@ class MapImageRead(BaseModel):
     east: float | None
     north: float | None
     captured_at: datetime | None
+    flight: str | None = Field(description="The flight (or pass) the image was uploaded as "
+                                           "part of; null where the upload named none")
     position_source: str
     built_revision: int | None
 

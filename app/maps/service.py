@@ -160,8 +160,10 @@ def list_images(db: Session, *, map_: Map, limit: int | None = None,
 
 async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,
                      uploads: Sequence[Upload], position: GivenPosition | None,
-                     settings: Settings, verify: Verifier) -> ImageUploadResult:
-    """Validate, store and register uploaded map images.
+                     settings: Settings, verify: Verifier,
+                     flight: str | None = None) -> ImageUploadResult:
+    """Validate, store and register uploaded map images (of the flight ``flight`` names,
+    where given).
 
     Every file is checked on its own (size, header, GPS, duplicate, full decode in the
     workers); the good ones are stored, the others reported with the reason. When no file
@@ -174,6 +176,11 @@ async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,
     if len(uploads) > settings.max_files_per_upload:
         raise Problem(413, f"{len(uploads)} files exceed the limit of "
                       f"{settings.max_files_per_upload} per upload", kind=ProblemKind.TOO_MANY_FILES)
+    if flight is not None:
+        flight = flight.strip()
+        if not flight:
+            raise Problem(422, "flight is blank; name the flight, or leave the field out",
+                          kind=ProblemKind.BAD_TEXT, field="flight")
     if position is not None:
         if len(uploads) != 1:
             raise Problem(422, "lat/lon form fields apply to a single file; upload several "
@@ -196,7 +203,7 @@ async def add_images(*, db_sessions: sessionmaker[Session], map_id: uuid.UUID,
         raise Problem(status, "no image was accepted: " + "; ".join(
             f"{r.filename}: {r.detail}" for r in rejected), kind=ProblemKind.NO_IMAGE_ACCEPTED,
             rejected=[r.model_dump() for r in rejected])
-    accepted = await asyncio.to_thread(_store, db_sessions, map_id, good, settings)
+    accepted = await asyncio.to_thread(_store, db_sessions, map_id, good, settings, flight)
     return ImageUploadResult(accepted=accepted, rejected=rejected)
 
 
@@ -259,7 +266,7 @@ def _check_one(up: Upload, position: GivenPosition | None,
 
 
 def _store(db_sessions: sessionmaker[Session], map_id: uuid.UUID, good: list,
-           settings: Settings) -> list[MapImageRead]:
+           settings: Settings, flight: str | None) -> list[MapImageRead]:
     folder = settings.images_dir(str(map_id))
     folder.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -280,7 +287,8 @@ def _store(db_sessions: sessionmaker[Session], map_id: uuid.UUID, good: list,
                                file_hash=digest, content_type=header.content_type,
                                byte_size=len(up.data), width=header.width,
                                height=header.height, lat=pos.lat, lon=pos.lon, alt=pos.alt,
-                               captured_at=pos.captured_at, position_source=source)
+                               captured_at=pos.captured_at, flight=flight,
+                               position_source=source)
                 db.add(row)
                 rows.append(row)
             if map_.status != MapStatus.BUILDING:

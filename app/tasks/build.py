@@ -113,7 +113,7 @@ def plan_tie_pairs(database_url: str, map_id: str, tie_dir: str) -> dict:
     pairs = tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
                           [img["alt"] for img in images],
                           [np.nan if img["captured_at"] is None else img["captured_at"]
-                           for img in images])
+                           for img in images], [img["flight"] for img in images])
     return {"image_ids": ids, "pairs": [p for p in pairs if p not in kept],
             "planned": len(pairs)}
 
@@ -194,13 +194,14 @@ def _read_images(database_url: str, map_id: str) -> list[dict]:
     with sessions(database_url)() as db:
         rows = db.execute(
             select(MapImage.id, MapImage.filename, MapImage.lat, MapImage.lon, MapImage.alt,
-                   MapImage.captured_at)
+                   MapImage.captured_at, MapImage.flight)
             .join(ImageSift, ImageSift.image_id == MapImage.id)
             .where(MapImage.map_id == uuid.UUID(map_id)).order_by(MapImage.id)).all()
     if not rows:
         raise ValueError("the map has no image with extracted features")
     return [{"id": i, "filename": f, "lat": lat, "lon": lon, "alt": alt,
-             "captured_at": t.timestamp() if t else None} for i, f, lat, lon, alt, t in rows]
+             "captured_at": t.timestamp() if t else None, "flight": flight}
+            for i, f, lat, lon, alt, t, flight in rows]
 
 
 def _read_features(database_url: str, map_id: str, images: list[dict], ties: list,
@@ -313,6 +314,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                             features=_read_features(database_url, map_id, images, ties,
                                                     timings),
                             captured_at=[img["captured_at"] for img in images],
+                            flights=[img["flight"] for img in images],
                             map_id=map_id, revision=revision, known_pairs=known,
                             known_tiles=reconstructed,
                             focal_px=typical_focal_px(_readers(lens_files or [])),

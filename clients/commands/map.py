@@ -111,19 +111,29 @@ def delete_cmd(map_id: str, server: str, admin_key: str | None) -> None:
 @click.option("--map", "map_id", metavar="ID", help="Add to this map [default: a new map].")
 @click.option("--name", help="Name of the new map [default: the folder's name].")
 @click.option("--pass", "pass_", type=int, help="Only the images of this pass (CSV column).")
+@click.option("--flight", metavar="NAME",
+              help="Name the flight these images belong to (a map of several flights over "
+                   "the same ground reports each one's accuracy).")
+@click.option("--flight-per-pass", is_flag=True,
+              help="Name each image's flight after its pass in the CSV (\"pass 1\", ...).")
 @click.option("--build/--no-build", default=False, show_default=True,
               help="Build the map after the upload, waiting for it.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @server_options
 @reports_errors
 def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | None,
-               build: bool, quiet: bool, server: str, admin_key: str | None) -> None:
+               flight: str | None, flight_per_pass: bool, build: bool, quiet: bool,
+               server: str, admin_key: str | None) -> None:
     """Upload the geotagged images of FOLDER (EXIF GPS, else the folder's CSV).
 
     The folder is read as `vloc eval` reads a data set: images directly in it or in
     images/, positions from EXIF or from ground_truth.csv/positions.csv. Images the server
     refuses are listed with the reason; the command fails only when none is accepted.
+    Without --flight or --flight-per-pass the server groups the images into flights by
+    their capture times.
     """
+    if flight is not None and flight_per_pass:
+        raise click.UsageError("give --flight or --flight-per-pass, not both")
     from tqdm import tqdm
 
     from vloc.clients.mapping import import_images
@@ -135,6 +145,9 @@ def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | 
         raise CommandError(str(exc)) from exc
     for skipped, reason in ds.skipped:
         click.echo(f"  skipped {skipped}: {readable(reason)}", err=True)
+    if flight_per_pass and not ds.passes:
+        raise CommandError(f"--flight-per-pass: the images of {folder} have no pass (a "
+                           "'pass' column in its CSV)")
     images = [im for im in ds.images if pass_ is None or im.pass_ == pass_]
     if not images:
         if ds.images:
@@ -149,7 +162,8 @@ def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | 
             click.echo(f"created map {map_id}", err=True)
         with tqdm(total=len(images), unit="img", desc="upload", disable=no_bar(quiet)) as bar:
             summary = import_images(vloc, map_id, images,
-                                    on_progress=lambda n, s: bar.update(n))
+                                    on_progress=lambda n, s: bar.update(n),
+                                    flight_of=_flight_of(flight, flight_per_pass))
         for r in summary.rejected:
             click.echo(f"  rejected {r.filename}: {r.detail} ({r.reason})", err=True)
         click.echo(f"{summary.accepted} of {summary.total} images added to map {map_id}",
@@ -159,6 +173,14 @@ def import_cmd(folder: Path, map_id: str | None, name: str | None, pass_: int | 
         if build:
             build_with_bar(vloc, map_id, quiet=quiet)
     click.echo(map_id)
+
+
+def _flight_of(flight: str | None, per_pass: bool):
+    """The flight each uploaded image is named as part of (None: the server groups them by
+    capture time)."""
+    if per_pass:
+        return lambda im: None if im.pass_ is None else f"pass {im.pass_}"
+    return lambda im: flight
 
 
 @map_group.command("build")

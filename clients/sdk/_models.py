@@ -129,6 +129,8 @@ class MapImage(_Model):
     content_type: str = ""
     file_hash: str = ""
     captured_at: datetime | None = None
+    flight: str | None = None
+    """The flight (or pass) it was uploaded as part of, where the upload named one."""
     position_source: str = ""
     built_revision: int | None = None
 

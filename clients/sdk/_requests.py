@@ -157,10 +157,12 @@ def list_images(map_id: str, *, offset: int = 0, limit: int | None = None) -> Ca
 
 def upload_images(map_id: str, images: Sequence[ImageSource], *, lat: float | None = None,
                   lon: float | None = None, alt: float | None = None,
-                  captured_at: datetime | None = None) -> Call:
-    """Multipart ``files``; ``lat``/``lon`` (and ``alt``, ``captured_at``) for one file."""
+                  captured_at: datetime | None = None, flight: str | None = None) -> Call:
+    """Multipart ``files``; ``lat``/``lon`` (and ``alt``, ``captured_at``) for one file;
+    ``flight`` for all of them."""
     files = [("files", _file_part(img, i)) for i, img in enumerate(images)]
-    form = {k: str(v) for k, v in (("lat", lat), ("lon", lon), ("alt", alt)) if v is not None}
+    form = {k: str(v) for k, v in (("lat", lat), ("lon", lon), ("alt", alt),
+                                   ("flight", flight)) if v is not None}
     if captured_at is not None:
         form["captured_at"] = captured_at.isoformat()
     return Call("POST", f"/v1/maps/{map_id}/images", _model(UploadResult), files=files,

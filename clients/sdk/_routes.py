@@ -81,15 +81,16 @@ class Routes(ABC):
 
     def upload_images(self, map_id: str, images: Sequence[ImageSource], *,
                       lat: float | None = None, lon: float | None = None,
-                      alt: float | None = None,
-                      captured_at: datetime | None = None) -> UploadResult:
-        """Add JPEG/PNG images positioned by their EXIF GPS, or one image at ``lat``/``lon``.
+                      alt: float | None = None, captured_at: datetime | None = None,
+                      flight: str | None = None) -> UploadResult:
+        """Add JPEG/PNG images positioned by their EXIF GPS, or one image at ``lat``/``lon``;
+        ``flight`` names the flight (or pass) they belong to, for a map of several.
 
         Files the server refuses are listed in ``rejected``; when none is accepted the
         call raises the problem (422, 413, 409...) instead.
         """
         return self._call(rq.upload_images(map_id, images, lat=lat, lon=lon, alt=alt,
-                                           captured_at=captured_at))
+                                           captured_at=captured_at, flight=flight))
 
     def build_map(self, map_id: str, *, force: bool = False) -> Job:
         """Start a build of the images added since the last one; returns the queued job.

@@ -549,3 +549,43 @@ def test_a_rebuild_takes_up_what_an_earlier_build_left(module_client, shots, tmp
     assert not list(ties.glob(f"{gone}.*"))
     # every file was written under a temporary name and renamed: none is left half written
     assert not list(ties.glob(".*"))
+
+
+def test_images_uploaded_as_named_flights_keep_them_and_the_self_check_reports_each(
+        module_client, shots):
+    """A morning and a dusk survey of the same ground, uploaded as two named flights (the
+    map images and the frames between them): each image says its flight, and the built
+    map's self-check gives each flight's figures under its name."""
+    c = module_client
+    map_id = new_map(c, "two flights")
+    noon, dusk = shots
+    for flight, flown in (("noon", noon), ("dusk", dusk)):
+        r = c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(flown),
+                   data={"flight": f"  {flight} "}, headers=ADMIN)
+        assert r.status_code == 201 and not r.json()["rejected"], r.text
+        assert {i["flight"] for i in r.json()["accepted"]} == {flight}
+    listed = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
+    assert [i["flight"] for i in listed] == ["noon"] * len(noon) + ["dusk"] * len(dusk)
+    job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"])
+    assert job["status"] == "done", job
+    geometry = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()["geometry"]
+    assert geometry["status"] == "accepted", geometry
+    flights = geometry["self_check"]["flights"]
+    # numbered in the order flown: the frames were taken after the map images
+    assert [(f["flight"], f["name"]) for f in flights] == [(0, "noon"), (1, "dusk")]
+    assert sum(f["images"] for f in flights) == geometry["self_check"]["images"]
+    assert all(0.0 <= f["registered"] <= 1.0 for f in flights)
+
+
+@pytest.mark.parametrize("flight, status, kind", [
+    ("   ", 422, "bad-text"), ("a\x00b", 422, "bad-text"), ("x" * 65, 422, "validation")],
+    ids=["blank", "nul", "too-long"])
+def test_a_bad_flight_name_is_refused_and_nothing_stored(module_client, shots, flight, status,
+                                                         kind):
+    c = module_client
+    map_id = new_map(c, "bad flight")
+    before = snapshot(c)
+    r = c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0][:2]),
+               data={"flight": flight}, headers=ADMIN)
+    assert r.status_code == status and r.json()["type"].endswith(kind), r.text
+    assert snapshot(c) == before

@@ -27,6 +27,7 @@ TABLES_AT["0008"] = TABLES_AT["0006"] | {"routes", "route_images", "route_nodes"
 TABLES_AT["0009"] = TABLES_AT["0008"]
 TABLES_AT["0010"] = TABLES_AT["0009"] | {"map_revisions"}
 TABLES_AT["0011"] = TABLES_AT["0010"]
+TABLES_AT["0012"] = TABLES_AT["0011"]
 
 
 def _tables(engine) -> set[str]:
@@ -37,8 +38,8 @@ def test_upgrade_to_head_matches_the_models(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        assert migrate.current_revision(engine) == migrate.head_revision() == "0011"
-        assert _tables(engine) == TABLES_AT["0011"]
+        assert migrate.current_revision(engine) == migrate.head_revision() == "0012"
+        assert _tables(engine) == TABLES_AT["0012"]
         with engine.connect() as conn:
             diff = compare_metadata(MigrationContext.configure(
                 conn, opts={"compare_type": True}), Base.metadata)
@@ -227,5 +228,39 @@ def test_0011_keeps_earlier_sessions_on_their_revision_and_their_poses(database_
             assert conn.execute(text("SELECT count(*) FROM pose_estimates")).scalar() == 1
             assert conn.execute(text("SELECT map_revision FROM sessions")).scalar() == 1
         assert "follows_map" not in {c["name"] for c in inspect(engine).get_columns("sessions")}
+    finally:
+        engine.dispose()
+
+
+def test_0012_gives_map_images_a_flight_and_keeps_every_image(database_url):
+    """Images stored at 0011 survive 0012 both ways (no table rebuilt, so no cascade to
+    their features), with no flight named: grouped by capture time, as before."""
+    import uuid
+    from datetime import UTC, datetime
+
+    from sqlalchemy import text
+
+    engine = make_engine(database_url)
+    mid = uuid.uuid4()
+    now = datetime.now(UTC)
+    key = mid.hex if engine.dialect.name == "sqlite" else mid
+    try:
+        migrate.upgrade(engine, "0011")
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                              "VALUES (:id, 'm', 'unbuilt', 0, :now)"), {"id": key, "now": now})
+            conn.execute(text(
+                "INSERT INTO map_images (map_id, filename, file_hash, content_type, byte_size, "
+                "width, height, lat, lon, position_source, created_at) VALUES (:id, 'a.jpg', "
+                "'ab', 'image/jpeg', 10, 4, 3, 41.0, -83.0, 'exif', :now)"),
+                {"id": key, "now": now})
+        migrate.upgrade(engine)
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT filename, flight FROM map_images")).all() == \
+                [("a.jpg", None)]
+        migrate.downgrade(engine, "0011")
+        assert "flight" not in {c["name"] for c in inspect(engine).get_columns("map_images")}
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT filename FROM map_images")).all() == [("a.jpg",)]
     finally:
         engine.dispose()

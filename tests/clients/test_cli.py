@@ -120,6 +120,20 @@ def test_map_import_into_a_new_map_and_build_later(vloc, sdk, dataset_dir):
                                          code=1).stderr
 
 
+def test_map_import_names_the_flights(vloc, sdk, dataset_dir):
+    """``--flight-per-pass`` names each image's flight after its CSV pass, ``--flight`` names
+    one flight for all; the images say so once uploaded."""
+    per_pass = vloc("map", "import", str(dataset_dir), "--flight-per-pass", "--quiet")
+    images = sdk.list_images(per_pass.stdout.strip())
+    assert [i.flight for i in images] == ["pass 1"] * 10 + ["pass 2"] * 9
+    one = vloc("map", "import", str(dataset_dir), "--pass", "2", "--flight", "dusk", "--quiet")
+    assert {i.flight for i in sdk.list_images(one.stdout.strip())} == {"dusk"}
+    unnamed = vloc("map", "import", str(dataset_dir), "--pass", "1", "--quiet")
+    assert {i.flight for i in sdk.list_images(unnamed.stdout.strip())} == {None}
+    both = vloc("map", "import", str(dataset_dir), "--flight", "a", "--flight-per-pass", code=2)
+    assert "not both" in both.output
+
+
 def test_map_import_positions_from_a_csv(vloc, sdk, tmp_path):
     """Images without EXIF GPS go up one at a time, placed by the folder's CSV."""
     from tests.app.imagery import plain_jpeg
@@ -137,6 +151,9 @@ def test_map_import_positions_from_a_csv(vloc, sdk, tmp_path):
     images = sdk.list_images(out.stdout.strip())
     assert [(i.filename, i.position_source, i.lat, i.alt) for i in images] == \
         [(f"img{k}.jpg", "form", 41.0 + k * 1e-4, 200.0 + k) for k in range(3)]
+    # a CSV without a pass column names no flight per pass
+    assert "have no pass" in vloc("map", "import", str(folder), "--flight-per-pass",
+                                  code=1).stderr
 
 
 def _subscribed(sdk: Client, n: int) -> bool:

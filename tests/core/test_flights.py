@@ -66,3 +66,45 @@ def test_tie_pairs_of_two_flights_reach_as_far_as_those_of_one():
     assert len(both) > len(one) and len(across) >= n
     blind = tie_pairs(xy)
     assert tie_reach(xy) == 3.0 and all(b - a == n for a, b in blind)
+
+
+def test_named_flights_hold_their_images_whatever_their_times():
+    """Two passes flown one after the other (seconds apart: one flight by time) and named
+    "pass 1" / "pass 2"; an unnamed flight hours later; a named image without a time; an
+    unnamed untimed image. Named flights number by their first capture like the others."""
+    hour = 3600.0
+    t = [10.0, 20.0, 30.0, 40.0, 3 * hour, 3 * hour + 5, np.nan, np.nan, 0.0]
+    names = ["pass 2", "pass 2", "pass 1", "pass 1", None, None, "pass 1", None, "pass 1"]
+    assert flight_labels(t, names).tolist() == [1, 1, 0, 0, 2, 2, 0, -1, 0]
+    # a flight of named images with no time at all comes after the timed ones
+    assert flight_labels([np.nan, 5.0, np.nan], ["late", None, "late"]).tolist() == [1, 0, 1]
+    # naming no image changes nothing
+    assert flight_labels(t, [None] * len(t)).tolist() == flight_labels(t).tolist()
+
+
+def test_one_name_spans_a_pause_and_two_names_split_a_run():
+    hour = 3600.0
+    assert flight_labels([0.0, 5 * hour], ["dawn", "dawn"]).tolist() == [0, 0]
+    assert flight_labels([0.0, 1.0, 2.0], ["a", "b", "a"]).tolist() == [0, 1, 0]
+
+
+def test_flights_must_name_every_image_or_none():
+    import pytest
+
+    with pytest.raises(ValueError, match="one entry per image"):
+        flight_labels([0.0, 1.0], ["a"])
+
+
+def test_named_passes_flown_back_to_back_keep_their_own_spacing():
+    """Seneca's two passes are 73 s apart at most: by time they are one flight, and the
+    second pass's twin images 0.5 m away set the spacing. Named, each pass keeps the
+    survey's 10 m, as the slow reference over the named flights says."""
+    line = np.column_stack([np.arange(0.0, 200.0, 10.0), np.zeros(20)])
+    xy = np.concatenate([line, line + [0.0, 0.5]])
+    t = np.arange(40) * 4.0
+    names = ["pass 1"] * 20 + ["pass 2"] * 20
+    assert flight_spacing(xy, t) == 0.5
+    assert flight_spacing(xy, t, names) == 10.0 == _reference_spacing(
+        xy, flight_labels(t, names))
+    assert flight_spacing(xy, None, names) == 10.0
+    assert tie_reach(xy, t, names) == 60.0 and tie_reach(xy, t) == 3.0

@@ -195,3 +195,25 @@ def test_speed_needs_timed_captures():
     times = np.array([0.0, np.nan, np.nan, np.nan, 1.0])
     assert _timed_map(xy, times).typical_speed() is None
     assert _timed_map(xy, times).typical_interval() is None
+
+
+def test_flight_names_round_trip_and_maps_without_them_keep_their_format(tmp_path):
+    import json
+
+    base = _map(np.random.default_rng(4))
+    parts = dict(origin=base.origin, names=base.names, positions=base.positions,
+                 altitudes=base.altitudes, global_features=base.global_features,
+                 sift=[base.sift(i) for i in range(3)], captured_at=[0.0, 10.0, 20.0])
+    named = MapData.from_parts(**parts, flights=["dawn", None, "dusk"])
+    back = MapData.load(named.save(tmp_path / "named"))
+    assert back.flights == ("dawn", None, "dusk")
+    assert back.flight_labels().tolist() == [0, 1, 2]  # the unnamed image flew between
+    # no name given: no flights in the map, nor in its meta.json (as before names existed)
+    for flights in (None, [None, None, None]):
+        plain = MapData.from_parts(**parts, flights=flights)
+        assert plain.flights is None
+        folder = plain.save(tmp_path / "plain")
+        assert "flights" not in json.loads((folder / "meta.json").read_text())
+        assert MapData.load(folder).flights is None
+    with pytest.raises(ValueError, match="flights must have 3 entries"):
+        MapData.from_parts(**parts, flights=["a", "b"])

@@ -132,6 +132,26 @@ def test_a_map_of_two_flights_gets_the_figures_of_each(surveyed):
     assert "flights" not in geo.self_check
 
 
+def test_flights_named_at_upload_get_their_figures_and_names(surveyed):
+    """The same images flown in one run but uploaded as two named passes (the odd images
+    "dusk", the even "noon"): each named flight gets its figures and its name."""
+    s, data, geo = surveyed
+    named = replace(data, captured_at=np.arange(len(s)) * 4.0,
+                    flights=tuple("dusk" if i % 2 else "noon" for i in range(len(s))))
+    figures = self_check(named, replace(geo, self_check={})).self_check
+    per_image = _per_image(data, replace(geo, self_check={}))
+    flights = figures["flights"]
+    assert [(f["flight"], f["name"], f["images"]) for f in flights] == \
+        [(0, "noon", (len(s) + 1) // 2), (1, "dusk", len(s) // 2)]
+    for f, part in zip(flights, (per_image[0::2], per_image[1::2]), strict=True):
+        errors = np.array([e for e, _ in part if e is not None])
+        assert f["mean_m"] == pytest.approx(errors.mean())
+    # the same run unnamed is one flight
+    one = self_check(replace(data, captured_at=np.arange(len(s)) * 4.0),
+                     replace(geo, self_check={})).self_check
+    assert "flights" not in one
+
+
 @pytest.mark.parametrize("shift", [(30.0, 0.0, 0.0), (0.0, -25.0, 10.0)],
                          ids=["30 m east", "25 m south, 10 m up"])
 def test_self_check_refuses_a_geometry_that_places_the_images_wrong(surveyed, shift):

@@ -170,7 +170,7 @@ def local_frame(lats, lons, alts, origin: GeoOrigin | None = None,
 
 
 def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
-                 captured_at=None, map_id: str = "", revision: int = 0,
+                 captured_at=None, flights=None, map_id: str = "", revision: int = 0,
                  origin: GeoOrigin | None = None, reduce_sift: bool = True,
                  ratio: float = RATIO, geometry: bool = True,
                  focal_px: float | None = None,
@@ -188,6 +188,9 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     alts : sequence of float or None (metres); None entries count as 0
     features : list of ImageFeatures, one per image
     captured_at : sequence of float or None (seconds since the epoch; NaN/None unknown)
+    flights : sequence of str or None, optional
+        The flight (or pass) each image was said to belong to, None where not said
+        (:mod:`workers.core.flights`).
     origin : GeoOrigin or None
         The local frame; by default at the centroid of the images.
     reduce_sift : bool
@@ -248,7 +251,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     with stage(timings, "packing"):
         data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
                                   global_features=glob, sift=sift, map_id=map_id,
-                                  revision=revision, captured_at=times, sift_keep=keep,
+                                  revision=revision, captured_at=times, flights=flights,
+                                  sift_keep=keep,
                                   vocabularies={n: v for n, (v, _) in trained.items()},
                                   orb=[f.orb for f in features] if have_orb else None)
     ties = [f.tie for f in features]
@@ -309,7 +313,8 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     report = {} if report is None else report
     built = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
                            focal_px, seed=seed, known_pairs=known_pairs,
-                           known_tiles=known_tiles, times=data.captured_at)
+                           known_tiles=known_tiles, times=data.captured_at,
+                           flights=data.flights)
     if built is None:
         report.update(status="none", images=n,
                       reason="structure from motion placed too few cameras consistently "

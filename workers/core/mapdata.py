@@ -29,6 +29,10 @@ vocabularies[name] : Vocabulary
 captured_at : (N,) float64
     Capture times of the map images in seconds since the epoch, NaN where unknown; the
     motion model derives the platform's typical speed from them.
+flights : (N,) tuple of str or None, or None
+    The flight (or pass) each map image was said to belong to, None where not said; in
+    ``meta.json``, and only where some image has one (:mod:`workers.core.flights`). Images
+    with none are grouped into flights by their capture times.
 geometry : MapGeometry or None
     The map cameras reconstructed over the ground plane and the ground position of every
     stored keypoint (:mod:`workers.core.geometry`); None where the map is not a plane seen
@@ -74,6 +78,7 @@ class MapData:
     map_id: str = ""
     revision: int = 0
     captured_at: np.ndarray | None = None
+    flights: tuple[str | None, ...] | None = None
     sift_keep: np.ndarray | None = None
     geometry: MapGeometry | None = None
     vocabularies: dict[str, Vocabulary] = field(default_factory=dict)
@@ -113,6 +118,12 @@ class MapData:
         self.captured_at = np.asarray(self.captured_at, np.float64)
         if self.captured_at.shape != (n,):
             raise ValueError(f"captured_at must be ({n},), got {self.captured_at.shape}")
+        if self.flights is not None:
+            self.flights = tuple(None if f is None else str(f) for f in self.flights)
+            if len(self.flights) != n:
+                raise ValueError(f"flights must have {n} entries, got {len(self.flights)}")
+            if all(f is None for f in self.flights):
+                self.flights = None
 
     def __len__(self) -> int:
         return len(self.names)
@@ -224,14 +235,23 @@ class MapData:
         if self._spacing is None:
             from .flights import flight_spacing
 
-            self._spacing = flight_spacing(np.asarray(self.positions), self.captured_at)
+            self._spacing = flight_spacing(np.asarray(self.positions), self.captured_at,
+                                           self.flights)
         return self._spacing
+
+    def flight_labels(self) -> np.ndarray:
+        """Each image's flight, numbered in time order (-1: none);
+        :func:`workers.core.flights.flight_labels`."""
+        from .flights import flight_labels
+
+        return flight_labels(self.captured_at, self.flights)
 
     @classmethod
     def from_parts(cls, *, origin: GeoOrigin, names, positions, altitudes,
                    global_features: dict[str, np.ndarray], sift: list[SiftFeatures],
                    map_id: str = "", revision: int = 0,
-                   captured_at=None, sift_keep: list[np.ndarray] | None = None,
+                   captured_at=None, flights=None,
+                   sift_keep: list[np.ndarray] | None = None,
                    vocabularies: dict[str, Vocabulary] | None = None,
                    orb: list[OrbFeatures] | None = None) -> MapData:
         offsets, kps, desc = _concatenate(sift, 128)
@@ -245,6 +265,7 @@ class MapData:
                    sift_descriptors=desc.astype(np.uint8), map_id=map_id, revision=revision,
                    captured_at=None if captured_at is None
                    else np.asarray(captured_at, np.float64),
+                   flights=None if flights is None else tuple(flights),
                    sift_keep=None if sift_keep is None or not sift
                    else np.concatenate(sift_keep).astype(bool),
                    vocabularies=dict(vocabularies or {}), orb_offsets=orb_parts[0],
@@ -286,6 +307,8 @@ class MapData:
                                         "binary": v.binary,
                                         "projected": v.projection is not None}
                                  for name, v in sorted(self.vocabularies.items())}}
+        if self.flights is not None:
+            meta["flights"] = list(self.flights)
         (tmp / "meta.json").write_text(json.dumps(meta))
         if self.geometry is not None:
             self.geometry.save(tmp)
@@ -317,6 +340,7 @@ class MapData:
                    sift_offsets=ld("sift_offsets.npy"), sift_keypoints=ld("sift_keypoints.npy"),
                    sift_descriptors=ld("sift_descriptors.npy"), map_id=meta["map_id"],
                    revision=int(meta["revision"]), captured_at=ld("captured_at.npy"),
+                   flights=meta.get("flights"),
                    sift_keep=ld("sift_keep.npy"), vocabularies=vocabularies,
                    geometry=MapGeometry.load(folder, mmap=mmap),
                    orb_offsets=ld("orb_offsets.npy") if orb else None,

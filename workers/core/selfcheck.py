@@ -28,7 +28,6 @@ import math
 
 import numpy as np
 
-from .flights import flight_labels
 from .geometry import MapGeometry
 from .image import WORK_SIZE
 from .localisers.refine import refine_sift
@@ -81,8 +80,9 @@ def self_check(data: MapData, geometry: MapGeometry, *, seed: int = 0) -> MapGeo
     over the placed images; and ``every_image_mean_m``, ``every_image_median_m`` and
     ``every_image_within_5m`` over a spread sample of every map image, placed or not
     (:func:`_localise_own`, an image no pose reaches counted at its floor). A map of several
-    flights adds ``flights``: per flight (``flight``, numbered in time order), its checked
-    ``images``, ``registered`` share and their ``mean_m``, ``median_m`` and ``within_5m``.
+    flights adds ``flights``: per flight (``flight``, numbered in time order; ``name`` where
+    the flight was named), its checked ``images``, ``registered`` share and their
+    ``mean_m``, ``median_m`` and ``within_5m``.
     """
     positions = np.asarray(data.positions)
     placed = np.flatnonzero(geometry.reconstructed)
@@ -133,7 +133,7 @@ def _per_flight(data: MapData, sample: list[int],
                 checked: dict[int, tuple[float | None, float]]) -> list[dict]:
     """The registered figures of each flight of a map of several
     (:func:`workers.core.flights.flight_labels`); none for a map of one flight."""
-    labels = flight_labels(data.captured_at)
+    labels = data.flight_labels()
     found = sorted({int(labels[i]) for i in sample if labels[i] >= 0})
     if len(found) < 2:
         return []
@@ -143,6 +143,9 @@ def _per_flight(data: MapData, sample: list[int],
         errors = np.array([checked[i][0] for i in mine if checked[i][0] is not None])
         entry = {"flight": flight, "images": len(mine),
                  "registered": len(errors) / len(mine)}
+        named = {data.flights[i] for i in mine} if data.flights is not None else {None}
+        if len(named) == 1 and None not in named:
+            entry["name"] = named.pop()
         if len(errors):
             entry.update(mean_m=float(errors.mean()), median_m=float(np.median(errors)),
                          within_5m=float(np.mean(errors <= 5.0)))

@@ -34,12 +34,13 @@ with :data:`~workers.core.geometry.pairs.TIE_RANSAC_TRIALS`; results of another 
 matched again."""
 
 
-def plan(lats, lons, alts, times=None) -> list[tuple[int, int]]:
+def plan(lats, lons, alts, times=None, flights=None) -> list[tuple[int, int]]:
     """The pairs (indices in map order) whose tie points the map's geometry matches: those
     :func:`~workers.core.mapbuild.assemble_map` would match for images at these positions,
-    taken at these times (s, NaN unknown; None: none known)."""
+    taken at these times (s, NaN unknown; None: none known) in these flights (names, None
+    where not said)."""
     _, xy, _ = local_frame(lats, lons, alts)
-    return tie_pairs(xy, None if times is None else np.asarray(times, np.float64))
+    return tie_pairs(xy, None if times is None else np.asarray(times, np.float64), flights)
 
 
 def keep_valid(folder: str | Path, image_ids: list[int]) -> set[tuple[int, int]]:

@@ -43,23 +43,25 @@ TIE_NEIGHBOURS: int = 12
 (within :func:`tie_reach`)."""
 
 
-def tie_reach(positions: np.ndarray, times: np.ndarray | None = None) -> float:
+def tie_reach(positions: np.ndarray, times: np.ndarray | None = None,
+              flights=None) -> float:
     """How far apart (m) two map images may be for their tie points to be matched: views
     overlap over a few spacings, and surveys have gaps: six median spacings to the nearest
     image of the same flight (lewis-uav, with gaps of up to 96 m: 23 of 28 images placed, 20
     at 4.5; a second flight over the same waypoints does not shrink it,
-    :func:`~workers.core.flights.flight_spacing`)."""
-    return max(6.0 * flight_spacing(positions, times), 1.0)
+    :func:`~workers.core.flights.flight_spacing`, with the flights named in ``flights``)."""
+    return max(6.0 * flight_spacing(positions, times, flights), 1.0)
 
 
-def tie_pairs(positions: np.ndarray, times: np.ndarray | None = None,
+def tie_pairs(positions: np.ndarray, times: np.ndarray | None = None, flights=None,
               ) -> list[tuple[int, int]]:
     """The pairs of map images whose tie points :func:`build_geometry` matches (``times``:
-    capture times, NaN unknown, which tell the map's flights apart)."""
+    capture times, NaN unknown, and ``flights``: the flights named, None where not, which
+    tell the map's flights apart)."""
     positions = np.asarray(positions, np.float64)
     if len(positions) < 3:
         return []
-    return candidate_pairs(positions, max_distance=tie_reach(positions, times),
+    return candidate_pairs(positions, max_distance=tie_reach(positions, times, flights),
                            neighbours=TIE_NEIGHBOURS)
 
 
@@ -68,7 +70,7 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
                    seed: int = 0,
                    known_pairs: dict[tuple[int, int], PairMatches | None] | None = None,
                    known_tiles: dict | None = None, times: np.ndarray | None = None,
-                   ) -> tuple[MapGeometry, Structure] | None:
+                   flights=None) -> tuple[MapGeometry, Structure] | None:
     """Reconstruct the map's cameras and 3-D points, or None where that fails.
 
     Parameters
@@ -89,6 +91,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
         (:func:`.pairs.match_pair`); the rest are matched here.
     times : (N,) float ndarray, optional
         Capture times (s, NaN unknown), which let the GPS altitudes drift.
+    flights : (N,) sequence of str or None, optional
+        The flight each image was said to belong to (:mod:`workers.core.flights`).
     known_tiles : dict, optional
         Tiles of a large map reconstructed elsewhere, by :func:`.tiling.tile_key`
         (:mod:`workers.core.tiles`); the rest are reconstructed here.
@@ -104,7 +108,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
         return None
     # One BLAS thread, as in the engine's workers: a map build is the same wherever it runs.
     with threadpool_limits(limits=1, user_api="blas"):
-        pairs = match_pairs(keypoints, descriptors, tie_pairs(positions, times), seed=seed,
+        pairs = match_pairs(keypoints, descriptors, tie_pairs(positions, times, flights),
+                            seed=seed,
                             known=known_pairs)
         structure = reconstruct(keypoints, pairs, positions, altitudes, focal_px, seed=seed,
                                 times=times, known_tiles=known_tiles)
