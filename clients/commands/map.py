@@ -229,6 +229,9 @@ def _revision_line(r) -> str:
     check = r.geometry.self_check if r.geometry is not None else None
     if check is not None and check.median_m is not None:
         line += f"  self-check median {check.median_m:.1f} m"
+        for f in check.flights or []:
+            median = "-" if f.median_m is None else f"{f.median_m:.1f} m"
+            line += f"; {f.name or f'flight {f.flight}'} {median}"
     if r.dropped_at is not None:
         line += "  dropped"
     elif r.disk_bytes is not None:

@@ -38,6 +38,7 @@ from ._exceptions import (
 )
 from ._models import (
     Coverage,
+    FlightSelfCheck,
     FrameAccepted,
     FrameError,
     GeoExtent,
@@ -65,7 +66,7 @@ __all__ = [
     "FRAME_METADATA",
     "APIError", "AsyncClient", "AsyncConnect", "AsyncPoseStream", "BadRequest", "Client",
     "Coverage", "Localization",
-    "Conflict", "Connect", "Forbidden", "FrameAccepted", "FrameError", "FrameRejected",
+    "Conflict", "Connect", "FlightSelfCheck", "Forbidden", "FrameAccepted", "FrameError", "FrameRejected",
     "GeoExtent", "GeoPose", "Gone", "ImageRejection", "ImageSource", "Job", "JobFailed", "LocalExtent", "Map",
     "MapGeometry", "MapImage", "MapRevision", "MapSelfCheck", "Message", "NotFound", "Origin",
     "PayloadTooLarge", "Pose", "PoseStream", "ProblemKind", "RetryPolicy", "Route",

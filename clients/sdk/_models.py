@@ -46,6 +46,18 @@ class Origin(_Model):
     alt: float = 0.0
 
 
+class FlightSelfCheck(_Model):
+    """The self-check's figures over one of the map's flights."""
+
+    flight: int = Field(description="numbered from 0 in the order flown")
+    name: str | None = Field(None, description="as the upload named it")
+    images: int
+    registered: float
+    mean_m: float | None = None
+    median_m: float | None = None
+    within_5m: float | None = None
+
+
 class MapSelfCheck(_Model):
     """The map's own images localised against the rest of it at build time."""
 
@@ -56,6 +68,8 @@ class MapSelfCheck(_Model):
     within_5m: float | None = None
     floor_median_m: float
     trusted: bool
+    flights: list[FlightSelfCheck] | None = Field(
+        None, description="the same per flight, for a map of several")
 
 
 class MapGeometry(_Model):

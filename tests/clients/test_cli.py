@@ -123,9 +123,17 @@ def test_map_import_into_a_new_map_and_build_later(vloc, sdk, dataset_dir):
 def test_map_import_names_the_flights(vloc, sdk, dataset_dir):
     """``--flight-per-pass`` names each image's flight after its CSV pass, ``--flight`` names
     one flight for all; the images say so once uploaded."""
-    per_pass = vloc("map", "import", str(dataset_dir), "--flight-per-pass", "--quiet")
-    images = sdk.list_images(per_pass.stdout.strip())
+    per_pass = vloc("map", "import", str(dataset_dir), "--flight-per-pass", "--build",
+                    "--quiet")
+    map_id = per_pass.stdout.strip()
+    images = sdk.list_images(map_id)
     assert [i.flight for i in images] == ["pass 1"] * 10 + ["pass 2"] * 9
+    # the built revision's self-check, per named flight, in the API and in the listing
+    flights = sdk.get_map(map_id).geometry.self_check.flights
+    assert [(f.flight, f.name) for f in flights] == [(0, "pass 1"), (1, "pass 2")]
+    listed = vloc("map", "revisions", map_id).stdout
+    assert re.search(r"self-check median [\d.]+ m; pass 1 [\d.]+ m; pass 2 [\d.]+ m", listed), \
+        listed
     one = vloc("map", "import", str(dataset_dir), "--pass", "2", "--flight", "dusk", "--quiet")
     assert {i.flight for i in sdk.list_images(one.stdout.strip())} == {"dusk"}
     unnamed = vloc("map", "import", str(dataset_dir), "--pass", "1", "--quiet")
