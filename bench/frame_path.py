@@ -1,5 +1,6 @@
 """A frame's path through the service, counted: the cross-file hops from its request to the
-socket write of its pose, outside the filter step.
+socket write of its pose, outside the filter step, and how often its image header, its
+metadata and its estimate are parsed or encoded on the way.
 
     python bench/frame_path.py [--transport http|websocket|both] [--out bench/results/frame_path.md]
 
@@ -18,6 +19,11 @@ and session: a worker process runs the same ``WorkerState.handle`` on the task i
 The filter step is one hop (into ``workers/core/stepping.step_image``); what it calls is the
 filter's, not the path's. The app's periodic loops (idle sessions, following maps) are not
 the frame's and are left out; so are calls made by the test client.
+
+Parses and encodings are counted on the same run (the frame carries metadata: an altitude):
+a read of its image header (Pillow's ``Image.open``), a ``FrameMetadata`` made, and its
+estimate turned from one form into another (``Estimate.to_dict``, a pydantic pose built or
+dumped, JSON written or read).
 """
 
 from __future__ import annotations
@@ -87,19 +93,61 @@ def _thread() -> str:
     return "request thread" if name.startswith("AnyIO worker") else name
 
 
+def _work(frame, event: str, arg, data: bytes) -> str | None:
+    """Which of the frame's parses or encodings a call is, if any: its image header read
+    (Pillow's ``Image.open``, simplejpeg's header), its metadata made (a ``FrameMetadata``),
+    its estimate encoded or decoded (``Estimate.to_dict``, a pydantic model of it built or
+    dumped, JSON written or read)."""
+    if event == "c_call":
+        name = getattr(arg, "__name__", "")
+        if name == "decode_jpeg_header":
+            return "header"
+        return None
+    code = frame.f_code
+    where = code.co_filename.replace("\\", "/")
+    if code.co_name == "open" and where.endswith("PIL/Image.py"):
+        return "header"
+    if code.co_name == "__post_init__" and where.endswith("workers/core/metadata.py"):
+        return "metadata"
+    if code.co_name == "to_dict" and where.endswith("workers/core/estimate.py"):
+        return "estimate"
+    if where.endswith("pydantic/main.py") and code.co_name in (
+            "__init__", "model_dump", "model_dump_json", "model_validate",
+            "model_validate_json"):
+        this = frame.f_locals.get("self", frame.f_locals.get("cls"))
+        kind = this if isinstance(this, type) else type(this)
+        return "estimate" if kind.__name__ in ("PoseEstimate", "FrameError") else None
+    if where.endswith("json/__init__.py") and code.co_name in ("dumps", "loads"):
+        value = frame.f_locals.get("obj", frame.f_locals.get("s"))
+        if isinstance(value, str | bytes):
+            return "estimate" if b'"seq"' in (value if isinstance(value, bytes)
+                                              else value.encode()) else None
+        return "estimate" if _carries(value, data) else None
+    return None
+
+
 class HopRecorder:
     """The profile hook: (caller, callee) pairs of vloc functions in different files, and
-    which of them hand the callee the frame (:func:`_carries`)."""
+    which of them hand the callee the frame (:func:`_carries`); and how often the frame's
+    header, metadata and estimate are parsed or encoded (:func:`_work`)."""
 
     def __init__(self) -> None:
         self.on = False
         self.data = b""
         self.hops: OrderedDict[tuple, str] = OrderedDict()
         self.carrying: set[tuple] = set()
+        self.work: list[tuple[str, str, str]] = []
+        """(what, where, thread) for each parse or encoding, in order."""
         self._lock = threading.Lock()
 
     def __call__(self, frame, event, arg) -> None:
-        if not self.on or event not in ("call", "return"):
+        if not self.on:
+            return
+        if event in ("call", "c_call"):
+            what = _work(frame, event, arg, self.data)
+            if what is not None:
+                self._tally(what, frame if event == "call" else frame)
+        if event not in ("call", "return"):
             return
         callee = _ours(frame.f_code.co_filename)
         if callee is None or frame.f_code.co_name == "<module>":
@@ -140,6 +188,16 @@ class HopRecorder:
             if carries:
                 self.carrying.add(key)
 
+    def _tally(self, what: str, frame) -> None:
+        f = frame
+        while f is not None and _ours(f.f_code.co_filename) is None:
+            f = f.f_back
+        if f is None or f.f_code.co_name in LEFT_OUT:
+            return  # the test client's (reading the pose), or a periodic loop's
+        where = f"{_ours(f.f_code.co_filename)} {f.f_code.co_qualname}"
+        with self._lock:
+            self.work.append((what, where, _thread()))
+
     def install(self) -> None:
         sys.setprofile(self)
         threading.setprofile(self)
@@ -174,11 +232,13 @@ def _frame_through_the_service(transport: str, recorder: HopRecorder, work: Path
                 time.sleep(0.5)
                 recorder.data, recorder.on = data, True
                 if transport == "http":
-                    r = client.post(f"/v1/sessions/{sid}/frames?seq=0", content=data,
+                    r = client.post(f"/v1/sessions/{sid}/frames?seq=0&altitude_m=285.0",
+                                    content=data,
                                     headers=auth | {"Content-Type": "image/jpeg"})
                     r.raise_for_status()
                 else:
-                    ws.send_text('{"type": "frame_meta", "seq": 0}')
+                    ws.send_text('{"type": "frame_meta", "seq": 0, '
+                                 '"metadata": {"altitude_m": 285.0}}')
                     ws.send_bytes(data)
                 msg = ws.receive_json()
                 recorder.on = False
@@ -189,43 +249,53 @@ def _frame_through_the_service(transport: str, recorder: HopRecorder, work: Path
     return spec, data
 
 
-def _worker_part(spec, data: bytes, recorder: HopRecorder) -> None:
+def _worker_part(spec, data: bytes, metadata: dict, recorder: HopRecorder) -> None:
     state = WorkerState(max_pixels=2_000_000)
     state.handle(OpenSession(spec, None, 1))
     recorder.install()
     recorder.data, recorder.on = data, True
     try:
-        state.handle(FrameTask(spec.session_id, 0, data, None, checkpoint=True, metadata=None))
+        state.handle(FrameTask(spec.session_id, 0, data, None, checkpoint=True,
+                               metadata=metadata))
     finally:
         recorder.on = False
         recorder.remove()
 
 
-def count(transport: str) -> list[tuple[tuple, tuple, str, bool]]:
-    """The hops of one frame sent over ``transport``: (caller, callee, thread, whether it
-    hands on the frame), in the order first made (the API process's, then the worker's)."""
+def count(transport: str) -> tuple[list, list]:
+    """One frame sent over ``transport``: its hops (caller, callee, thread, whether it hands
+    on the frame) in the order first made, the API process's then the worker's; and its
+    parses and encodings (what, where, thread), in order."""
     api, worker = HopRecorder(), HopRecorder()
     with tempfile.TemporaryDirectory() as tmp:
         spec, data = _frame_through_the_service(transport, api, Path(tmp))
-        _worker_part(spec, data, worker)
-    return ([(a, b, t, (a, b) in api.carrying) for (a, b), t in api.hops.items()]
+        _worker_part(spec, data, {"altitude_m": 285.0}, worker)
+    hops = ([(a, b, t, (a, b) in api.carrying) for (a, b), t in api.hops.items()]
             + [(a, b, "worker process", (a, b) in worker.carrying) for (a, b) in worker.hops])
+    work = api.work + [(what, where, "worker process") for what, where, _ in worker.work]
+    return hops, work
 
 
-def report(results: dict[str, list]) -> str:
-    lines = ["# A frame's path: cross-file hops", "",
+def report(results: dict[str, tuple[list, list]]) -> str:
+    lines = ["# A frame's path: cross-file hops, parses and encodings", "",
              "`python bench/frame_path.py` (how it counts: the module's docstring). A hop",
              "that hands on the frame (its bytes, arrival, record, task, outcome, estimate or",
              "message) is on the frame's path; the others are the checks and helpers the",
              "path calls on the way.", ""]
-    for transport, hops in results.items():
+    for transport, (hops, work) in results.items():
         on_path = sum(h[3] for h in hops)
+        tally = {what: sum(w[0] == what for w in work)
+                 for what in ("header", "metadata", "estimate")}
         lines += [f"## {transport}: {on_path} hops on the frame's path, {len(hops)} "
                   "cross-file calls in all", "",
+                  "Parsed or encoded: " + ", ".join(f"{what} {n}x" for what, n in tally.items())
+                  + " (the frame sent with metadata: its altitude).", "",
                   "| # | on the path | thread | from | to |", "|---|---|---|---|---|"]
         for i, (a, b, thread, carries) in enumerate(hops, 1):
             lines.append(f"| {i} | {'yes' if carries else ''} | {thread} | `{a[0]}` {a[1]} "
                          f"| `{b[0]}` {b[1]} |")
+        lines += ["", "| parse or encoding | where | thread |", "|---|---|---|"]
+        lines += [f"| {what} | `{where}` | {thread} |" for what, where, thread in work]
         lines.append("")
     return "\n".join(lines)
 
