@@ -7,6 +7,7 @@ import math
 from datetime import UTC, datetime, timedelta
 
 from vloc.app.problems import Problem, ProblemKind
+from vloc.workers.core.metadata import FrameMetadata
 
 MIN_ALT_M, MAX_ALT_M = -500.0, 10_000.0
 """Altitudes a camera on or above the ground can have (the Dead Sea shore to high flight)."""
@@ -48,16 +49,17 @@ def check_captured_at(t: datetime | None) -> datetime | None:
     return t
 
 
-def check_metadata(values: dict) -> dict | None:
+def check_metadata(values: dict) -> FrameMetadata | None:
     """A frame's metadata (:class:`workers.core.metadata.FrameMetadata` fields, None where
-    absent), validated once as the core validates it: its ``to_dict()``, or None when empty.
+    absent), validated once, by the core's own checks: the FrameMetadata, which goes on to
+    the localiser as it is, or None when no field is given.
 
     Raises Problem 422 ``bad-metadata`` naming the field (``field``) for a non-finite or
     out-of-range value or a half of a pair (``gps_lat`` without ``gps_lon``...).
     """
-    from vloc.workers.core.metadata import FrameMetadata
-
     given = {k: v for k, v in values.items() if v is not None}
+    if not given:
+        return None
     try:
         metadata = FrameMetadata(**given)
     except TypeError as exc:
@@ -67,7 +69,7 @@ def check_metadata(values: dict) -> dict | None:
         name = str(exc).split()[0]
         raise Problem(422, str(exc), kind=ProblemKind.BAD_METADATA,
                       field=name if name in values else None) from None
-    return metadata.to_dict() or None
+    return metadata
 
 
 def check_text(value: str, field: str) -> str:

@@ -40,6 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import vloc.app  # noqa: E402
+from vloc.workers.core.metadata import FrameMetadata  # noqa: E402
 from vloc.workers.engine.messages import FrameTask, OpenSession  # noqa: E402
 from vloc.workers.engine.worker import WorkerState  # noqa: E402
 
@@ -249,17 +250,25 @@ def _frame_through_the_service(transport: str, recorder: HopRecorder, work: Path
     return spec, data
 
 
-def _worker_part(spec, data: bytes, metadata: dict, recorder: HopRecorder) -> None:
+def _worker_part(spec, data: bytes, metadata: FrameMetadata,
+                 recorder: HopRecorder) -> None:
+    """The worker's part, on the task the API process sends it (its metadata as pickling
+    leaves it: not made again)."""
+    import pickle
+
+    metadata = pickle.loads(pickle.dumps(metadata))
     state = WorkerState(max_pixels=2_000_000)
     state.handle(OpenSession(spec, None, 1))
     recorder.install()
     recorder.data, recorder.on = data, True
     try:
-        state.handle(FrameTask(spec.session_id, 0, data, None, checkpoint=True,
-                               metadata=metadata))
+        done = state.handle(FrameTask(spec.session_id, 0, data, None, checkpoint=True,
+                                      metadata=metadata))
     finally:
         recorder.on = False
         recorder.remove()
+    if type(done).__name__ != "FrameDone":
+        raise SystemExit(f"the worker did not step the frame: {done}")
 
 
 def count(transport: str) -> tuple[list, list]:
@@ -269,7 +278,7 @@ def count(transport: str) -> tuple[list, list]:
     api, worker = HopRecorder(), HopRecorder()
     with tempfile.TemporaryDirectory() as tmp:
         spec, data = _frame_through_the_service(transport, api, Path(tmp))
-        _worker_part(spec, data, {"altitude_m": 285.0}, worker)
+        _worker_part(spec, data, FrameMetadata(altitude_m=285.0), worker)
     hops = ([(a, b, t, (a, b) in api.carrying) for (a, b), t in api.hops.items()]
             + [(a, b, "worker process", (a, b) in worker.carrying) for (a, b) in worker.hops])
     work = api.work + [(what, where, "worker process") for what, where, _ in worker.work]

@@ -13,7 +13,8 @@ if TYPE_CHECKING:
 _SDK_NAMES = frozenset({
     "APIError", "AsyncClient", "AsyncConnect", "AsyncPoseStream", "BadRequest", "Client",
     "Coverage", "Localization",
-    "Conflict", "Connect", "Forbidden", "FrameAccepted", "FrameError", "FrameRejected",
+    "Conflict", "Connect", "FlightSelfCheck", "Forbidden", "FrameAccepted", "FrameError",
+    "FrameRejected",
     "FRAME_METADATA", "GeoExtent", "GeoPose", "Gone", "ImageRejection", "ImageSource", "Job",
     "JobFailed", "LocalExtent", "Map", "MapGeometry", "MapImage", "MapRevision", "MapSelfCheck",
     "Message",

@@ -17,6 +17,7 @@ from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.models import LocalisationSession
 from vloc.app.sessions.registry import expired_problem
 from vloc.app.validation import check_metadata
+from vloc.workers.core.metadata import FrameMetadata
 
 
 def authorise(secret: str | None, token_hash: str, ctx: AppContext, session_id: object) -> None:
@@ -88,7 +89,7 @@ def frame_metadata(
     velocity_east: float | None = Query(
         None, description="Ground velocity east, m/s; with velocity_north (at most 150 m/s)"),
     velocity_north: float | None = Query(None, description="Ground velocity north, m/s"),
-) -> dict | None:
+) -> FrameMetadata | None:
     """The frame's optional sensor reports, validated (422 ``bad-metadata`` naming the
     field); None when the request carries none."""
     return check_metadata(dict(
@@ -98,4 +99,4 @@ def frame_metadata(
         velocity_north=velocity_north))
 
 
-FrameMetadataDep = Annotated[dict | None, Depends(frame_metadata)]
+FrameMetadataDep = Annotated[FrameMetadata | None, Depends(frame_metadata)]

@@ -28,7 +28,7 @@ class Arrival:
     previous_seq: int | None
     """The session's last seq before this frame: restored if the record fails."""
     metadata: dict | None = None
-    """The frame's :class:`~workers.core.metadata.FrameMetadata`, as its ``to_dict()``."""
+    """The frame's :class:`~workers.core.metadata.FrameMetadata`, validated."""
     size: int = 0
     """Its bytes, held in this process until it is answered (:mod:`app.sessions.budget`)."""
 

@@ -35,6 +35,7 @@ from vloc.app.maps.revisions import revision_images
 from vloc.app.sessions.schemas import PoseEstimate, PoseFields
 from vloc.workers.core.accuracy import horizontal_accuracy
 from vloc.workers.core.estimate import Status
+from vloc.workers.core.metadata import DEFAULT_HEADING_ACCURACY_DEG, FrameMetadata
 
 NOT_STORED = ("type", "session_id", "seq", "map_id", "map_revision")
 """Fields that are no generated column: the key, the session's map, and the revision (a
@@ -175,7 +176,7 @@ class FrameContext:
     map_folder: str
     captured_at: datetime | None
     received_at: datetime
-    metadata: dict | None
+    metadata: FrameMetadata | None
     decode_ms: float
     latency_ms: float
 
@@ -193,7 +194,7 @@ def from_estimate(estimate: dict, ctx: FrameContext, *, bound_m: float,
 
 
 def pose_fields(estimate: dict, *, map_id: str, map_revision: int, map_folder: str,
-                metadata: dict | None, decode_ms: float, bound_m: float,
+                metadata: FrameMetadata | None, decode_ms: float, bound_m: float,
                 converged_before: bool) -> dict:
     """The :class:`~app.sessions.schemas.PoseFields` of an estimate: the core's fields by
     name, and what the service derives (status, accuracy, heading, matched image)."""
@@ -201,19 +202,18 @@ def pose_fields(estimate: dict, *, map_id: str, map_revision: int, map_folder: s
     accuracy = horizontal_accuracy(estimate["cov"])
     status, converged = judge(estimate["status"], accuracy, bound_m=bound_m,
                               converged_before=converged_before)
-    meta = metadata or {}
+    meta = metadata or FrameMetadata()
     heading = (estimate.get("heading_deg"), estimate.get("heading_sigma_deg"), "geometry")
     if heading[0] is None:
-        heading = (meta.get("heading_deg"), meta.get("heading_accuracy_deg"), "device") \
-            if meta.get("heading_deg") is not None else (None, None, None)
+        heading = (meta.heading_deg, meta.heading_accuracy_deg, "device") \
+            if meta.heading_deg is not None else (None, None, None)
     if heading[0] is not None and heading[1] is None:
-        from vloc.workers.core.metadata import DEFAULT_HEADING_ACCURACY_DEG
         heading = (heading[0], DEFAULT_HEADING_ACCURACY_DEG, heading[2])
     image_id, filename = revision_images(map_folder).lookup(
         int(estimate.get("best_image", -1)))
     return shared | {
         "map_id": map_id, "map_revision": map_revision, "status": status,
         "converged": converged, "horizontal_accuracy_m": accuracy,
-        "altitude_m": meta.get("altitude_m"), "heading_deg": heading[0],
+        "altitude_m": meta.altitude_m, "heading_deg": heading[0],
         "heading_sigma_deg": heading[1], "heading_source": heading[2], "image_id": image_id,
         "image_filename": filename, "decode_ms": decode_ms}

@@ -8,9 +8,14 @@ is stored. The map and the step are the ones a session's worker uses
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from vloc.workers.core.metadata import FrameMetadata
+
 
 def localize_image(folder: str, data: bytes, *, mode: str, params: dict, seed: int,
-                   prior: tuple[float, float, float] | None, metadata: dict | None,
+                   prior: tuple[float, float, float] | None, metadata: FrameMetadata | None,
                    max_pixels: int) -> dict:
     """Step a new localiser once on the image.
 

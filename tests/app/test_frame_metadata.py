@@ -7,6 +7,7 @@ import pytest
 
 from tests.app.conftest import PROBLEM, snapshot
 from tests.app.test_sessions import open_stream, post_frame
+from vloc.workers.core.metadata import FrameMetadata
 
 GOOD = {"heading_deg": 87.5, "heading_accuracy_deg": 4.0, "altitude_m": 212.5,
         "gps_lat": 41.0345, "gps_lon": -83.3057, "gps_accuracy_m": 8.0,
@@ -34,8 +35,8 @@ def test_metadata_reaches_the_localiser_and_comes_back_on_the_pose(service, shot
     assert p["heading_source"] in ("geometry", "device")
     if p["heading_source"] == "device":
         assert (p["heading_deg"], p["heading_sigma_deg"]) == (87.5, 4.0)
-    # the worker got every report, as FrameMetadata.to_dict() gives them
-    assert sent[0] == GOOD
+    # the worker got every report, validated once here: the FrameMetadata itself
+    assert isinstance(sent[0], FrameMetadata) and sent[0].to_dict() == GOOD
     assert set(filter(None, p["metadata_used"].split("+"))) <= {
         "heading", "gps", "altitude", "velocity"}
     plain = post_frame(c, sid, shots[1][1].jpeg, auth, wait="true").json()

@@ -18,6 +18,7 @@ from vloc.app.sessions.schemas import PoseEstimate
 from vloc.clients.sdk import Pose as ClientPose
 from vloc.workers.core.accuracy import horizontal_accuracy
 from vloc.workers.core.estimate import Estimate, Status
+from vloc.workers.core.metadata import FrameMetadata
 
 
 def test_every_stored_field_has_its_column_and_every_estimate_field_reaches_the_pose():
@@ -75,8 +76,8 @@ def test_heading_altitude_and_geopose_are_never_invented():
     assert msg.geopose is None  # GeoPose Basic needs a height: none without an altitude
     assert msg.horizontal_accuracy_m == pytest.approx(2.0 * math.sqrt(-2 * math.log(0.32)))
     # the frame's own heading and altitude are reported back, marked as the device's
-    device = pose.from_estimate(_estimate(), _context(metadata={"heading_deg": 90.0,
-                                                                "altitude_m": 212.5}),
+    device = pose.from_estimate(_estimate(), _context(metadata=FrameMetadata(
+                                    heading_deg=90.0, altitude_m=212.5)),
                                 bound_m=25.0, converged_before=False)
     assert (device.heading_deg, device.heading_source, device.altitude_m) == \
         (90.0, "device", 212.5)
@@ -84,8 +85,8 @@ def test_heading_altitude_and_geopose_are_never_invented():
     # heading east (90 deg) is yaw 0 in East-North-Up: the identity rotation
     assert (q.x, q.y, q.z, q.w) == pytest.approx((0.0, 0.0, 0.0, 1.0))
     geometry = pose.from_estimate(_estimate(heading_deg=0.0, heading_sigma_deg=3.0),
-                                  _context(metadata={"heading_deg": 90.0,
-                                                     "altitude_m": 10.0}),
+                                  _context(metadata=FrameMetadata(heading_deg=90.0,
+                                                              altitude_m=10.0)),
                                   bound_m=25.0, converged_before=False)
     q = geometry.geopose.quaternion
     assert geometry.heading_source == "geometry" and geometry.heading_deg == 0.0

@@ -30,16 +30,16 @@ class StepRecord:
 
 
 def step_image(localiser: Localiser, data: bytes, *, max_pixels: int,
-               captured_at: float | None = None, metadata: dict | None = None) -> StepRecord:
+               captured_at: float | None = None,
+               metadata: FrameMetadata | None = None) -> StepRecord:
     """Decode an encoded image (JPEG or PNG bytes) and step ``localiser`` on it once.
 
-    ``metadata`` is :meth:`~workers.core.metadata.FrameMetadata.to_dict`'s form. Raises
+    ``metadata`` is the frame's sensor reports, validated where they arrived. Raises
     :class:`~workers.core.image.ImageError` (a ValueError) for bytes that do not decode,
     before the localiser is touched; anything the step raises passes through.
     """
     t0 = time.perf_counter()
     frame = load_frame(data, max_pixels=max_pixels)
     decode_ms = (time.perf_counter() - t0) * 1e3
-    estimate = localiser.step(frame, captured_at=captured_at,
-                              metadata=FrameMetadata.from_dict(metadata))
+    estimate = localiser.step(frame, captured_at=captured_at, metadata=metadata)
     return StepRecord(estimate.to_dict(), decode_ms)

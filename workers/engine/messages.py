@@ -9,6 +9,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from vloc.workers.core.metadata import FrameMetadata
+
 DEFAULT_FACTORY = "vloc.workers.core.localisers:make_localiser"
 
 
@@ -59,7 +61,9 @@ class FrameTask:
     data: bytes
     captured_at: float | None = None
     checkpoint: bool = True
-    metadata: dict | None = None  # FrameMetadata.to_dict()
+    metadata: FrameMetadata | None = None
+    """The frame's sensor reports, as the API process validated them (pickled as they are:
+    not validated again)."""
 
 
 @dataclass(frozen=True, slots=True)

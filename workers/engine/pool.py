@@ -14,6 +14,11 @@ which settles calls and passes frame outcomes on to ``on_outcome``.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from vloc.workers.core.metadata import FrameMetadata
+
 import itertools
 import logging
 import multiprocessing as mp
@@ -163,11 +168,11 @@ class LocalEngine:
             return self._pinned[session_id]
 
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
-                     captured_at: float | None = None, metadata: dict | None = None) -> None:
+                     captured_at: float | None = None,
+                     metadata: FrameMetadata | None = None) -> None:
         """Queue a frame; its outcome comes back through ``on_outcome``.
 
-        ``metadata`` is :meth:`workers.core.metadata.FrameMetadata.to_dict` of the frame's
-        sensor reports, already validated.
+        ``metadata`` is the frame's sensor reports, already validated.
 
         Raises KeyError when the session is not open, ``EngineClosed`` when stopped.
         """

@@ -12,6 +12,11 @@ engine's own.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from vloc.workers.core.metadata import FrameMetadata
+
 from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Protocol, runtime_checkable
@@ -49,7 +54,8 @@ class Engine(Protocol):
         the database knows) seeds the numbering."""
     def is_open(self, session_id: str) -> bool: ...
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
-                     captured_at: float | None = None, metadata: dict | None = None) -> None:
+                     captured_at: float | None = None,
+                     metadata: FrameMetadata | None = None) -> None:
         """Queue a frame; its outcome comes through ``on_outcome``. KeyError when the
         session is not open here, EngineClosed when stopped, WorkerDied while its worker
         is being replaced."""

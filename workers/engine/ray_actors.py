@@ -14,6 +14,11 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from vloc.workers.core.metadata import FrameMetadata
+
 import asyncio
 import contextlib
 import hashlib
@@ -268,7 +273,7 @@ class Shard:
                     await asyncio.wait_for(order.turn.wait(), max(min(earlier) - now, 0.001))
 
     async def frame(self, sid: str, seq: int, data: bytes, captured_at: float | None,
-                    metadata: dict | None) -> FrameDone | FrameFailed:
+                    metadata: FrameMetadata | None) -> FrameDone | FrameFailed:
         order = self._ready(sid)
         if order is None:
             return FrameFailed(sid, seq, "not_open", "the session is not open in its shard")

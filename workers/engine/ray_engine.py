@@ -36,6 +36,11 @@ with the same messages as the local engine (:mod:`workers.engine.messages`).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from vloc.workers.core.metadata import FrameMetadata
+
 import collections
 import contextlib
 import hashlib
@@ -306,7 +311,8 @@ class RayEngine:
             self.shard(session_id).release.remote(session_id, seq)
 
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
-                     captured_at: float | None = None, metadata: dict | None = None) -> None:
+                     captured_at: float | None = None,
+                     metadata: FrameMetadata | None = None) -> None:
         self._check_running()
         ref = self.shard(session_id).frame.remote(session_id, seq, data, captured_at, metadata)
         with self._lock:
