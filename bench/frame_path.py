@@ -40,7 +40,6 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import vloc.app  # noqa: E402
-from vloc.workers.core.metadata import FrameMetadata  # noqa: E402
 from vloc.workers.engine.messages import FrameTask, OpenSession  # noqa: E402
 from vloc.workers.engine.worker import WorkerState  # noqa: E402
 
@@ -226,8 +225,17 @@ def _frame_through_the_service(transport: str, recorder: HopRecorder, work: Path
             created.raise_for_status()
             sid, token = created.json()["id"], created.json()["token"]
             auth = {"Authorization": f"Bearer {token}"}
-            spec = client.app.state.ctx.engine._specs[sid]
+            ctx = client.app.state.ctx
+            spec = ctx.engine._specs[sid]
             data = queries[0].jpeg
+            sent: dict = {}
+            submit = ctx.engine.submit_frame
+
+            def spy(session_id, seq, frame, **kwargs):
+                sent.update(kwargs)  # what the worker's task carries
+                return submit(session_id, seq, frame, **kwargs)
+
+            ctx.engine.submit_frame = spy
             with client.websocket_connect(f"/v1/sessions/{sid}/stream", headers=auth) as ws:
                 assert ws.receive_json()["type"] == "hello"
                 time.sleep(0.5)
@@ -242,28 +250,29 @@ def _frame_through_the_service(transport: str, recorder: HopRecorder, work: Path
                                  '"metadata": {"altitude_m": 285.0}}')
                     ws.send_bytes(data)
                 msg = ws.receive_json()
+                deadline = time.monotonic() + 30
+                while ctx.intake.pending_total() and time.monotonic() < deadline:
+                    time.sleep(0.01)  # until its pose is stored too
                 recorder.on = False
                 if msg.get("type") != "pose":
                     raise SystemExit(f"expected a pose, got {msg}")
     finally:
         recorder.remove()
-    return spec, data
+    return spec, data, sent
 
 
-def _worker_part(spec, data: bytes, metadata: FrameMetadata,
-                 recorder: HopRecorder) -> None:
-    """The worker's part, on the task the API process sends it (its metadata as pickling
-    leaves it: not made again)."""
+def _worker_part(spec, data: bytes, sent: dict, recorder: HopRecorder) -> None:
+    """The worker's part, on the task the API process sent it (as pickling leaves it)."""
     import pickle
 
-    metadata = pickle.loads(pickle.dumps(metadata))
+    task = pickle.loads(pickle.dumps(FrameTask(spec.session_id, 0, data, checkpoint=True,
+                                               **sent)))
     state = WorkerState(max_pixels=2_000_000)
     state.handle(OpenSession(spec, None, 1))
     recorder.install()
     recorder.data, recorder.on = data, True
     try:
-        done = state.handle(FrameTask(spec.session_id, 0, data, None, checkpoint=True,
-                                      metadata=metadata))
+        done = state.handle(task)
     finally:
         recorder.on = False
         recorder.remove()
@@ -277,8 +286,8 @@ def count(transport: str) -> tuple[list, list]:
     parses and encodings (what, where, thread), in order."""
     api, worker = HopRecorder(), HopRecorder()
     with tempfile.TemporaryDirectory() as tmp:
-        spec, data = _frame_through_the_service(transport, api, Path(tmp))
-        _worker_part(spec, data, FrameMetadata(altitude_m=285.0), worker)
+        spec, data, sent = _frame_through_the_service(transport, api, Path(tmp))
+        _worker_part(spec, data, sent, worker)
     hops = ([(a, b, t, (a, b) in api.carrying) for (a, b), t in api.hops.items()]
             + [(a, b, "worker process", (a, b) in worker.carrying) for (a, b) in worker.hops])
     work = api.work + [(what, where, "worker process") for what, where, _ in worker.work]

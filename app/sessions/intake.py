@@ -43,6 +43,7 @@ from vloc.app.engine import (
     SeqRefused,
     WorkerDied,
 )
+from vloc.app.imagecheck import ImageHeader
 from vloc.app.metrics import Metrics
 from vloc.app.problems import Problem, ProblemKind
 from vloc.app.sessions import store
@@ -56,6 +57,7 @@ from vloc.app.sessions.schemas import MAX_SEQ, FrameError
 from vloc.app.sessions.store import FrameRecord, FrameStore
 from vloc.app.sessions.writer import Accepted, Barrier, Writer
 from vloc.app.stream.hub import LocalHub
+from vloc.workers.core.metadata import FrameMetadata
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +162,8 @@ class FrameIntake:
 
     async def accept(self, live: LiveSession, data: bytes, *, seq: int | None,
                      captured_at: datetime | None, t0: float,
-                     metadata: dict | None = None,
+                     metadata: FrameMetadata | None = None,
+                     header: ImageHeader | None = None,
                      admitted: bool = False) -> tuple[int, asyncio.Future]:
         """Number a frame whose bytes passed the header checks and queue its record.
 
@@ -171,7 +174,8 @@ class FrameIntake:
         A local engine's frames are numbered here, with no await between the sequence
         check and the queueing; a shared engine numbers them itself, across API processes.
 
-        ``admitted``: the frame's body was let in by :attr:`budget` already.
+        ``admitted``: the frame's body was let in by :attr:`budget` already. ``header``: what
+        :func:`app.imagecheck.check_image` read of it (the worker does not read it again).
 
         Raises
         ------
@@ -196,7 +200,8 @@ class FrameIntake:
         if self.engine.shared:
             seq = await self._reserve(live, seq)
         arrival = Arrival(t0, utcnow(), captured_at, data, self.loop.create_future(),
-                          live.last_seq, metadata or None, len(data))
+                          live.last_seq, metadata, len(data),
+                          None if header is None else (header.width, header.height))
         live.arrivals[seq] = arrival
         live.last_seq = seq if live.last_seq is None else max(live.last_seq, seq)
         live.last_active = arrival.received_at
@@ -282,7 +287,8 @@ class FrameIntake:
         captured = arrival.captured_at.timestamp() if arrival.captured_at is not None else None
         try:
             self.engine.submit_frame(live.id, seq, data, captured_at=captured,
-                                     metadata=arrival.metadata)
+                                     metadata=arrival.metadata,
+                                     header_size=arrival.header_size)
         except (KeyError, EngineClosed, WorkerDied) as exc:
             if isinstance(exc, KeyError):
                 self.sessions.release_for_reload(live)

@@ -31,6 +31,9 @@ class Arrival:
     """The frame's :class:`~workers.core.metadata.FrameMetadata`, validated."""
     size: int = 0
     """Its bytes, held in this process until it is answered (:mod:`app.sessions.budget`)."""
+    header_size: tuple[int, int] | None = None
+    """(width, height) from its image header, checked on arrival: the worker does not read
+    the header again."""
 
 
 @dataclass(eq=False)

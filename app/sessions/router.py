@@ -138,9 +138,10 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
         # the body's room is taken before it is read: bodies in flight are what fills memory
         with intake.budget.reading(live.id, _declared_size(request, limit)):
             data = await read_body(request, limit)
-            check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
+            header = check_image(data, max_pixels=ctx.settings.max_pixels, declared=declared)
             seq, queued = await intake.accept(live, data, seq=seq, captured_at=captured,
-                                              t0=t0, metadata=metadata, admitted=True)
+                                              t0=t0, metadata=metadata, header=header,
+                                              admitted=True)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or ProblemKind.BAD_IMAGE).inc()
         raise

@@ -187,11 +187,11 @@ async def _frame(ctx: AppContext, live: LiveSession, sub: Subscription, data: by
     try:
         if len(data) > ctx.settings.max_frame_bytes:
             raise too_large(ctx.settings.max_frame_bytes)
-        check_image(data, max_pixels=ctx.settings.max_pixels)
+        header = check_image(data, max_pixels=ctx.settings.max_pixels)
         captured = check_captured_at(meta.captured_at)
         metadata = check_metadata(meta.metadata or {})
         _, queued = await ctx.intake.accept(live, data, seq=meta.seq, captured_at=captured,
-                                             t0=t0, metadata=metadata)
+                                            t0=t0, metadata=metadata, header=header)
     except Problem as p:
         ctx.metrics.frames_rejected.labels(p.kind or ProblemKind.BAD_IMAGE).inc()
         sub.put({"type": "error", "problem": p.body()})

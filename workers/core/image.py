@@ -59,7 +59,8 @@ _REDUCED = ((8, cv2.IMREAD_REDUCED_COLOR_8), (4, cv2.IMREAD_REDUCED_COLOR_4),
 
 
 def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
-                 min_size: tuple[int, int] | None = None) -> np.ndarray:
+                 min_size: tuple[int, int] | None = None,
+                 header_size: tuple[int, int] | None = None) -> np.ndarray:
     """Decode JPEG/PNG bytes into a BGR image.
 
     Parameters
@@ -73,6 +74,9 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
         The image will be shrunk to this size: a JPEG may then be decoded at 1/2, 1/4 or
         1/8 scale straight from its DCT coefficients (much faster), as long as the
         result stays at least this large.
+    header_size : (width, height) or None
+        The size its header declares, where the caller read it already (the API process
+        checks every frame's header before it reaches a worker): not read again.
 
     Returns
     -------
@@ -85,7 +89,7 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
     """
     if not data:
         raise ImageError("empty image")
-    size = _header_size(data)
+    size = _header_size(data) if header_size is None else tuple(header_size)
     if size is None:
         raise ImageError("not a decodable JPEG or PNG image")
     width, height = size
@@ -185,6 +189,8 @@ def prepare(image: np.ndarray, size: tuple[int, int] = WORK_SIZE) -> Frame:
 
 
 def load_frame(data: bytes, *, size: tuple[int, int] = WORK_SIZE,
-               max_pixels: int = MAX_PIXELS) -> Frame:
-    """Decode and prepare in one call."""
-    return prepare(decode_image(data, max_pixels=max_pixels, min_size=size), size)
+               max_pixels: int = MAX_PIXELS,
+               header_size: tuple[int, int] | None = None) -> Frame:
+    """Decode and prepare in one call (``header_size``: :func:`decode_image`)."""
+    return prepare(decode_image(data, max_pixels=max_pixels, min_size=size,
+                                header_size=header_size), size)

@@ -64,6 +64,8 @@ class FrameTask:
     metadata: FrameMetadata | None = None
     """The frame's sensor reports, as the API process validated them (pickled as they are:
     not validated again)."""
+    header_size: tuple[int, int] | None = None
+    """(width, height) from the image header the API process checked: not read again."""
 
 
 @dataclass(frozen=True, slots=True)

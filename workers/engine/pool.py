@@ -169,10 +169,12 @@ class LocalEngine:
 
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
                      captured_at: float | None = None,
-                     metadata: FrameMetadata | None = None) -> None:
+                     metadata: FrameMetadata | None = None,
+                     header_size: tuple[int, int] | None = None) -> None:
         """Queue a frame; its outcome comes back through ``on_outcome``.
 
-        ``metadata`` is the frame's sensor reports, already validated.
+        ``metadata`` is the frame's sensor reports, already validated; ``header_size`` the
+        (width, height) its checked header declares.
 
         Raises KeyError when the session is not open, ``EngineClosed`` when stopped.
         """
@@ -183,7 +185,7 @@ class LocalEngine:
             slot.frames[(session_id, seq)] = None
             slot.tasks.put(FrameTask(session_id, seq, data, captured_at,
                                      checkpoint=n % self.checkpoint_every == 0,
-                                     metadata=metadata))
+                                     metadata=metadata, header_size=header_size))
 
     def pending_frames(self, session_id: str) -> int:
         with self._lock:

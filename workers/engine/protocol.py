@@ -55,7 +55,8 @@ class Engine(Protocol):
     def is_open(self, session_id: str) -> bool: ...
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
                      captured_at: float | None = None,
-                     metadata: FrameMetadata | None = None) -> None:
+                     metadata: FrameMetadata | None = None,
+                     header_size: tuple[int, int] | None = None) -> None:
         """Queue a frame; its outcome comes through ``on_outcome``. KeyError when the
         session is not open here, EngineClosed when stopped, WorkerDied while its worker
         is being replaced."""

@@ -273,7 +273,8 @@ class Shard:
                     await asyncio.wait_for(order.turn.wait(), max(min(earlier) - now, 0.001))
 
     async def frame(self, sid: str, seq: int, data: bytes, captured_at: float | None,
-                    metadata: FrameMetadata | None) -> FrameDone | FrameFailed:
+                    metadata: FrameMetadata | None,
+                    header_size: tuple[int, int] | None = None) -> FrameDone | FrameFailed:
         order = self._ready(sid)
         if order is None:
             return FrameFailed(sid, seq, "not_open", "the session is not open in its shard")
@@ -293,7 +294,7 @@ class Shard:
         order.count += 1
         try:
             return await self._run(FrameTask(
-                sid, seq, data, captured_at, metadata=metadata,
+                sid, seq, data, captured_at, metadata=metadata, header_size=header_size,
                 checkpoint=order.count % self.checkpoint_every == 0))
         finally:
             async with order.turn:

@@ -312,9 +312,11 @@ class RayEngine:
 
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
                      captured_at: float | None = None,
-                     metadata: FrameMetadata | None = None) -> None:
+                     metadata: FrameMetadata | None = None,
+                     header_size: tuple[int, int] | None = None) -> None:
         self._check_running()
-        ref = self.shard(session_id).frame.remote(session_id, seq, data, captured_at, metadata)
+        ref = self.shard(session_id).frame.remote(session_id, seq, data, captured_at, metadata,
+                                                  header_size)
         with self._lock:
             self._pending[(session_id, seq)] = ref
         ref.future().add_done_callback(lambda f: self._frame_done(session_id, seq, f))

@@ -96,7 +96,8 @@ class WorkerState:
 
         try:
             record = step_image(localiser, task.data, max_pixels=self.max_pixels,
-                                captured_at=task.captured_at, metadata=task.metadata)
+                                captured_at=task.captured_at, metadata=task.metadata,
+                                header_size=task.header_size)
             state = localiser.get_state() if task.checkpoint else None
         except ImageError as exc:
             return FrameFailed(task.session_id, task.seq, "bad_image", str(exc))
