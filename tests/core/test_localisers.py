@@ -517,8 +517,34 @@ def test_step_image_decodes_steps_and_records_and_refuses_bytes_that_do_not_deco
     assert localiser.frames == []
     localiser.estimate = type("E", (), {"to_dict": lambda self: {"x": 1.0}})()
     _, jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 128, np.uint8))
+    reports = FrameMetadata(heading_deg=80.0)
     record = step_image(localiser, jpeg.tobytes(), max_pixels=10**6, captured_at=5.0,
-                        metadata={"heading_deg": 80.0})
+                        metadata=reports)
     assert record.estimate == {"x": 1.0} and record.decode_ms >= 0.0
-    (_, captured_at, metadata), = localiser.frames
-    assert captured_at == 5.0 and metadata.heading_deg == 80.0
+    (frame, captured_at, metadata), = localiser.frames
+    # the reports reach the localiser as they were validated, not made again
+    assert captured_at == 5.0 and metadata is reports
+    # a header already read is not read again: the same frame from the size given
+    again = step_image(localiser, jpeg.tobytes(), max_pixels=10**6, header_size=(64, 48))
+    assert again.estimate == {"x": 1.0}
+    np.testing.assert_array_equal(localiser.frames[-1][0].grey, frame.grey)
+    with pytest.raises(ImageError, match="exceeds the limit"):
+        step_image(localiser, jpeg.tobytes(), max_pixels=1000, header_size=(64, 48))
+
+
+def test_a_header_read_before_is_not_read_again(monkeypatch):
+    import cv2
+
+    from vloc.workers.core import image
+
+    _, jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 90, np.uint8))
+    data = jpeg.tobytes()
+    expected = image.decode_image(data)
+
+    def unread(_):
+        raise AssertionError("the header was read again")
+
+    monkeypatch.setattr(image, "_header_size", unread)
+    np.testing.assert_array_equal(image.decode_image(data, header_size=(64, 48)), expected)
+    with pytest.raises(AssertionError, match="read again"):
+        image.decode_image(data)
