@@ -1,0 +1,103 @@
+"""Benchmark: what decoding a frame costs in a worker, part by part, on one core.
+
+A worker turns a frame's bytes into the working-resolution image with
+:func:`workers.core.image.load_frame`: the header read (skipped where the API process read
+it), the strict completeness check of a JPEG (simplejpeg decodes every block at 1/8 scale, so
+that a file cut short is refused rather than filled with grey), OpenCV's decode at the
+reduced scale the working size allows, and the resize. Each part is timed side by side on the
+same frames, in one run: medians of repeated runs per frame, then the median over the frames.
+
+Usage::
+
+    .venv/bin/python bench/bench_decode.py [--images FOLDER] [--frames 20] [--repeats 15]
+                                           [--out bench/results/decode.md]
+
+By default the frames are seneca-uav's (``../shared/datasets/seneca-uav/images``).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from vloc.workers.core import image  # noqa: E402
+
+cv2.setNumThreads(1)
+
+
+def _median_ms(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e3)
+
+
+def measure(data: bytes, repeats: int) -> dict[str, float]:
+    """Milliseconds of each part of one frame's decode, and of the whole."""
+    size = image._header_size(data)
+    flag = cv2.IMREAD_COLOR
+    for factor, reduced in image._REDUCED:
+        if size[0] // factor >= image.WORK_SIZE[0] and size[1] // factor >= image.WORK_SIZE[1]:
+            flag = reduced
+            break
+    buf = np.frombuffer(data, np.uint8)
+    decoded = cv2.imdecode(buf, flag)
+    return {
+        "header": _median_ms(lambda: image._header_size(data), repeats),
+        "completeness check": _median_ms(lambda: image._check_jpeg_complete(data, size),
+                                         repeats),
+        "OpenCV decode": _median_ms(lambda: cv2.imdecode(buf, flag), repeats),
+        "resize": _median_ms(lambda: image.prepare(decoded), repeats),
+        "load_frame": _median_ms(lambda: image.load_frame(data), repeats),
+        "load_frame, header given": _median_ms(
+            lambda: image.load_frame(data, header_size=size), repeats),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--images", type=Path,
+                    default=ROOT.parent / "shared" / "datasets" / "seneca-uav" / "images")
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    paths = sorted(p for p in args.images.iterdir()
+                   if p.suffix.lower() in (".jpg", ".jpeg"))[:args.frames]
+    if not paths:
+        raise SystemExit(f"no JPEG frames in {args.images}")
+    rows = [measure(p.read_bytes(), args.repeats) for p in paths]
+    size = image._header_size(paths[0].read_bytes())
+    whole = np.median([r["load_frame"] for r in rows])
+    name = args.images.parent.name if args.images.name == "images" else args.images.name
+    lines = ["# Decoding a frame in a worker", "",
+             f"`python bench/bench_decode.py` on {len(paths)} frames of {name} "
+             f"({size[0]}x{size[1]} JPEG), one core; medians of {args.repeats} runs per frame, "
+             "then over the frames.", "",
+             "| part | ms | share of load_frame |", "|---|---|---|"]
+    for part in rows[0]:
+        ms = float(np.median([r[part] for r in rows]))
+        lines.append(f"| {part} | {ms:.2f} | {ms / whole:.0%} |")
+    text = "\n".join(lines)
+    print(text)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
