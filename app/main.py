@@ -57,8 +57,7 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     hub = _make_hub(settings)
     sessions = SessionRegistry(settings=settings, db_sessions=db_sessions, engine=engine,
                                hub=hub, metrics=metrics)
-    intake = FrameIntake(settings=settings, db_sessions=db_sessions, sessions=sessions,
-                         engine=engine, hub=hub, metrics=metrics)
+    intake = FrameIntake(sessions)
     engine.on_outcome = intake.on_outcome
     ctx = AppContext(settings=settings, db_engine=db_engine, db_sessions=db_sessions,
                      admin_key_hash=hash_secret(ensure_admin_key(settings)), metrics=metrics,

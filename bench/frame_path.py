@@ -146,7 +146,7 @@ class HopRecorder:
         if event in ("call", "c_call"):
             what = _work(frame, event, arg, self.data)
             if what is not None:
-                self._tally(what, frame if event == "call" else frame)
+                self._tally(what, frame)
         if event not in ("call", "return"):
             return
         callee = _ours(frame.f_code.co_filename)

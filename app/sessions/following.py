@@ -18,11 +18,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import replace
 
 from sqlalchemy import select, update
-from sqlalchemy.orm import Session, sessionmaker
 
-from vloc.app.config import Settings
 from vloc.app.maps.models import Map
-from vloc.app.metrics import Metrics
 from vloc.app.sessions.admission import check_revision
 from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.models import LocalisationSession
@@ -40,17 +37,16 @@ class MapFollowing:
     Parameters
     ----------
     sessions : SessionRegistry
+        The sessions, with the settings, database and metrics they work with.
     control : callable
         Runs the ``move`` control in order with the session's frames
         (:meth:`app.sessions.intake.FrameIntake.control`).
     """
 
-    def __init__(self, *, settings: Settings, db_sessions: sessionmaker[Session],
-                 sessions: SessionRegistry, metrics: Metrics, control: Control) -> None:
-        self.settings = settings
-        self.db_sessions = db_sessions
+    def __init__(self, sessions: SessionRegistry, *, control: Control) -> None:
         self.sessions = sessions
-        self.metrics = metrics
+        self.settings, self.db_sessions = sessions.settings, sessions.db_sessions
+        self.metrics = sessions.metrics
         self.control = control
         self.loop: asyncio.AbstractEventLoop | None = None
         self._lock = threading.Lock()

@@ -31,12 +31,8 @@ import logging
 import time
 from datetime import datetime
 
-from sqlalchemy.orm import Session, sessionmaker
-
-from vloc.app.config import Settings
 from vloc.app.db import utcnow
 from vloc.app.engine import (
-    Engine,
     EngineClosed,
     FrameFailed,
     Outcome,
@@ -44,7 +40,6 @@ from vloc.app.engine import (
     WorkerDied,
 )
 from vloc.app.imagecheck import ImageHeader
-from vloc.app.metrics import Metrics
 from vloc.app.problems import Problem, ProblemKind
 from vloc.app.sessions import store
 from vloc.app.sessions.admission import next_seq
@@ -56,7 +51,6 @@ from vloc.app.sessions.registry import SessionRegistry
 from vloc.app.sessions.schemas import MAX_SEQ, FrameError
 from vloc.app.sessions.store import FrameRecord, FrameStore
 from vloc.app.sessions.writer import Accepted, Barrier, Writer
-from vloc.app.stream.hub import LocalHub
 from vloc.workers.core.metadata import FrameMetadata
 
 log = logging.getLogger(__name__)
@@ -72,28 +66,23 @@ gone: the frames it left queued are settled by the processes still alive."""
 class FrameIntake:
     """The frames and controls of the sessions in ``sessions``, from arrival to answer.
 
-    It makes :attr:`following` (the sessions' moves run as its controls) and tells
-    ``sessions`` to drop a forgotten session's outcomes state.
+    It works with the registry's settings, database, engine, fan-out and metrics; it makes
+    :attr:`following` (the sessions' moves run as its controls) and tells ``sessions`` to
+    drop a forgotten session's outcomes state.
     """
 
-    def __init__(self, *, settings: Settings, db_sessions: sessionmaker[Session],
-                 sessions: SessionRegistry, engine: Engine, hub: LocalHub,
-                 metrics: Metrics) -> None:
-        self.settings = settings
-        self.db_sessions = db_sessions
+    def __init__(self, sessions: SessionRegistry) -> None:
         self.sessions = sessions
-        self.engine = engine
-        self.hub = hub
-        self.metrics = metrics
-        self.owner = settings.instance_name
-        self.store = FrameStore(db_sessions, owner=self.owner)
+        settings = self.settings = sessions.settings
+        self.db_sessions = sessions.db_sessions
+        self.engine, self.hub, self.metrics = sessions.engine, sessions.hub, sessions.metrics
+        self.store = FrameStore(self.db_sessions, owner=sessions.owner)
         self.loop: asyncio.AbstractEventLoop | None = None
-        self._writer = Writer(self.store, metrics, self._settle)
-        self.outcomes = Outcomes(settings=settings, hub=hub, writer=self._writer,
+        self._writer = Writer(self.store, self.metrics, self._settle)
+        self.outcomes = Outcomes(settings=settings, hub=self.hub, writer=self._writer,
                                  live=sessions.find)
         sessions.on_forget = self.outcomes.forget
-        self.following = MapFollowing(settings=settings, db_sessions=db_sessions,
-                                      sessions=sessions, metrics=metrics, control=self.control)
+        self.following = MapFollowing(sessions, control=self.control)
         self._idle = asyncio.Event()
         self._closing = False
         self.budget = FrameBudget(max_bytes=settings.max_queued_bytes,
@@ -143,7 +132,7 @@ class FrameIntake:
         alive = await asyncio.to_thread(self.engine.live_instances, GONE_AFTER_S)
         if alive is None:
             return 0
-        frames = await asyncio.to_thread(self._settle_gone, alive | {self.owner})
+        frames = await asyncio.to_thread(self._settle_gone, alive | {self.sessions.owner})
         for f in frames:
             self.hub.publish(str(f.session_id), FrameError(
                 session_id=f.session_id, seq=f.seq, captured_at=f.captured_at,

@@ -193,6 +193,10 @@ def from_estimate(estimate: dict, ctx: FrameContext, *, bound_m: float,
         "navigation": estimate.get("navigation")})
 
 
+_NO_METADATA = FrameMetadata()
+"""A frame that came without sensor reports (made once, not for every such frame)."""
+
+
 def pose_fields(estimate: dict, *, map_id: str, map_revision: int, map_folder: str,
                 metadata: FrameMetadata | None, decode_ms: float, bound_m: float,
                 converged_before: bool) -> dict:
@@ -202,7 +206,7 @@ def pose_fields(estimate: dict, *, map_id: str, map_revision: int, map_folder: s
     accuracy = horizontal_accuracy(estimate["cov"])
     status, converged = judge(estimate["status"], accuracy, bound_m=bound_m,
                               converged_before=converged_before)
-    meta = metadata or FrameMetadata()
+    meta = metadata or _NO_METADATA
     heading = (estimate.get("heading_deg"), estimate.get("heading_sigma_deg"), "geometry")
     if heading[0] is None:
         heading = (meta.heading_deg, meta.heading_accuracy_deg, "device") \

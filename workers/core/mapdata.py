@@ -265,7 +265,7 @@ class MapData:
                    sift_descriptors=desc.astype(np.uint8), map_id=map_id, revision=revision,
                    captured_at=None if captured_at is None
                    else np.asarray(captured_at, np.float64),
-                   flights=None if flights is None else tuple(flights),
+                   flights=flights,
                    sift_keep=None if sift_keep is None or not sift
                    else np.concatenate(sift_keep).astype(bool),
                    vocabularies=dict(vocabularies or {}), orb_offsets=orb_parts[0],

@@ -84,7 +84,6 @@ class LocalEngine:
             n_workers, lock=self._lock, on_message=self._on_message, on_lost=self._on_lost,
             reopen=self._reopen_tasks, start_method=start_method, max_pixels=max_pixels,
             stall_s=stall_s)
-        self.n_workers = n_workers
         self._specs: dict[str, SessionSpec] = {}
         self._moves: dict[int, SessionSpec] = {}
         """Sessions' specs on the revision a ``move`` control (by call id) takes them to:
@@ -110,6 +109,10 @@ class LocalEngine:
     @property
     def running(self) -> bool:
         return self.supervisor.running
+
+    @property
+    def n_workers(self) -> int:
+        return self.supervisor.n_workers
 
     @property
     def restarts(self) -> int:
