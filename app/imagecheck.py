@@ -15,7 +15,7 @@ from io import BytesIO
 from PIL import Image, UnidentifiedImageError
 
 from vloc.app.problems import Problem, ProblemKind
-from vloc.workers.core.image import image_kind, looks_truncated
+from vloc.workers.core.image import identify, image_kind
 
 CONTENT_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 _KIND_OF_TYPE = {v: k for k, v in CONTENT_TYPES.items()} | {"image/jpg": "jpeg"}
@@ -66,7 +66,7 @@ def check_image(data: bytes, *, max_pixels: int, declared: str | None = None) ->
     """
     if not data:
         raise Problem(422, "the image is empty", kind=ProblemKind.EMPTY_IMAGE)
-    kind = sniff(data)
+    kind, truncated = identify(data)
     if kind is None:
         raise Problem(422, "not a JPEG or PNG image", kind=ProblemKind.BAD_IMAGE)
     if declared is not None and kind != declared:
@@ -78,7 +78,7 @@ def check_image(data: bytes, *, max_pixels: int, declared: str | None = None) ->
     if width * height > max_pixels:
         raise Problem(413, f"an image of {width}x{height} pixels exceeds the limit of "
                       f"{max_pixels} pixels", kind=ProblemKind.TOO_MANY_PIXELS, max_pixels=max_pixels)
-    if looks_truncated(data):
+    if truncated:
         raise Problem(422, "the image is truncated", kind=ProblemKind.TRUNCATED_IMAGE)
     return ImageHeader(kind, width, height)
 

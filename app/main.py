@@ -58,7 +58,7 @@ def create_app(settings: Settings | None = None, *, configure_logging: bool = Fa
     sessions = SessionRegistry(settings=settings, db_sessions=db_sessions, engine=engine,
                                hub=hub, metrics=metrics)
     intake = FrameIntake(sessions)
-    engine.on_outcome = intake.on_outcome
+    engine.on_outcome = intake.outcomes.on_outcome
     ctx = AppContext(settings=settings, db_engine=db_engine, db_sessions=db_sessions,
                      admin_key_hash=hash_secret(ensure_admin_key(settings)), metrics=metrics,
                      engine=engine, hub=hub, sessions=sessions, intake=intake,

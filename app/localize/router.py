@@ -105,7 +105,7 @@ async def localize_image(
     except (KeyError, RuntimeError, WorkerDied, EngineClosed) as exc:
         raise Problem(503, f"the engine could not localise the image: {exc}",
                       kind=ProblemKind.ENGINE_UNAVAILABLE) from None
-    fields = pose_fields(result["estimate"], map_id=map_id, map_revision=revision,
+    fields = pose_fields(result["estimate"], map_id=map_.id, map_revision=revision,
                          map_folder=folder, metadata=metadata,
                          decode_ms=result["decode_ms"],
                          bound_m=ctx.settings.converged_accuracy_m, converged_before=False)

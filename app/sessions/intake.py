@@ -35,7 +35,6 @@ from vloc.app.db import utcnow
 from vloc.app.engine import (
     EngineClosed,
     FrameFailed,
-    Outcome,
     SeqRefused,
     WorkerDied,
 )
@@ -282,15 +281,11 @@ class FrameIntake:
             if isinstance(exc, KeyError):
                 self.sessions.release_for_reload(live)
             kind = "worker_died" if isinstance(exc, WorkerDied) else "not_open"
-            self.on_outcome(FrameFailed(live.id, seq, kind,
-                                        f"the engine could not take the frame: {exc}"))
+            self.outcomes.on_outcome(FrameFailed(
+                live.id, seq, kind, f"the engine could not take the frame: {exc}"))
         _resolve(arrival.queued, seq)
 
     # -- outcomes ---------------------------------------------------------------------------
-
-    def on_outcome(self, outcome: Outcome) -> None:
-        """Engine reader thread: see :meth:`Outcomes.on_outcome`."""
-        self.outcomes.on_outcome(outcome)
 
     def _settle(self, done: list[tuple[object, Exception | None]]) -> None:
         """Event loop: the items are stored (or refused). Frames go to the engine; answered

@@ -1,9 +1,10 @@
 """What becomes of a frame's outcome: its message, published at once, stored, then settled.
 
 The engine's reader thread hands each outcome to :meth:`Outcomes.on_outcome`, which turns it
-into its message (:mod:`app.sessions.pose` for an estimate, a ``frame_error`` otherwise), has
-the event loop publish the stream's copy at once and queues the message for the writer: the
-stream never waits for the database. Once the writer has stored it (or the database refused
+into its message (:mod:`app.sessions.pose` for an estimate, a ``frame_error`` otherwise),
+written as JSON once (:class:`~app.stream.hub.Encoded`: the socket, Redis and a waiting
+request send that text), has the event loop publish the stream's copy at once and queues the
+message with its row for the writer: the stream never waits for the database. Once the writer has stored it (or the database refused
 it: the stream then also hears a ``frame_error`` of kind ``not_stored``),
 :meth:`Outcomes.settle` wakes the ``?wait=true`` request waiting on it and the frame leaves
 its session's arrivals.
@@ -24,17 +25,12 @@ from vloc.app.db import utcnow
 from vloc.app.engine import Checkpoint, FrameDone, Outcome
 from vloc.app.sessions import pose
 from vloc.app.sessions.live import LiveSession
-from vloc.app.sessions.schemas import FrameError
+from vloc.app.sessions.schemas import FrameError, PoseEstimate
 from vloc.app.sessions.store import OutcomeRecord
-from vloc.app.stream.hub import LocalHub
+from vloc.app.stream.hub import Encoded, LocalHub
 
 if TYPE_CHECKING:
     from vloc.app.sessions.writer import Writer
-
-STREAM_ONLY = ("cloud",)
-"""Estimate fields a pose message carries on the stream and nowhere else: the particle
-sample is for watching, too bulky to keep for every frame."""
-
 
 class Outcomes:
     """Publishing and settling the outcomes of one API process's frames.
@@ -73,12 +69,17 @@ class Outcomes:
 
     def on_outcome(self, outcome: Outcome) -> None:
         """Engine reader thread: publish the message now, store it later."""
-        msg = self.message(outcome, time.perf_counter())
+        made = self.message(outcome, time.perf_counter())
         outcome = self._checkpoint_rate(outcome)
-        if msg is not None and self.loop is not None and not self.loop.is_closed():
+        if made is None:
+            self.writer.put(OutcomeRecord(outcome, None))
+            return
+        msg = Encoded.of(made[0])
+        if self.loop is not None and not self.loop.is_closed():
             self.loop.call_soon_threadsafe(self.hub.publish, outcome.session_id,
-                                           streamed(outcome, msg))
-        self.writer.put(OutcomeRecord(outcome, msg))
+                                           msg if outcome.prev_seq is None
+                                           else msg.after(outcome.prev_seq))
+        self.writer.put(OutcomeRecord(outcome, msg, made[1]))
 
     def _checkpoint_rate(self, outcome: Outcome) -> Outcome:
         """The outcome, without its state when the session's last one was stored less
@@ -112,9 +113,10 @@ class Outcomes:
             self._deferred.pop(session_id, None)
             self._checkpoint_at.pop(session_id, None)
 
-    def message(self, outcome: Outcome, t_back: float) -> dict | None:
-        """The stored message of an outcome (None for a checkpoint, or an estimate of a
-        session deleted meanwhile: nothing to tell or keep)."""
+    def message(self, outcome: Outcome, t_back: float
+                ) -> tuple[PoseEstimate | FrameError, dict | None] | None:
+        """The message of an outcome and, for a pose, its row; None for a checkpoint, or an
+        estimate of a session deleted meanwhile: nothing to tell or keep."""
         if isinstance(outcome, Checkpoint):
             return None
         live = self.live(outcome.session_id)
@@ -136,16 +138,15 @@ class Outcomes:
                 received_at=arrival.received_at if arrival is not None else utcnow(),
                 metadata=arrival.metadata if arrival is not None else None,
                 decode_ms=outcome.decode_ms, latency_ms=latency_ms)
-            msg = pose.from_estimate(outcome.estimate, ctx,
-                                     bound_m=self.settings.converged_accuracy_m,
-                                     converged_before=live.converged)
-            if msg.converged:
+            made = pose.from_estimate(outcome.estimate, ctx,
+                                      bound_m=self.settings.converged_accuracy_m,
+                                      converged_before=live.converged)
+            if made[0].converged:
                 live.converged = True
-        else:
-            msg = FrameError(session_id=outcome.session_id, seq=outcome.seq,
-                             captured_at=captured, kind=outcome.kind, reason=outcome.reason,
-                             latency_ms=latency_ms)
-        return msg.model_dump(mode="json")
+            return made
+        return FrameError(session_id=outcome.session_id, seq=outcome.seq,
+                          captured_at=captured, kind=outcome.kind, reason=outcome.reason,
+                          latency_ms=latency_ms), None
 
     def settle(self, record: OutcomeRecord, error: Exception | None) -> None:
         """Event loop: the writer stored the outcome (or the database refused it)."""
@@ -161,15 +162,3 @@ class Outcomes:
         if fut is not None and not fut.done():
             fut.set_result(record.message)
 
-
-def streamed(outcome: Outcome, message: dict) -> dict:
-    """The stream's copy of a frame's message: the stored message plus :data:`STREAM_ONLY`
-    and ``prev_seq`` (the frame answered before it, by which subscribers that hear
-    several replicas restore the order; see :class:`app.stream.hub.Subscription`)."""
-    extra = {}
-    if isinstance(outcome, FrameDone):
-        extra = {k: outcome.estimate[k] for k in STREAM_ONLY
-                 if k in outcome.estimate and k not in message}
-    if outcome.prev_seq is not None:
-        extra["prev_seq"] = outcome.prev_seq
-    return message | extra if extra else message

@@ -4,10 +4,9 @@
 derived from it here:
 
 - the columns of ``pose_estimates`` (:func:`pose_columns`), from each field's type;
-- a stream message from a worker's estimate (:func:`from_estimate`): fields of the core's
-  :class:`~workers.core.estimate.Estimate` are copied by name;
-- a row's values from a message (:func:`to_row`) and a message from a row
-  (:func:`from_row`).
+- a pose message and its row from a worker's estimate (:func:`from_estimate`): fields of
+  the core's :class:`~workers.core.estimate.Estimate` are copied by name;
+- a row's values from a pose (:func:`to_row`) and a pose from a row (:func:`from_row`).
 
 So a field is added to the schema (and to the migration that adds its column), and nowhere
 else. An object or list field (other than ``cov``) is stream-only: it has no column, and
@@ -32,9 +31,9 @@ from sqlalchemy.types import TypeEngine
 
 from vloc.app.db import UTCDateTime
 from vloc.app.maps.revisions import revision_images
-from vloc.app.sessions.schemas import PoseEstimate, PoseFields
+from vloc.app.sessions.schemas import NavigationState, PoseEstimate, PoseFields
 from vloc.workers.core.accuracy import horizontal_accuracy
-from vloc.workers.core.estimate import Status
+from vloc.workers.core.estimate import Estimate, Status
 from vloc.workers.core.metadata import DEFAULT_HEADING_ACCURACY_DEG, FrameMetadata
 
 NOT_STORED = ("type", "session_id", "seq", "map_id", "map_revision")
@@ -122,17 +121,18 @@ def _unwrap(annotation) -> tuple[object, bool]:
 
 # -- rows --------------------------------------------------------------------------------------
 
-def to_row(msg: dict) -> dict:
-    """Column values of a pose message (:meth:`PoseEstimate.model_dump` in JSON mode)."""
-    row = {}
+def to_row(pose: PoseEstimate, navigation: dict | None = None) -> dict:
+    """The values of a pose's row in ``pose_estimates``: its stored fields and the revision
+    (``navigation``, where given, is its JSON column's value)."""
+    row = {"map_revision": pose.map_revision}
     for name in stored_fields():
-        value = msg[name]
+        value = getattr(pose, name)
         if name == "cov":
             row.update(zip(COV_COLUMNS, value, strict=True))
             continue
-        if isinstance(value, str) and _unwrap(
-                PoseEstimate.model_fields[name].annotation)[0] is datetime:
-            value = datetime.fromisoformat(value)
+        if name in JSON_FIELDS:
+            value = navigation if name == "navigation" else (
+                None if value is None else value.model_dump(mode="json"))
         row[name] = value
     return row
 
@@ -181,43 +181,61 @@ class FrameContext:
     latency_ms: float
 
 
-def from_estimate(estimate: dict, ctx: FrameContext, *, bound_m: float,
-                  converged_before: bool) -> PoseEstimate:
-    """The pose message of an estimate (:meth:`workers.core.estimate.Estimate.to_dict`)."""
-    return PoseEstimate(**pose_fields(
-        estimate, map_id=ctx.map_id, map_revision=ctx.map_revision,
+def from_estimate(estimate: Estimate, ctx: FrameContext, *, bound_m: float,
+                  converged_before: bool) -> tuple[PoseEstimate, dict]:
+    """The pose message of a worker's estimate, and its row (:func:`to_row`).
+
+    The pose is assembled, not validated: every value is the core's typed estimate or the
+    service's own, each of its field's type (the tests hold it to the schema). So nothing
+    on a frame's way is made twice; the message is written as JSON once, by the schema's
+    serializer, and the row is read from the same object.
+    """
+    navigation = None
+    if estimate.navigation is not None:  # the follower's figures, typed by the schema
+        navigation = NavigationState.model_validate(estimate.navigation)
+    fields = pose_fields(
+        estimate, map_id=uuid.UUID(ctx.map_id), map_revision=ctx.map_revision,
         map_folder=ctx.map_folder, metadata=ctx.metadata, decode_ms=ctx.decode_ms,
-        bound_m=bound_m, converged_before=converged_before) | {
-        "session_id": ctx.session_id, "seq": ctx.seq, "captured_at": ctx.captured_at,
-        "received_at": ctx.received_at, "latency_ms": ctx.latency_ms,
-        "navigation": estimate.get("navigation")})
+        bound_m=bound_m, converged_before=converged_before)
+    message = PoseEstimate.model_construct(
+        **fields, session_id=uuid.UUID(ctx.session_id), seq=ctx.seq,
+        captured_at=ctx.captured_at, received_at=ctx.received_at, latency_ms=ctx.latency_ms,
+        navigation=navigation)
+    row = to_row(message, None if navigation is None else navigation.model_dump(mode="json"))
+    return message, row
 
 
 _NO_METADATA = FrameMetadata()
 """A frame that came without sensor reports (made once, not for every such frame)."""
 
 
-def pose_fields(estimate: dict, *, map_id: str, map_revision: int, map_folder: str,
+_SHARED = tuple(n for n in PoseFields.model_fields if n in Estimate.__dataclass_fields__)
+"""The fields a pose copies from the core's estimate by name."""
+
+
+def pose_fields(estimate: Estimate, *, map_id: uuid.UUID, map_revision: int, map_folder: str,
                 metadata: FrameMetadata | None, decode_ms: float, bound_m: float,
                 converged_before: bool) -> dict:
-    """The :class:`~app.sessions.schemas.PoseFields` of an estimate: the core's fields by
-    name, and what the service derives (status, accuracy, heading, matched image)."""
-    shared = {k: estimate[k] for k in PoseFields.model_fields if k in estimate}
-    accuracy = horizontal_accuracy(estimate["cov"])
-    status, converged = judge(estimate["status"], accuracy, bound_m=bound_m,
+    """The :class:`~app.sessions.schemas.PoseFields` of an estimate, each of its field's
+    type: the core's fields by name, and what the service derives (status, accuracy,
+    heading, matched image)."""
+    shared = {k: getattr(estimate, k) for k in _SHARED}
+    shared["cov"] = list(estimate.cov)
+    shared["cloud"] = list(estimate.cloud)
+    accuracy = horizontal_accuracy(estimate.cov)
+    status, converged = judge(estimate.status, accuracy, bound_m=bound_m,
                               converged_before=converged_before)
     meta = metadata or _NO_METADATA
-    heading = (estimate.get("heading_deg"), estimate.get("heading_sigma_deg"), "geometry")
+    heading = (estimate.heading_deg, estimate.heading_sigma_deg, "geometry")
     if heading[0] is None:
         heading = (meta.heading_deg, meta.heading_accuracy_deg, "device") \
             if meta.heading_deg is not None else (None, None, None)
     if heading[0] is not None and heading[1] is None:
         heading = (heading[0], DEFAULT_HEADING_ACCURACY_DEG, heading[2])
-    image_id, filename = revision_images(map_folder).lookup(
-        int(estimate.get("best_image", -1)))
+    image_id, filename = revision_images(map_folder).lookup(estimate.best_image)
     return shared | {
         "map_id": map_id, "map_revision": map_revision, "status": status,
-        "converged": converged, "horizontal_accuracy_m": accuracy,
+        "converged": converged, "horizontal_accuracy_m": float(accuracy),
         "altitude_m": meta.altitude_m, "heading_deg": heading[0],
         "heading_sigma_deg": heading[1], "heading_source": heading[2], "image_id": image_id,
         "image_filename": filename, "decode_ms": decode_ms}

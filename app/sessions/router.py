@@ -161,8 +161,8 @@ async def post_frame(request: Request, live: LiveSessionDep, ctx: Ctx,
         raise Problem(504, f"no estimate for frame {seq} within "
                       f"{ctx.settings.frame_wait_timeout_s:g} s; it will still be streamed",
                       kind=ProblemKind.ESTIMATE_TIMEOUT, seq=seq) from None
-    if msg["type"] == "pose":
-        return JSONResponse(msg, status_code=200)
+    if msg["type"] == "pose":  # the message as the stream has it, written once
+        return Response(msg.text, status_code=200, media_type="application/json")
     raise Problem(FAILED_FRAME_STATUS.get(msg["kind"], 500), msg["reason"],
                   kind=ProblemKind(f"frame-{msg['kind'].replace('_', '-')}"), seq=seq)
 

@@ -25,8 +25,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from vloc.app.db import utcnow
 from vloc.app.engine import Checkpoint, FrameFailed, Outcome
-from vloc.app.sessions import pose
 from vloc.app.sessions.models import Frame, FrameStatus, LocalisationSession, Pose
+from vloc.app.stream.hub import Encoded
 
 log = logging.getLogger(__name__)
 
@@ -55,10 +55,12 @@ class FrameRecord:
 
 @dataclass(frozen=True, slots=True)
 class OutcomeRecord:
-    """A frame's outcome (or a checkpoint) with its stream message (None for a checkpoint)."""
+    """A frame's outcome (or a checkpoint) with its message (None for a checkpoint) and,
+    for a pose, its row in ``pose_estimates`` (:func:`app.sessions.pose.to_row`)."""
 
     outcome: Outcome
-    message: dict | None
+    message: Encoded | None
+    row: dict | None = None
 
 
 class FrameStore:
@@ -112,16 +114,16 @@ class FrameStore:
                 if row is None:
                     continue  # deleted meanwhile: its frames went with it
                 for item in outcomes:
-                    if (frame := _apply(db, row, item.outcome, item.message)) is not None:
+                    if (frame := _apply(db, row, item)) is not None:
                         settled.append(frame)
             if settled:
                 db.execute(_SETTLE_FRAME, settled)
             db.commit()
 
 
-def _apply(db: Session, row: LocalisationSession, outcome: Outcome,
-           msg: dict | None) -> dict | None:
+def _apply(db: Session, row: LocalisationSession, item: OutcomeRecord) -> dict | None:
     """Apply one outcome to its session; the frame's settled status (bind parameters)."""
+    outcome, msg = item.outcome, item.message
     if isinstance(outcome, Checkpoint):
         if outcome.seq is None:
             row.state = outcome.state
@@ -142,9 +144,8 @@ def _apply(db: Session, row: LocalisationSession, outcome: Outcome,
     # after a newer one must not replace it.
     if outcome.state is not None and (row.state_seq is None or outcome.seq >= row.state_seq):
         row.state, row.state_seq = outcome.state, outcome.seq
-    if msg is not None:
-        db.add(Pose(session_id=row.id, seq=outcome.seq, map_revision=msg["map_revision"],
-                    **pose.to_row(msg)))
+    if item.row is not None:
+        db.add(Pose(session_id=row.id, seq=outcome.seq, **item.row))
     return frame
 
 

@@ -19,6 +19,7 @@ from vloc.app.engine import FrameDone, FrameFailed
 from vloc.app.metrics import Metrics
 from vloc.app.sessions.schemas import FrameError
 from vloc.app.sessions.store import FrameRecord, FrameStore, OutcomeRecord
+from vloc.app.stream.hub import Encoded
 
 log = logging.getLogger(__name__)
 
@@ -141,14 +142,14 @@ class Writer:
         message = FrameError(session_id=o.session_id, seq=o.seq,
                              captured_at=msg["captured_at"], kind=failed.kind,
                              reason=failed.reason, latency_ms=msg["latency_ms"])
-        replacement = OutcomeRecord(failed, message.model_dump(mode="json"))
+        replacement = OutcomeRecord(failed, Encoded.of(message))
         if self.store.write([replacement]):
             log.error("frame %d of session %s: its failure could not be stored either",
                       o.seq, o.session_id)
         self._count(replacement.message)
         return replacement
 
-    def _count(self, m: dict | None) -> None:
+    def _count(self, m: Encoded | None) -> None:
         if m is None:
             return
         if m["type"] == "pose":

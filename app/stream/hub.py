@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 from collections import defaultdict
+
+from pydantic import BaseModel
 
 SUBSCRIBER_QUEUE = 1024
 
@@ -22,6 +25,45 @@ follows from it, see :mod:`app.stream.router`)."""
 OVERFLOW = {"type": "overflow"}
 GOING_AWAY = {"type": "going_away"}
 """Not sent: tells a stream to close with 1001 after the messages before it."""
+
+
+HEAD = ("type", "session_id", "seq", "prev_seq", "kind", "reason", "captured_at", "feature",
+        "processing_ms", "latency_ms", "converged")
+"""The fields of a frame's message the service reads itself (routing, ordering, metrics,
+the HTTP answer's status): kept beside its JSON text, so that it is never parsed back."""
+
+
+class Encoded(dict):
+    """A message written as JSON once: every socket, Redis and a waiting request send its
+    ``text`` as it is. As a dict it holds only the fields read here (:data:`HEAD`), so
+    that the hub reads it as it reads its other messages, plain dicts."""
+
+    __slots__ = ("text",)
+
+    @classmethod
+    def of(cls, model: BaseModel) -> Encoded:
+        """A frame's message (a pose or a frame error), encoded by its schema."""
+        message = cls({k: getattr(model, k) for k in HEAD if hasattr(model, k)})
+        message.text = model.model_dump_json()
+        return message
+
+    @classmethod
+    def received(cls, text: str) -> Encoded:
+        """A message another replica encoded (through Redis): read, not written again."""
+        message = cls(json.loads(text))
+        message.text = text
+        return message
+
+    def after(self, prev_seq: int) -> Encoded:
+        """The message with ``prev_seq`` (see :class:`Subscription`) added to its text."""
+        message = Encoded(self, prev_seq=prev_seq)
+        message.text = f'{self.text[:-1]},"prev_seq":{int(prev_seq)}}}'
+        return message
+
+    def fields(self) -> dict:
+        """Every field, read from the text (for another form of the message, such as a
+        GeoJSON feature)."""
+        return json.loads(self.text)
 
 
 REORDER_WAIT_S = 1.0
@@ -44,17 +86,18 @@ class Subscription:
     def __init__(self, session_id: str, *, after_seq: int | None = None,
                  reorder_wait_s: float = REORDER_WAIT_S) -> None:
         self.session_id = session_id
-        self.queue: asyncio.Queue[dict] = asyncio.Queue(SUBSCRIBER_QUEUE)
+        self.queue: asyncio.Queue[dict | Encoded] = asyncio.Queue(SUBSCRIBER_QUEUE)
+        """What the stream sends, in order (its reader takes from it)."""
         self.overflowed = False
         self.ending = False
         self.reorder_wait_s = reorder_wait_s
         self._last_seq: int = -1 if after_seq is None else after_seq
         """The highest seq passed on, or the last accepted before the stream began."""
-        self._waiting: dict[int, dict] = {}
+        self._waiting: dict[int, dict | Encoded] = {}
         """Messages waiting, by the seq they come after."""
         self._timer: asyncio.TimerHandle | None = None
 
-    def put(self, message: dict) -> None:
+    def put(self, message: dict | Encoded) -> None:
         if self.overflowed or self.ending:
             return
         seq = message.get("seq")
@@ -71,7 +114,7 @@ class Subscription:
             return
         self._pass(message)
 
-    def _pass(self, message: dict) -> None:
+    def _pass(self, message: dict | Encoded) -> None:
         self._enqueue(message)
         self._last_seq = max(message["seq"], self._last_seq)
         while (after := self._waiting.pop(self._last_seq, None)) is not None:
@@ -92,7 +135,7 @@ class Subscription:
             self._timer.cancel()
             self._timer = None
 
-    def _enqueue(self, message: dict) -> None:
+    def _enqueue(self, message: dict | Encoded) -> None:
         if self.overflowed or self.ending:
             return
         if message is GOING_AWAY:
@@ -104,9 +147,6 @@ class Subscription:
             self.queue.put_nowait(OVERFLOW)
             return
         self.queue.put_nowait(message)
-
-    async def get(self) -> dict:
-        return await self.queue.get()
 
 
 class LocalHub:
@@ -156,11 +196,11 @@ class LocalHub:
     def subscriber_count(self) -> int:
         return sum(len(s) for s in self._subs.values())
 
-    def publish(self, session_id: str, message: dict) -> None:
+    def publish(self, session_id: str, message: dict | Encoded) -> None:
         """Deliver to this process's subscribers of the session."""
         self.deliver(session_id, message)
 
-    def deliver(self, session_id: str, message: dict) -> None:
+    def deliver(self, session_id: str, message: dict | Encoded) -> None:
         for sub in list(self._subs.get(session_id, ())):
             sub.put(message)
 

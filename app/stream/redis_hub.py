@@ -1,8 +1,8 @@
 """Fan-out through Redis pub/sub, for several API replicas behind one load balancer.
 
 A frame is processed by the replica that accepted it; its estimate is published on the
-channel ``vloc:session:<id>`` and every replica delivers it to its own subscribers of that
-session. Publishing goes through one task, so a session's messages keep their order.
+channel ``vloc:session:<id>`` (the message's JSON as the replica wrote it) and every replica
+delivers it to its own subscribers of that session, sending that same text. Publishing goes through one task, so a session's messages keep their order.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import logging
 
 import redis.asyncio as aioredis
 
-from vloc.app.stream.hub import LocalHub
+from vloc.app.stream.hub import Encoded, LocalHub
 
 log = logging.getLogger(__name__)
 
@@ -71,8 +71,9 @@ class RedisHub(LocalHub):
         if event is not None:
             await asyncio.wait_for(event.wait(), timeout)
 
-    def publish(self, session_id: str, message: dict) -> None:
-        self._outbox.put_nowait((CHANNEL_PREFIX + session_id, json.dumps(message)))
+    def publish(self, session_id: str, message: dict | Encoded) -> None:
+        text = message.text if isinstance(message, Encoded) else json.dumps(message)
+        self._outbox.put_nowait((CHANNEL_PREFIX + session_id, text))
 
     async def _publisher(self) -> None:
         while (item := await self._outbox.get()) is not None:
@@ -98,7 +99,9 @@ class RedisHub(LocalHub):
                 continue
             if msg.get("type") != "message":
                 continue
-            self.deliver(channel.removeprefix(CHANNEL_PREFIX), json.loads(msg["data"]))
+            # read once here, never written again: the sockets send the text received
+            self.deliver(channel.removeprefix(CHANNEL_PREFIX),
+                         Encoded.received(msg["data"].decode()))
 
     def _background(self, coro) -> None:
         task = asyncio.get_running_loop().create_task(coro)

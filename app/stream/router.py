@@ -54,7 +54,7 @@ from vloc.app.sessions.live import LiveSession
 from vloc.app.sessions.registry import expired_problem
 from vloc.app.sessions.schemas import Seq
 from vloc.app.stream.geojson import GEOJSON_SUBPROTOCOL, as_feature
-from vloc.app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Subscription
+from vloc.app.stream.hub import CLOSED, GOING_AWAY, OVERFLOW, Encoded, Subscription
 from vloc.app.validation import check_captured_at, check_metadata
 
 router = APIRouter(tags=["stream"])
@@ -152,7 +152,7 @@ async def _send_loop(websocket: WebSocket, sub: Subscription, encode=None) -> No
     """The only writer of the socket: everything it sends goes through the subscription
     (and ``encode``, where the client asked for another form of the messages)."""
     while True:
-        msg = await sub.get()
+        msg = await sub.queue.get()
         if msg is OVERFLOW:
             await websocket.close(1013, close_reason("too-slow", "the client reads too slowly"))
             return
@@ -160,7 +160,11 @@ async def _send_loop(websocket: WebSocket, sub: Subscription, encode=None) -> No
             await websocket.close(1001, close_reason(
                 "server-shutdown", "the server is stopping; reconnect once it is back"))
             return
-        await websocket.send_text(json.dumps(encode(msg) if encode else msg))
+        if encode is not None:  # another form: made from the message's fields
+            text = json.dumps(encode(msg.fields() if isinstance(msg, Encoded) else msg))
+        else:
+            text = msg.text if isinstance(msg, Encoded) else json.dumps(msg)
+        await websocket.send_text(text)
         if msg.get("type") == CLOSED["type"]:
             kind = msg.get("kind", CLOSED["kind"])
             await websocket.close(ENDINGS[kind], close_reason(kind, msg["reason"]))

@@ -19,8 +19,8 @@ def localize_image(folder: str, data: bytes, *, mode: str, params: dict, seed: i
                    max_pixels: int) -> dict:
     """Step a new localiser once on the image.
 
-    ``prior`` is (lat, lon, sigma metres). Returns ``estimate``
-    (:meth:`~workers.core.estimate.Estimate.to_dict`) and ``decode_ms``; a ValueError
+    ``prior`` is (lat, lon, sigma metres). Returns ``estimate`` (the localiser's
+    :class:`~workers.core.estimate.Estimate`) and ``decode_ms``; a ValueError
     for an image that cannot be decoded or a prior outside the map's frame.
     """
     from vloc.workers.core.image import ImageError

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 import uuid
+from dataclasses import replace
 from datetime import UTC, datetime
 
 from fastapi.testclient import TestClient
@@ -17,6 +18,8 @@ from vloc.app.sessions.models import Frame, FrameStatus
 from vloc.app.sessions.pose import FrameContext, from_estimate
 from vloc.app.sessions.schemas import MAX_SEQ
 from vloc.app.sessions.store import FrameRecord, OutcomeRecord
+from vloc.app.stream.hub import Encoded
+from vloc.workers.core.estimate import Estimate, Status
 from vloc.workers.engine import FrameDone
 
 TIMEOUT = 60
@@ -102,17 +105,19 @@ def settled(client, sid: str, auth: dict) -> dict:
     return s
 
 
-def _estimate_message(session_id: str, seq: int, **change) -> tuple[FrameDone, dict]:
-    estimate = {"x": 1.0, "y": 2.0, "lat": 41.0, "lon": -83.0, "sigma_x": 1.0, "sigma_y": 1.0,
-                "cov": [1.0, 0.0, 0.0, 1.0], "feature": "sift", "next_feature": "sift",
-                "n_particles": 60, "status": "tracking", "best_image": 3,
-                "processing_ms": 5.0} | change
+def _estimate_message(session_id: str, seq: int, **change) -> tuple:
+    """A frame's outcome with its message and row, as the intake hands them to the store."""
+    estimate = Estimate(**{"x": 1.0, "y": 2.0, "lat": 41.0, "lon": -83.0, "sigma_x": 1.0,
+                           "sigma_y": 1.0, "cov": (1.0, 0.0, 0.0, 1.0), "feature": "sift",
+                           "next_feature": "sift", "n_particles": 60,
+                           "status": Status.TRACKING, "best_image": 3,
+                           "processing_ms": 5.0} | change)
     ctx = FrameContext(session_id=session_id, seq=seq, map_id=str(uuid.uuid4()),
                        map_revision=1, map_folder="", captured_at=None,
                        received_at=datetime.now(UTC), metadata=None, decode_ms=1.0,
                        latency_ms=9.0)
-    msg = from_estimate(estimate, ctx, bound_m=25.0, converged_before=False)
-    return FrameDone(session_id, seq, estimate, None, 1.0), msg.model_dump(mode="json")
+    message, row = from_estimate(estimate, ctx, bound_m=25.0, converged_before=False)
+    return FrameDone(session_id, seq, estimate, None, 1.0), Encoded.of(message), row
 
 
 def test_a_row_the_database_refuses_costs_only_that_row(service):
@@ -148,7 +153,7 @@ def test_an_estimate_that_cannot_be_stored_is_reported_not_stored(service, shots
 
     def corrupt(outcome):
         if isinstance(outcome, FrameDone) and outcome.session_id == a:
-            outcome = FrameDone(a, outcome.seq, outcome.estimate | {"n_particles": 2**63},
+            outcome = FrameDone(a, outcome.seq, replace(outcome.estimate, n_particles=2**63),
                                 outcome.state, outcome.decode_ms)
         deliver(outcome)
 

@@ -5,8 +5,11 @@ session's poses can deliver them."""
 from __future__ import annotations
 
 import asyncio
+import json
+import uuid
 
-from vloc.app.stream.hub import CLOSED, LocalHub, Subscription
+from vloc.app.sessions.schemas import FrameError
+from vloc.app.stream.hub import CLOSED, Encoded, LocalHub, Subscription
 
 
 def _pose(seq: int, prev: int | None) -> dict:
@@ -114,3 +117,26 @@ def test_a_late_subscriber_waits_for_nothing_accepted_before_it_began():
         return held, _drain(sub)
 
     assert _run(go()) == ([7], [8, 9])
+
+
+def test_a_frame_message_is_written_once_and_its_order_added_to_that_text():
+    """The stream's copy of a message is its text with ``prev_seq`` appended, not the
+    message written again; a copy received through Redis keeps the text it came with."""
+    error = FrameError(session_id=uuid.uuid4(), seq=7, captured_at=None, kind="bad_image",
+                       reason="not an \u00e9 image", latency_ms=3.25)
+    message = Encoded.of(error)
+    assert json.loads(message.text) == error.model_dump(mode="json")
+    assert (message["type"], message["seq"], message["kind"]) == ("frame_error", 7, "bad_image")
+    streamed = message.after(6)
+    assert json.loads(streamed.text) == error.model_dump(mode="json") | {"prev_seq": 6}
+    assert streamed["prev_seq"] == 6 and "prev_seq" not in message
+    received = Encoded.received(streamed.text)
+    assert received.text is streamed.text and received.fields() == json.loads(streamed.text)
+
+    async def go():
+        sub = Subscription("s", after_seq=5)
+        sub.put(Encoded.received(message.after(6).text))  # waits for frame 6
+        sub.put(_pose(6, 5))
+        return _drain(sub)
+
+    assert _run(go()) == [6, 7]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import uuid
+import warnings
 from datetime import UTC, datetime
 
 import pytest
@@ -40,20 +41,57 @@ def _context(**change) -> pose.FrameContext:
     return pose.FrameContext(**values | change)
 
 
-def _estimate(**change) -> dict:
-    return Estimate(x=3.0, y=-4.0, lat=41.0, lon=-83.0, sigma_x=2.0, sigma_y=2.0,
-                    cov=(4.0, 0.0, 0.0, 4.0), feature="sift", next_feature="global",
-                    n_particles=60, status=Status.TRACKING, processing_ms=30.0, best_image=1,
-                    measurement="sift+registered", heading_deg=None, heading_sigma_deg=None,
-                    metadata_used="", gps_gate="").to_dict() | change
+def _estimate(**change) -> Estimate:
+    values = dict(x=3.0, y=-4.0, lat=41.0, lon=-83.0, sigma_x=2.0, sigma_y=2.0,
+                  cov=(4.0, 0.0, 0.0, 4.0), feature="sift", next_feature="global",
+                  n_particles=60, status=Status.TRACKING, processing_ms=30.0, best_image=1,
+                  measurement="sift+registered", heading_deg=None, heading_sigma_deg=None,
+                  metadata_used="", gps_gate="")
+    return Estimate(**values | change)
+
+
+def _pose(estimate: Estimate, ctx: pose.FrameContext | None = None) -> PoseEstimate:
+    return pose.from_estimate(estimate, ctx or _context(), bound_m=25.0,
+                              converged_before=False)[0]
+
+
+NAVIGATION = {"state": {"x": 1.0, "y": 2.0, "theta": 0.5, "v": 1.0, "omega": 0.0},
+              "command": {"v": 1.0, "omega": 0.1}, "reference": {"x": 1.0, "y": 2.1, "theta": 0.4},
+              "cross_track": -0.1, "heading_error": 0.1, "curvature": 0.0, "node": 4,
+              "progress": 12.5, "length": 40.0, "arrived": False, "fused": True, "views": 2}
+
+
+@pytest.mark.parametrize("change", [
+    {},
+    {"heading_deg": 30.0, "heading_sigma_deg": 2.0, "gps_gate": "used"},
+    {"status": Status.LOST, "cloud": ((1.0, 2.0), (3.5, -4.25)), "best_image": -1},
+    {"navigation": NAVIGATION, "measurement": "", "metadata_used": "heading+altitude"},
+])
+def test_the_assembled_pose_is_what_validation_makes(change):
+    """A pose is assembled from typed values, not validated (:func:`pose.from_estimate`):
+    its JSON is the JSON of the same fields validated by the schema, and reads back as
+    the same pose."""
+    ctx = _context(captured_at=datetime(2026, 1, 2, 3, 4, 5, 678000, tzinfo=UTC),
+                   metadata=FrameMetadata(heading_deg=80.0, altitude_m=120.0))
+    made, row = pose.from_estimate(_estimate(**change), ctx, bound_m=25.0,
+                                   converged_before=False)
+    fields = {name: getattr(made, name) for name in PoseEstimate.model_fields}
+    fields["navigation"] = change.get("navigation")
+    validated = PoseEstimate.model_validate(fields)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a value not of its field's type warns when dumped
+        text = made.model_dump_json()
+    assert text == validated.model_dump_json()
+    assert PoseEstimate.model_validate_json(text) == validated
+    assert row == pose.to_row(validated, change.get("navigation"))
 
 
 def test_row_round_trip_keeps_every_field():
-    msg = pose.from_estimate(_estimate(heading_deg=30.0, heading_sigma_deg=2.0,
-                                       gps_gate="used"), _context(),
-                             bound_m=25.0, converged_before=False)
-    row = Pose(session_id=msg.session_id, seq=msg.seq, **pose.to_row(msg.model_dump(mode="json")))
-    back = pose.from_row(row, map_id=msg.map_id, map_revision=msg.map_revision)
+    msg, row = pose.from_estimate(_estimate(heading_deg=30.0, heading_sigma_deg=2.0,
+                                            gps_gate="used"), _context(),
+                                  bound_m=25.0, converged_before=False)
+    stored = Pose(session_id=msg.session_id, seq=msg.seq, **row)
+    back = pose.from_row(stored, map_id=msg.map_id, map_revision=msg.map_revision)
     assert back.model_dump(mode="json") == msg.model_dump(mode="json")
 
 
@@ -70,24 +108,21 @@ def test_status_and_converged(core, accuracy, before, expected):
 
 
 def test_heading_altitude_and_geopose_are_never_invented():
-    msg = pose.from_estimate(_estimate(), _context(), bound_m=25.0, converged_before=False)
+    msg = _pose(_estimate())
     assert (msg.heading_deg, msg.heading_sigma_deg, msg.heading_source, msg.altitude_m) == \
         (None, None, None, None)
     assert msg.geopose is None  # GeoPose Basic needs a height: none without an altitude
     assert msg.horizontal_accuracy_m == pytest.approx(2.0 * math.sqrt(-2 * math.log(0.32)))
     # the frame's own heading and altitude are reported back, marked as the device's
-    device = pose.from_estimate(_estimate(), _context(metadata=FrameMetadata(
-                                    heading_deg=90.0, altitude_m=212.5)),
-                                bound_m=25.0, converged_before=False)
+    device = _pose(_estimate(), _context(metadata=FrameMetadata(heading_deg=90.0,
+                                                               altitude_m=212.5)))
     assert (device.heading_deg, device.heading_source, device.altitude_m) == \
         (90.0, "device", 212.5)
     q = device.geopose.quaternion
     # heading east (90 deg) is yaw 0 in East-North-Up: the identity rotation
     assert (q.x, q.y, q.z, q.w) == pytest.approx((0.0, 0.0, 0.0, 1.0))
-    geometry = pose.from_estimate(_estimate(heading_deg=0.0, heading_sigma_deg=3.0),
-                                  _context(metadata=FrameMetadata(heading_deg=90.0,
-                                                              altitude_m=10.0)),
-                                  bound_m=25.0, converged_before=False)
+    geometry = _pose(_estimate(heading_deg=0.0, heading_sigma_deg=3.0),
+                     _context(metadata=FrameMetadata(heading_deg=90.0, altitude_m=10.0)))
     q = geometry.geopose.quaternion
     assert geometry.heading_source == "geometry" and geometry.heading_deg == 0.0
     # north is yaw +90 deg about Up

@@ -30,11 +30,11 @@ def test_messages_reach_the_subscribers_of_another_replica_in_order(redis_url):
             await a.ready(session)
             for i in range(50):
                 a.publish(session, {"type": "pose", "seq": i})
-            got_b = [await asyncio.wait_for(on_b.get(), 5) for _ in range(50)]
-            got_a = [await asyncio.wait_for(on_a.get(), 5) for _ in range(50)]
+            got_b = [await asyncio.wait_for(on_b.queue.get(), 5) for _ in range(50)]
+            got_a = [await asyncio.wait_for(on_a.queue.get(), 5) for _ in range(50)]
             b.unsubscribe(on_b)
             a.close_session(session)
-            closed = await asyncio.wait_for(on_a.get(), 5)
+            closed = await asyncio.wait_for(on_a.queue.get(), 5)
             return got_b, got_a, elsewhere.queue.qsize(), closed
         finally:
             await a.stop()

@@ -85,9 +85,9 @@ def test_frames_of_a_session_come_back_in_order(engine, outcomes):
     a = [o for o in got if o.session_id == "a"]
     b = [o for o in got if o.session_id == "b"]
     assert [o.seq for o in a] == list(range(5)) and [o.seq for o in b] == list(range(5))
-    assert [o.estimate["x"] for o in a] == [1.0, 2.0, 3.0, 4.0, 5.0]
-    assert [o.estimate["y"] for o in a] == [0.0, 10.0, 20.0, 30.0, 40.0]
-    assert [o.estimate["x"] for o in b] == [101.0, 102.0, 103.0, 104.0, 105.0]
+    assert [o.estimate.x for o in a] == [1.0, 2.0, 3.0, 4.0, 5.0]
+    assert [o.estimate.y for o in a] == [0.0, 10.0, 20.0, 30.0, 40.0]
+    assert [o.estimate.x for o in b] == [101.0, 102.0, 103.0, 104.0, 105.0]
     # Each names the one answered before it, for viewers that hear them by several paths.
     assert [o.prev_seq for o in a] == [None, 0, 1, 2, 3]
     assert engine.pending_frames("a") == 0
@@ -102,7 +102,7 @@ def test_bad_image_and_localiser_error_fail_one_frame_only(engine, outcomes):
     assert isinstance(bad, FrameFailed) and bad.kind == "bad_image" and bad.seq == 1
     assert isinstance(error, FrameFailed) and error.kind == "error"
     assert "too bright" in error.reason
-    assert isinstance(good, FrameDone) and good.seq == 3 and good.estimate["x"] == 1.0
+    assert isinstance(good, FrameDone) and good.seq == 3 and good.estimate.x == 1.0
     assert [o.prev_seq for o in (bad, error, good)] == [None, 1, 2]
 
 
@@ -112,7 +112,7 @@ def test_controls_run_in_order_with_frames_and_checkpoint(engine, outcomes):
     engine.control("s", "set_initial_pose", x=40, y=0).result(TIMEOUT)
     engine.submit_frame("s", 2, grey_png(1))
     first, checkpoint, second = _take(outcomes, 3)
-    assert (first.estimate["x"], second.estimate["x"]) == (1.0, 41.0)
+    assert (first.estimate.x, second.estimate.x) == (1.0, 41.0)
     # The control's state comes back between the frames, in the session's order.
     assert isinstance(checkpoint, Checkpoint) and checkpoint.state == (40).to_bytes(8, "little")
     assert second.state == (41).to_bytes(8, "little")
@@ -151,7 +151,7 @@ def test_killed_worker_is_replaced_and_its_sessions_resume(outcomes, tmp_path):
         engine.open_session(counting_spec("s")).result(TIMEOUT)
         for seq in range(3):
             engine.submit_frame("s", seq, grey_png(1))
-        assert [o.estimate["x"] for o in _take(outcomes, 3)] == [1.0, 2.0, 3.0]
+        assert [o.estimate.x for o in _take(outcomes, 3)] == [1.0, 2.0, 3.0]
         (victim,) = engine.worker_pids()
         # Hold the worker so that the next frames are certainly queued on it when it dies.
         held = engine.call("tests.engine.fakes:wait_for_file", str(tmp_path / "never"))
@@ -167,7 +167,7 @@ def test_killed_worker_is_replaced_and_its_sessions_resume(outcomes, tmp_path):
         # The session lives on from its checkpoint after frame 2: three steps, then one more.
         engine.submit_frame("s", 5, grey_png(1))
         (after,) = _take(outcomes, 1)
-        assert isinstance(after, FrameDone) and after.estimate["x"] == 4.0
+        assert isinstance(after, FrameDone) and after.estimate.x == 4.0
         assert engine.alive()
     finally:
         engine.close()
@@ -192,7 +192,7 @@ def test_a_session_moved_to_another_revision_stays_there_when_its_worker_is_repl
         assert moved.result(TIMEOUT) == 2
         got = _take(outcomes, 4)
         frames = [o for o in got if isinstance(o, FrameDone)]
-        assert [(o.seq, o.revision, o.estimate["x"]) for o in frames] == [
+        assert [(o.seq, o.revision, o.estimate.x) for o in frames] == [
             (0, 1, 1.0), (1, 1, 2.0), (2, 2, 3.0)]
         assert [type(o) for o in got].index(Checkpoint) == 2  # between frames 1 and 2
         # moving to where it is changes nothing; a move to another map is refused
@@ -209,7 +209,7 @@ def test_a_session_moved_to_another_revision_stays_there_when_its_worker_is_repl
             engine.submit_frame("s", after.seq + 1, grey_png(1))
             (after,) = _take(outcomes, 1)
         assert isinstance(after, FrameDone) and after.revision == 2
-        assert after.estimate["x"] == 4.0
+        assert after.estimate.x == 4.0
     finally:
         engine.close()
 
@@ -249,6 +249,6 @@ def test_a_worker_that_cannot_be_replaced_at_once_is_retried(outcomes):
         assert attempts == [0, 0] and engine.restarts == 1
         engine.submit_frame("s", 1, grey_png(1))
         (after,) = _take(outcomes, 1)
-        assert after.estimate["x"] == 2.0  # resumed from the checkpoint after frame 0
+        assert after.estimate.x == 2.0  # resumed from the checkpoint after frame 0
     finally:
         engine.close()

@@ -100,8 +100,8 @@ def test_frames_sent_through_two_engines_are_numbered_and_stepped_in_order(clust
     by_seq = {o.seq: o for o in got}
     assert all(isinstance(o, FrameDone) for o in got)
     # The counting localiser's x is its step count: frame seq k was step k + 1.
-    assert [by_seq[k].estimate["x"] for k in range(6)] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
-    assert [by_seq[k].estimate["y"] for k in range(6)] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    assert [by_seq[k].estimate.x for k in range(6)] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert [by_seq[k].estimate.y for k in range(6)] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
     assert a.pending_frames("order") == b.pending_frames("order") == 0
 
 
@@ -118,7 +118,7 @@ def test_a_frame_waiting_its_turn_longer_than_hold_s_keeps_its_place(cluster):
     got = _take(out_a, 2) + _take(out_b, 1)
     assert all(isinstance(o, FrameDone) for o in got)
     # x is the step count, y the frame's grey level: frame k was step k + 1.
-    assert sorted((o.estimate["x"], o.estimate["y"]) for o in got) == [
+    assert sorted((o.estimate.x, o.estimate.y) for o in got) == [
         (1.0, 10.0), (2.0, 11.0), (3.0, 12.0)]
 
 
@@ -133,7 +133,7 @@ def test_a_frame_arriving_while_a_later_one_steps_is_refused_not_stepped_out_of_
     a.submit_frame("late", s1, grey_png(1))
     first, second = _take(out, 2)
     assert isinstance(first, FrameFailed) and first.seq == s1 and first.kind == "error"
-    assert isinstance(second, FrameDone) and second.seq == s2 and second.estimate["x"] == 1.0
+    assert isinstance(second, FrameDone) and second.seq == s2 and second.estimate.x == 1.0
 
 
 def test_a_seq_given_by_the_client_must_be_after_the_last_one(cluster):
@@ -164,7 +164,7 @@ def test_a_released_seq_frees_the_frames_after_it_and_a_lost_one_is_waited_for_a
         out.get(timeout=0.3)  # still waits for 1
     # 1 never comes either (its API process died): given up after hold_s.
     (late,) = _take(out, 1)
-    assert isinstance(late, FrameDone) and late.seq == s2 and late.estimate["x"] == 1.0
+    assert isinstance(late, FrameDone) and late.seq == s2 and late.estimate.x == 1.0
     # A frame whose seq was given up comes too late to take its turn: reported, not lost.
     a.submit_frame("gap", s1, grey_png(1))
     (refused,) = _take(out, 1)
@@ -179,7 +179,7 @@ def test_controls_run_after_the_frames_before_them_and_leave_a_checkpoint(cluste
     a.control("ctl", "set_initial_pose", x=40, y=0).result(TIMEOUT)
     got = _take(out, 4)
     frames = [o for o in got if isinstance(o, FrameDone)]
-    assert [o.estimate["x"] for o in frames] == [1.0, 2.0, 3.0]
+    assert [o.estimate.x for o in frames] == [1.0, 2.0, 3.0]
     # The shard counts the session's frames for its checkpoints: every second one.
     assert [o.state is not None for o in frames] == [False, True, False]
     (checkpoint,) = [o for o in got if isinstance(o, Checkpoint)]
@@ -249,7 +249,7 @@ def test_a_killed_shard_fails_its_frames_in_flight_and_the_session_reopens(clust
         a.submit_frame(sid, a.reserve_seq(sid, None).result(TIMEOUT), grey_png(1))
     done = _take(out, 4)
     checkpoint = done[-1].state  # every second frame
-    assert [o.estimate["x"] for o in done] == [1.0, 2.0, 3.0, 4.0] and checkpoint
+    assert [o.estimate.x for o in done] == [1.0, 2.0, 3.0, 4.0] and checkpoint
     pid, _, _ = ray.get(a._shards[0].ping.remote())
     restarts = a.restarts
     gate.unlink()  # the next frame blocks in its step, the one after waits for its turn
@@ -279,7 +279,7 @@ def test_a_killed_shard_fails_its_frames_in_flight_and_the_session_reopens(clust
     a.submit_frame(sid, seq, grey_png(1))
     (resumed,) = _take(out, 1)
     # Numbering goes on after the lost frames; the filter goes on from the checkpoint.
-    assert (resumed.seq, resumed.estimate["x"]) == (6, 5.0)
+    assert (resumed.seq, resumed.estimate.x) == (6, 5.0)
 
 
 def test_build_calls_find_room_when_the_shards_reserve_every_cpu(ray_cluster):

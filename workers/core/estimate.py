@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from enum import StrEnum
 
 
@@ -74,10 +74,4 @@ class Estimate:
     metadata_used: str = ""
     gps_gate: str = ""
     cloud: tuple[tuple[float, float], ...] = ()
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["status"] = str(self.status)
-        d["cov"] = list(self.cov)
-        d["cloud"] = [list(p) for p in self.cloud]
-        return d
+    navigation: dict | None = None

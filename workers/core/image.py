@@ -150,6 +150,12 @@ def image_kind(data: bytes) -> str | None:
     return None
 
 
+def identify(data: bytes) -> tuple[str | None, bool]:
+    """The image's kind (:func:`image_kind`) and whether its stream looks truncated
+    (:func:`looks_truncated`), in one call: what the API checks of every upload and frame."""
+    return image_kind(data), looks_truncated(data)
+
+
 def looks_truncated(data: bytes) -> bool:
     """JPEG streams must end with the EOI marker; PNG streams with the IEND chunk.
 

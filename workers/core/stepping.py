@@ -11,6 +11,7 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from .estimate import Estimate
 from .image import load_frame
 from .metadata import FrameMetadata
 
@@ -22,10 +23,11 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True, slots=True)
 class StepRecord:
-    """What one step reports: ``estimate`` (:meth:`~workers.core.estimate.Estimate.to_dict`)
-    and ``decode_ms``, the milliseconds the image took to decode."""
+    """What one step reports: the localiser's ``estimate`` as it made it (it crosses the
+    process boundary as it is, and the API process writes its message once) and
+    ``decode_ms``, the milliseconds the image took to decode."""
 
-    estimate: dict
+    estimate: Estimate
     decode_ms: float
 
 
@@ -43,4 +45,4 @@ def step_image(localiser: Localiser, data: bytes, *, max_pixels: int,
     frame = load_frame(data, max_pixels=max_pixels, header_size=header_size)
     decode_ms = (time.perf_counter() - t0) * 1e3
     estimate = localiser.step(frame, captured_at=captured_at, metadata=metadata)
-    return StepRecord(estimate.to_dict(), decode_ms)
+    return StepRecord(estimate, decode_ms)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from vloc.workers.core.estimate import Estimate
 from vloc.workers.core.metadata import FrameMetadata
 
 DEFAULT_FACTORY = "vloc.workers.core.localisers:make_localiser"
@@ -114,8 +115,8 @@ class FrameDone:
 
     Attributes
     ----------
-    estimate : dict
-        :meth:`workers.core.estimate.Estimate.to_dict`.
+    estimate : Estimate
+        The localiser's (:class:`workers.core.estimate.Estimate`).
     state : bytes or None
         The localiser's state after this frame (a checkpoint), when one was asked for.
     decode_ms : float
@@ -124,7 +125,7 @@ class FrameDone:
 
     session_id: str
     seq: int
-    estimate: dict
+    estimate: Estimate
     state: bytes | None
     decode_ms: float
     prev_seq: int | None = None

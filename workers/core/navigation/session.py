@@ -3,13 +3,14 @@
 The service opens a session that follows a route with
 :func:`make_navigating_localiser` instead of :func:`~workers.core.localisers.make_localiser`;
 the localiser's estimate is the fix the :class:`~.follower.PathFollower` fuses, and the
-estimate's dictionary gains a ``navigation`` entry (:meth:`.NavigationStep.to_dict`).
+estimate carries the path following as its ``navigation`` (:meth:`.NavigationStep.to_dict`).
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -125,22 +126,6 @@ def node_starts(path: Path, points: np.ndarray, nodes: list[int]) -> tuple[np.nd
     return np.array(starts), ids
 
 
-class NavigatedEstimate:
-    """An estimate with the path following after it."""
-
-    __slots__ = ("estimate", "navigation")
-
-    def __init__(self, estimate: Estimate, navigation: dict | None) -> None:
-        self.estimate = estimate
-        self.navigation = navigation
-
-    def __getattr__(self, name):
-        return getattr(self.estimate, name)
-
-    def to_dict(self) -> dict:
-        return {**self.estimate.to_dict(), "navigation": self.navigation}
-
-
 class NavigatingLocaliser:
     """A localiser and a path follower driven by its estimates.
 
@@ -184,7 +169,7 @@ class NavigatingLocaliser:
     def stats(self) -> dict:
         return self.inner.stats
 
-    def step(self, frame, *, captured_at: float | None = None, metadata=None) -> NavigatedEstimate:
+    def step(self, frame, *, captured_at: float | None = None, metadata=None) -> Estimate:
         query = as_query(frame, captured_at, metadata)
         est = self.inner.step(query)
         fix: dict = {}
@@ -197,11 +182,11 @@ class NavigatingLocaliser:
                                  heading_sigma=fix.get("heading_sigma"),
                                  bearings=fix.get("bearings", ()), captured_at=captured_at)
         if nav is None:
-            return NavigatedEstimate(est, None)
+            return est
         out = nav.to_dict()
         out["node"] = self.node_ids[nav.node]
         out["views"] = len(fix.get("bearings", ()))
-        return NavigatedEstimate(est, out)
+        return replace(est, navigation=out)
 
     def _nearby_best(self, query) -> int | None:
         """The taught image the frame matches best near the robot's place on the route;
