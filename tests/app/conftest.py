@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures
+import shutil
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -10,13 +11,13 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import func, select
+from sqlalchemy import create_engine, func, insert, select, text
 
 from tests.app.imagery import Shot, map_and_queries
 from tests.conftest import postgres_schema_url
 from vloc.app.config import Settings
 from vloc.app.main import create_app
-from vloc.app.maps.models import Map
+from vloc.app.maps.models import Map, MapImage
 from vloc.app.models import Base
 from vloc.app.sessions.models import LocalisationSession
 
@@ -128,10 +129,58 @@ def backend_client(backend: str, tmp_path_factory, **overrides) -> Iterator[Test
             yield from run(url)
 
 
+@dataclass(frozen=True)
+class BuiltMap:
+    """A map built through the real app, kept to be copied into other apps."""
+
+    data_dir: Path
+    database_url: str
+    map_id: str
+
+
+@pytest.fixture(scope="session")
+def built_map(tmp_path_factory, shots) -> BuiltMap:
+    """The ten map images built into a map once per test process, by the app on SQLite."""
+    data = tmp_path_factory.mktemp("built-map")
+    url = f"sqlite:///{data / 'vloc.sqlite3'}"
+    with TestClient(create_app(service_settings(data / "data", url))) as c:
+        map_id = build_map(c, shots[0])
+    return BuiltMap(data / "data", url, map_id)
+
+
+def install_map(client: TestClient, built: BuiltMap) -> str:
+    """Copy a built map into a running app: its rows (the map, its images and their
+    features, revisions, vocabularies and build job) into the app's database, whichever it
+    is, and its folder (images, packed revisions) into the app's data directory. The app
+    then holds the map as if it had built it; its id."""
+    ctx = client.app.state.ctx
+    source = create_engine(built.database_url)
+    try:
+        with source.connect() as src, ctx.db_engine.begin() as dst:
+            for table in Base.metadata.sorted_tables:
+                rows = [dict(r._mapping) for r in src.execute(select(table))]
+                if rows:
+                    dst.execute(insert(table), rows)
+            if dst.dialect.name == "postgresql":  # the copied ids are taken
+                dst.execute(text("SELECT setval(pg_get_serial_sequence('map_images', 'id'), "
+                                 "(SELECT max(id) FROM map_images))"))
+    finally:
+        source.dispose()
+    shutil.copytree(built.data_dir / "maps" / built.map_id,
+                    ctx.settings.data_dir / "maps" / built.map_id)
+    return built.map_id
+
+
 @pytest.fixture(scope="module")
-def service(module_client, shots) -> Service:
-    """The module's app with a map already built (sessions are per test)."""
-    return Service(module_client, build_map(module_client, shots[0]))
+def service(module_client, built_map, shots) -> Service:
+    """The module's app with a map already built (sessions are per test): the map every
+    such module uses, built once per test process (:func:`built_map`) and copied in, or
+    built here where the module's tests have stored images already (their ids would
+    clash)."""
+    with module_client.app.state.ctx.db_sessions() as db:
+        fresh = not db.scalar(select(func.count()).select_from(MapImage))
+    return Service(module_client, install_map(module_client, built_map) if fresh
+                   else build_map(module_client, shots[0]))
 
 
 @pytest.fixture
