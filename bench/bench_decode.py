@@ -2,10 +2,12 @@
 
 A worker turns a frame's bytes into the working-resolution image with
 :func:`workers.core.image.load_frame`: the header read (skipped where the API process read
-it), the strict completeness check of a JPEG (simplejpeg decodes every block at 1/8 scale, so
-that a file cut short is refused rather than filled with grey), OpenCV's decode at the
-reduced scale the working size allows, and the resize. Each part is timed side by side on the
-same frames, in one run: medians of repeated runs per frame, then the median over the frames.
+it), a look for an EXIF orientation, one strict decode at the reduced scale the working size
+allows (simplejpeg: a file cut short is refused rather than filled with grey), and the
+resize. Beside it, the two reads a JPEG took before (the strict completeness check at 1/8
+scale, then OpenCV's decode), which give the same pixels. Each part is timed side by side on
+the same frames, in one run: medians of repeated runs per frame, then the median over the
+frames.
 
 Usage::
 
@@ -48,24 +50,38 @@ def _median_ms(fn, repeats: int) -> float:
 
 
 def measure(data: bytes, repeats: int) -> dict[str, float]:
-    """Milliseconds of each part of one frame's decode, and of the whole."""
+    """Milliseconds of each part of one frame's decode, of the whole, and of the two reads
+    it took before."""
+    import simplejpeg
+
     size = image._header_size(data)
-    flag = cv2.IMREAD_COLOR
+    flag, scale = cv2.IMREAD_COLOR, 1
     for factor, reduced in image._REDUCED:
         if size[0] // factor >= image.WORK_SIZE[0] and size[1] // factor >= image.WORK_SIZE[1]:
-            flag = reduced
+            flag, scale = reduced, factor
             break
     buf = np.frombuffer(data, np.uint8)
     decoded = cv2.imdecode(buf, flag)
+
+    def before():
+        image._check_jpeg_complete(data, size)
+        return image.prepare(cv2.imdecode(buf, flag))
+
+    assert np.array_equal(before().grey, image.load_frame(data).grey)
     return {
         "header": _median_ms(lambda: image._header_size(data), repeats),
-        "completeness check": _median_ms(lambda: image._check_jpeg_complete(data, size),
-                                         repeats),
-        "OpenCV decode": _median_ms(lambda: cv2.imdecode(buf, flag), repeats),
+        "EXIF orientation": _median_ms(lambda: image._exif_orientation(data), repeats),
+        "strict decode (simplejpeg)": _median_ms(lambda: simplejpeg.decode_jpeg(
+            data, colorspace="BGR", strict=True, min_width=-(-size[0] // scale),
+            min_height=-(-size[1] // scale)), repeats),
         "resize": _median_ms(lambda: image.prepare(decoded), repeats),
         "load_frame": _median_ms(lambda: image.load_frame(data), repeats),
         "load_frame, header given": _median_ms(
             lambda: image.load_frame(data, header_size=size), repeats),
+        "before: completeness check": _median_ms(
+            lambda: image._check_jpeg_complete(data, size), repeats),
+        "before: OpenCV decode": _median_ms(lambda: cv2.imdecode(buf, flag), repeats),
+        "before: check, OpenCV decode, resize (header given)": _median_ms(before, repeats),
     }
 
 
@@ -93,6 +109,11 @@ def main() -> None:
     for part in rows[0]:
         ms = float(np.median([r[part] for r in rows]))
         lines.append(f"| {part} | {ms:.2f} | {ms / whole:.0%} |")
+    before = np.median([r["before: check, OpenCV decode, resize (header given)"]
+                        for r in rows])
+    given = np.median([r["load_frame, header given"] for r in rows])
+    lines += ["", f"One strict decode against the two reads before (header given, same run): "
+                  f"{given:.2f} ms against {before:.2f} ms, {before / given:.2f}x."]
     text = "\n".join(lines)
     print(text)
     if args.out is not None:

@@ -99,15 +99,18 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
         raise ImageError(
             f"image of {width}x{height} pixels exceeds the limit of {max_pixels} pixels"
         )
-    flag = cv2.IMREAD_COLOR
+    flag, scale = cv2.IMREAD_COLOR, 1
     if min_size is not None and data[:2] == b"\xff\xd8":
         for factor, reduced in _REDUCED:
             if width // factor >= min_size[0] and height // factor >= min_size[1]:
-                flag = reduced
+                flag, scale = reduced, factor
                 break
     if looks_truncated(data):
         raise ImageError("truncated image")
     if data[:2] == b"\xff\xd8":
+        image = _decode_jpeg(data, (width, height), scale)
+        if image is not None:
+            return image
         _check_jpeg_complete(data, (width, height))
     buf = np.frombuffer(data, dtype=np.uint8)
     image = cv2.imdecode(buf, flag)
@@ -118,6 +121,53 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
 
 _JPEG_COLOURS = {"Gray": "GRAY", "YCbCr": "GRAY", "RGB": "GRAY", "CMYK": "CMYK",
                  "YCCK": "CMYK"}
+
+
+def _decode_jpeg(data: bytes, size: tuple[int, int], scale: int) -> np.ndarray | None:
+    """A JPEG decoded once, strictly, at ``1/scale`` of its size, as OpenCV would decode it;
+    None where OpenCV must decode it (a colour space other than grey or YCbCr, or an EXIF
+    orientation to apply, which OpenCV applies).
+
+    OpenCV's decoder and simplejpeg are both libjpeg-turbo with its default (accurate)
+    inverse DCT and upsampling, so their pixels are the same (the tests hold them to it);
+    simplejpeg's strict mode refuses a stream whose blocks are not all in the file, which
+    OpenCV fills with grey (:func:`_check_jpeg_complete`). So one decode does both.
+    """
+    import simplejpeg
+
+    try:
+        height, width, colour, _ = simplejpeg.decode_jpeg_header(data)
+    except ValueError as exc:
+        raise ImageError(f"corrupt or incomplete JPEG data ({exc})") from None
+    if (width, height) != tuple(size):
+        raise ImageError(f"the JPEG's frame header says {width}x{height}, its file "
+                         f"header {size[0]}x{size[1]}")
+    if colour not in ("Gray", "YCbCr") or _exif_orientation(data) != 1:
+        return None
+    try:
+        return simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True,
+                                      min_width=-(-width // scale),
+                                      min_height=-(-height // scale))
+    except ValueError as exc:
+        raise ImageError(f"corrupt or incomplete JPEG data ({exc})") from None
+
+
+_EXIF_ORIENTATION = 0x0112
+
+
+def _exif_orientation(data: bytes) -> int | None:
+    """The JPEG's EXIF orientation (1: as stored), None where its EXIF cannot be read."""
+    if data.find(b"Exif\x00\x00", 0, 1 << 16) < 0:
+        return 1
+    from io import BytesIO
+
+    from PIL import Image
+
+    try:
+        with Image.open(BytesIO(data)) as im:
+            return int(im.getexif().get(_EXIF_ORIENTATION, 1))
+    except Exception:  # noqa: BLE001 - unreadable EXIF: OpenCV decides, as before
+        return None
 
 
 def _check_jpeg_complete(data: bytes, size: tuple[int, int]) -> None:
