@@ -15,7 +15,7 @@ from io import BytesIO
 from PIL import Image, UnidentifiedImageError
 
 from vloc.app.problems import Problem, ProblemKind
-from vloc.workers.core.image import identify, image_kind
+from vloc.workers.core.image import Header, identify, image_kind, orientation_of
 
 CONTENT_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 _KIND_OF_TYPE = {v: k for k, v in CONTENT_TYPES.items()} | {"image/jpg": "jpeg"}
@@ -26,6 +26,13 @@ class ImageHeader:
     kind: str
     width: int
     height: int
+    orientation: int | None = 1
+    """A JPEG's EXIF orientation (1: as stored; None: unreadable EXIF)."""
+
+    @property
+    def core(self) -> Header:
+        """What the worker's decode needs of it, so that it does not read it again."""
+        return Header(self.width, self.height, self.orientation)
 
     @property
     def content_type(self) -> str:
@@ -72,7 +79,7 @@ def check_image(data: bytes, *, max_pixels: int, declared: str | None = None) ->
     if declared is not None and kind != declared:
         raise Problem(415, f"the body is a {kind.upper()} image, but the content type says "
                       f"{declared.upper()}", kind=ProblemKind.CONTENT_TYPE_MISMATCH)
-    width, height = _header_size(data, max_pixels)
+    width, height, orientation = _header(data, max_pixels)
     if width <= 0 or height <= 0:
         raise Problem(422, "the image has no pixels", kind=ProblemKind.BAD_IMAGE)
     if width * height > max_pixels:
@@ -80,10 +87,11 @@ def check_image(data: bytes, *, max_pixels: int, declared: str | None = None) ->
                       f"{max_pixels} pixels", kind=ProblemKind.TOO_MANY_PIXELS, max_pixels=max_pixels)
     if truncated:
         raise Problem(422, "the image is truncated", kind=ProblemKind.TRUNCATED_IMAGE)
-    return ImageHeader(kind, width, height)
+    return ImageHeader(kind, width, height, orientation)
 
 
-def _header_size(data: bytes, max_pixels: int) -> tuple[int, int]:
+def _header(data: bytes, max_pixels: int) -> tuple[int, int, int | None]:
+    """Width, height and EXIF orientation, from the header only."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
@@ -92,7 +100,7 @@ def _header_size(data: bytes, max_pixels: int) -> tuple[int, int]:
                 if im.format == "PNG" and size[0] * size[1] <= max_pixels:
                     # PNG chunk CRCs are checked without inflating the pixels.
                     im.verify()
-                return size
+                return (*size, orientation_of(im))
     except Image.DecompressionBombError as exc:
         raise Problem(413, str(exc), kind=ProblemKind.TOO_MANY_PIXELS, max_pixels=max_pixels) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:

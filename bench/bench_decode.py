@@ -2,7 +2,7 @@
 
 A worker turns a frame's bytes into the working-resolution image with
 :func:`workers.core.image.load_frame`: the header read (skipped where the API process read
-it), a look for an EXIF orientation, one strict decode at the reduced scale the working size
+it; with the size, the EXIF orientation, which OpenCV applies), one strict decode at the reduced scale the working size
 allows (simplejpeg: a file cut short is refused rather than filled with grey), and the
 resize. Beside it, the two reads a JPEG took before (the strict completeness check at 1/8
 scale, then OpenCV's decode), which give the same pixels. Each part is timed side by side on
@@ -54,7 +54,8 @@ def measure(data: bytes, repeats: int) -> dict[str, float]:
     it took before."""
     import simplejpeg
 
-    size = image._header_size(data)
+    header = image.read_header(data)
+    size = (header.width, header.height)
     flag, scale = cv2.IMREAD_COLOR, 1
     for factor, reduced in image._REDUCED:
         if size[0] // factor >= image.WORK_SIZE[0] and size[1] // factor >= image.WORK_SIZE[1]:
@@ -69,15 +70,15 @@ def measure(data: bytes, repeats: int) -> dict[str, float]:
 
     assert np.array_equal(before().grey, image.load_frame(data).grey)
     return {
-        "header": _median_ms(lambda: image._header_size(data), repeats),
-        "EXIF orientation": _median_ms(lambda: image._exif_orientation(data), repeats),
+        "header (size, EXIF orientation)": _median_ms(lambda: image.read_header(data),
+                                                      repeats),
         "strict decode (simplejpeg)": _median_ms(lambda: simplejpeg.decode_jpeg(
             data, colorspace="BGR", strict=True, min_width=-(-size[0] // scale),
             min_height=-(-size[1] // scale)), repeats),
         "resize": _median_ms(lambda: image.prepare(decoded), repeats),
         "load_frame": _median_ms(lambda: image.load_frame(data), repeats),
         "load_frame, header given": _median_ms(
-            lambda: image.load_frame(data, header_size=size), repeats),
+            lambda: image.load_frame(data, header=header), repeats),
         "before: completeness check": _median_ms(
             lambda: image._check_jpeg_complete(data, size), repeats),
         "before: OpenCV decode": _median_ms(lambda: cv2.imdecode(buf, flag), repeats),
@@ -98,7 +99,7 @@ def main() -> None:
     if not paths:
         raise SystemExit(f"no JPEG frames in {args.images}")
     rows = [measure(p.read_bytes(), args.repeats) for p in paths]
-    size = image._header_size(paths[0].read_bytes())
+    size = image.read_header(paths[0].read_bytes())
     whole = np.median([r["load_frame"] for r in rows])
     name = args.images.parent.name if args.images.name == "images" else args.images.name
     lines = ["# Decoding a frame in a worker", "",

@@ -68,12 +68,14 @@ def _carries(value, data: bytes) -> bool:
     from vloc.app.sessions.live import Arrival
     from vloc.app.sessions.store import FrameRecord, OutcomeRecord
     from vloc.app.sessions.writer import Accepted
+    from vloc.workers.core.estimate import Estimate
+    from vloc.workers.core.stepping import StepRecord
     from vloc.workers.engine.messages import FrameDone, FrameFailed, FrameTask
 
     if isinstance(value, bytes | bytearray | memoryview):
         return len(value) == len(data) and bytes(value) == data
     if isinstance(value, Arrival | Accepted | FrameRecord | OutcomeRecord | FrameTask
-                  | FrameDone | FrameFailed):
+                  | FrameDone | FrameFailed | Estimate | StepRecord):
         return True
     if isinstance(value, dict):
         return value.get("type") in ("pose", "frame_error") or {"cov", "status"} <= value.keys()

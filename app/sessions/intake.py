@@ -189,7 +189,7 @@ class FrameIntake:
             seq = await self._reserve(live, seq)
         arrival = Arrival(t0, utcnow(), captured_at, data, self.loop.create_future(),
                           live.last_seq, metadata, len(data),
-                          None if header is None else (header.width, header.height))
+                          None if header is None else header.core)
         live.arrivals[seq] = arrival
         live.last_seq = seq if live.last_seq is None else max(live.last_seq, seq)
         live.last_active = arrival.received_at
@@ -276,7 +276,7 @@ class FrameIntake:
         try:
             self.engine.submit_frame(live.id, seq, data, captured_at=captured,
                                      metadata=arrival.metadata,
-                                     header_size=arrival.header_size)
+                                     header=arrival.header)
         except (KeyError, EngineClosed, WorkerDied) as exc:
             if isinstance(exc, KeyError):
                 self.sessions.release_for_reload(live)

@@ -8,6 +8,7 @@ from datetime import datetime, timedelta
 
 from vloc.app.db import utcnow
 from vloc.app.engine import SessionSpec
+from vloc.workers.core.image import Header
 
 LAST_FRAME_MAX_BYTES = 2**20
 """A larger frame is not kept for viewers: every session would keep one until it expires."""
@@ -31,9 +32,9 @@ class Arrival:
     """The frame's :class:`~workers.core.metadata.FrameMetadata`, validated."""
     size: int = 0
     """Its bytes, held in this process until it is answered (:mod:`app.sessions.budget`)."""
-    header_size: tuple[int, int] | None = None
-    """(width, height) from its image header, checked on arrival: the worker does not read
-    the header again."""
+    header: Header | None = None
+    """What its image header says (size, EXIF orientation), checked on arrival: the
+    worker does not read the header again."""
 
 
 @dataclass(eq=False)

@@ -32,8 +32,7 @@ from sqlalchemy.types import TypeEngine
 from vloc.app.db import UTCDateTime
 from vloc.app.maps.revisions import revision_images
 from vloc.app.sessions.schemas import NavigationState, PoseEstimate, PoseFields
-from vloc.workers.core.accuracy import horizontal_accuracy
-from vloc.workers.core.estimate import Estimate, Status
+from vloc.workers.core.estimate import Estimate, judge
 from vloc.workers.core.metadata import DEFAULT_HEADING_ACCURACY_DEG, FrameMetadata
 
 NOT_STORED = ("type", "session_id", "seq", "map_id", "map_revision")
@@ -149,22 +148,6 @@ def from_row(row, *, map_id: uuid.UUID, map_revision: int) -> PoseEstimate:
 
 # -- from a worker's estimate --------------------------------------------------------------------
 
-def judge(core_status: str, accuracy_m: float, *, bound_m: float,
-          converged_before: bool) -> tuple[Status, bool]:
-    """The pose's status and ``converged`` flag.
-
-    Converged: the localiser tracks and the accuracy is within ``bound_m``. Until the first
-    converged estimate (of the session, or since a reset or an initial pose), a tracking
-    estimate is still ``initialising``; after it, one that is not converged is
-    ``tracking`` as the localiser says, or ``lost``.
-    """
-    status = Status(core_status)
-    converged = status is Status.TRACKING and accuracy_m <= bound_m
-    if status is Status.TRACKING and not converged and not converged_before:
-        status = Status.INITIALISING
-    return status, converged
-
-
 @dataclass(frozen=True, slots=True)
 class FrameContext:
     """What the service knows of a frame beside the worker's estimate."""
@@ -217,14 +200,14 @@ def pose_fields(estimate: Estimate, *, map_id: uuid.UUID, map_revision: int, map
                 metadata: FrameMetadata | None, decode_ms: float, bound_m: float,
                 converged_before: bool) -> dict:
     """The :class:`~app.sessions.schemas.PoseFields` of an estimate, each of its field's
-    type: the core's fields by name, and what the service derives (status, accuracy,
-    heading, matched image)."""
+    type: the core's fields by name, the core's verdict on it (status, convergence,
+    accuracy: :func:`~workers.core.estimate.judge`), and what the service adds (the heading
+    the device reported, the matched image's id and name)."""
     shared = {k: getattr(estimate, k) for k in _SHARED}
     shared["cov"] = list(estimate.cov)
     shared["cloud"] = list(estimate.cloud)
-    accuracy = horizontal_accuracy(estimate.cov)
-    status, converged = judge(estimate.status, accuracy, bound_m=bound_m,
-                              converged_before=converged_before)
+    verdict = judge(estimate.status, estimate.cov, bound_m=bound_m,
+                    converged_before=converged_before)
     meta = metadata or _NO_METADATA
     heading = (estimate.heading_deg, estimate.heading_sigma_deg, "geometry")
     if heading[0] is None:
@@ -234,8 +217,8 @@ def pose_fields(estimate: Estimate, *, map_id: uuid.UUID, map_revision: int, map
         heading = (heading[0], DEFAULT_HEADING_ACCURACY_DEG, heading[2])
     image_id, filename = revision_images(map_folder).lookup(estimate.best_image)
     return shared | {
-        "map_id": map_id, "map_revision": map_revision, "status": status,
-        "converged": converged, "horizontal_accuracy_m": float(accuracy),
+        "map_id": map_id, "map_revision": map_revision, "status": verdict.status,
+        "converged": verdict.converged, "horizontal_accuracy_m": verdict.horizontal_accuracy_m,
         "altitude_m": meta.altitude_m, "heading_deg": heading[0],
         "heading_sigma_deg": heading[1], "heading_source": heading[2], "image_id": image_id,
         "image_filename": filename, "decode_ms": decode_ms}

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from io import BytesIO
+
 import pytest
+from PIL import Image
 
 from tests.app.imagery import plain_jpeg, png, png_bomb
 from vloc.app.imagecheck import check_image, kind_of_content_type, sniff
@@ -21,6 +24,31 @@ def test_good_images_give_their_size():
     assert (h.kind, h.width, h.height, h.content_type, h.suffix) == (
         "jpeg", 64, 48, "image/jpeg", ".jpg")
     assert check_image(png(size=(30, 20)), max_pixels=600, declared="png").width == 30
+
+
+def test_a_jpegs_orientation_is_read_with_its_size_and_handed_to_the_decode():
+    """The worker decodes a frame from the header checked here (it does not read it
+    again): the EXIF orientation goes with the size, and the decode applies it."""
+    import cv2
+    import numpy as np
+
+    from vloc.workers.core.image import Header, decode_image
+
+    plain = plain_jpeg(size=(64, 48))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # stored sideways: seen turned 90 degrees clockwise
+    with Image.open(BytesIO(plain)) as im:
+        out = BytesIO()
+        im.save(out, "JPEG", exif=exif.tobytes())
+    turned = out.getvalue()
+    assert check_image(plain, max_pixels=10**6).core == Header(64, 48, 1)
+    header = check_image(turned, max_pixels=10**6)
+    assert header.core == Header(64, 48, 6)
+    assert png() and check_image(png(size=(30, 20)), max_pixels=600).orientation == 1
+    decoded = decode_image(turned, header=header.core)
+    assert decoded.shape[:2] == (64, 48)
+    np.testing.assert_array_equal(decoded, cv2.imdecode(np.frombuffer(turned, np.uint8),
+                                                        cv2.IMREAD_COLOR))
 
 
 @pytest.mark.parametrize(("data", "declared", "max_pixels", "status", "kind"), [

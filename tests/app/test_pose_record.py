@@ -95,18 +95,6 @@ def test_row_round_trip_keeps_every_field():
     assert back.model_dump(mode="json") == msg.model_dump(mode="json")
 
 
-@pytest.mark.parametrize(("core", "accuracy", "before", "expected"), [
-    ("tracking", 5.0, False, ("tracking", True)),
-    ("tracking", 50.0, False, ("initialising", False)),   # not yet converged
-    ("tracking", 50.0, True, ("tracking", False)),        # converged earlier, spread now
-    ("initialising", 5.0, False, ("initialising", False)),
-    ("lost", 5.0, True, ("lost", False)),
-])
-def test_status_and_converged(core, accuracy, before, expected):
-    status, converged = pose.judge(core, accuracy, bound_m=25.0, converged_before=before)
-    assert (str(status), converged) == expected
-
-
 def test_heading_altitude_and_geopose_are_never_invented():
     msg = _pose(_estimate())
     assert (msg.heading_deg, msg.heading_sigma_deg, msg.heading_source, msg.altitude_m) == \

@@ -92,7 +92,7 @@ def test_a_jpeg_cut_short_is_refused_however_it_ends():
     with pytest.raises(ImageError, match="corrupt or incomplete JPEG"):
         decode_image(cut + b"\xff\xd9")  # an end marker appended: still half a file
     with pytest.raises(ImageError, match="frame header says"):
-        decode_image(data, header_size=(641, 480))
+        decode_image(data, header=image.Header(641, 480))
 
 
 def test_survey_images_decode_as_before(seneca_dir):

@@ -500,7 +500,7 @@ def test_a_global_step_whose_orb_fails_registers_with_sift_before_escalating(
 def test_step_image_decodes_steps_and_records_and_refuses_bytes_that_do_not_decode():
     import cv2
 
-    from vloc.workers.core.image import ImageError
+    from vloc.workers.core.image import Header, ImageError
     from vloc.workers.core.stepping import step_image
 
     class Once:
@@ -526,11 +526,11 @@ def test_step_image_decodes_steps_and_records_and_refuses_bytes_that_do_not_deco
     # the reports reach the localiser as they were validated, not made again
     assert captured_at == 5.0 and metadata is reports
     # a header already read is not read again: the same frame from the size given
-    again = step_image(localiser, jpeg.tobytes(), max_pixels=10**6, header_size=(64, 48))
+    again = step_image(localiser, jpeg.tobytes(), max_pixels=10**6, header=Header(64, 48))
     assert again.estimate is localiser.estimate
     np.testing.assert_array_equal(localiser.frames[-1][0].grey, frame.grey)
     with pytest.raises(ImageError, match="exceeds the limit"):
-        step_image(localiser, jpeg.tobytes(), max_pixels=1000, header_size=(64, 48))
+        step_image(localiser, jpeg.tobytes(), max_pixels=1000, header=Header(64, 48))
 
 
 def test_a_header_read_before_is_not_read_again(monkeypatch):
@@ -545,7 +545,8 @@ def test_a_header_read_before_is_not_read_again(monkeypatch):
     def unread(_):
         raise AssertionError("the header was read again")
 
-    monkeypatch.setattr(image, "_header_size", unread)
-    np.testing.assert_array_equal(image.decode_image(data, header_size=(64, 48)), expected)
+    monkeypatch.setattr(image, "read_header", unread)
+    np.testing.assert_array_equal(image.decode_image(data, header=image.Header(64, 48)),
+                                  expected)
     with pytest.raises(AssertionError, match="read again"):
         image.decode_image(data)

@@ -1,9 +1,11 @@
-"""What a localiser returns for each frame."""
+"""What a localiser returns for each frame, and what a client is told of it."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+
+from .accuracy import horizontal_accuracy
 
 
 class Status(StrEnum):
@@ -75,3 +77,32 @@ class Estimate:
     gps_gate: str = ""
     cloud: tuple[tuple[float, float], ...] = ()
     navigation: dict | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Verdict:
+    """What a client is told of an estimate (:func:`judge`)."""
+
+    status: Status
+    converged: bool
+    horizontal_accuracy_m: float
+
+
+def judge(status: Status, cov, *, bound_m: float, converged_before: bool) -> Verdict:
+    """An estimate's status, ``converged`` flag and horizontal accuracy, as told to a
+    client, from the localiser's ``status`` and the position covariance ``cov`` (4
+    floats, row-major): the one place they are decided.
+
+    The accuracy is the 68 % circle of the covariance
+    (:func:`~workers.core.accuracy.horizontal_accuracy`). Converged: the localiser tracks
+    and the accuracy is within ``bound_m``. Until the first converged estimate (of the
+    session, or since a reset or an initial pose: ``converged_before``), a tracking
+    estimate is still ``initialising``; after it, one that is not converged is
+    ``tracking`` as the localiser says, or ``lost``.
+    """
+    accuracy = float(horizontal_accuracy(cov))
+    status = Status(status)
+    converged = status is Status.TRACKING and accuracy <= bound_m
+    if status is Status.TRACKING and not converged and not converged_before:
+        status = Status.INITIALISING
+    return Verdict(status, converged, accuracy)

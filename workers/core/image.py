@@ -8,6 +8,7 @@ as 8-bit BGR colour for the features that need colour (the hue histogram).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -41,15 +42,38 @@ class Frame:
         return self.grey.shape  # type: ignore[return-value]
 
 
-def _header_size(data: bytes) -> tuple[int, int] | None:
-    """Width and height from the file header without decoding the pixels, where known."""
+class Header(NamedTuple):
+    """What an image's file header says: its size and, for a JPEG, its EXIF orientation
+    (1: stored as it is seen; None: its EXIF could not be read)."""
+
+    width: int
+    height: int
+    orientation: int | None = 1
+
+
+_EXIF_ORIENTATION = 0x0112
+
+
+def orientation_of(im) -> int | None:
+    """The EXIF orientation of an image Pillow opened (1 where it has none or is no JPEG;
+    None where its EXIF cannot be read). Only the header is read."""
+    if im.format != "JPEG" or "exif" not in im.info:
+        return 1
+    try:
+        return int(im.getexif().get(_EXIF_ORIENTATION, 1))
+    except Exception:  # noqa: BLE001 - unreadable EXIF: unknown, OpenCV decides
+        return None
+
+
+def read_header(data: bytes) -> Header | None:
+    """The file header (size, orientation) without decoding the pixels, where readable."""
     from io import BytesIO
 
     from PIL import Image
 
     try:
         with Image.open(BytesIO(data)) as im:
-            return im.size
+            return Header(*im.size, orientation_of(im))
     except Exception:  # noqa: BLE001 - any header failure means "unknown", decided below
         return None
 
@@ -60,7 +84,7 @@ _REDUCED = ((8, cv2.IMREAD_REDUCED_COLOR_8), (4, cv2.IMREAD_REDUCED_COLOR_4),
 
 def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
                  min_size: tuple[int, int] | None = None,
-                 header_size: tuple[int, int] | None = None) -> np.ndarray:
+                 header: Header | None = None) -> np.ndarray:
     """Decode JPEG/PNG bytes into a BGR image.
 
     Parameters
@@ -74,9 +98,9 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
         The image will be shrunk to this size: a JPEG may then be decoded at 1/2, 1/4 or
         1/8 scale straight from its DCT coefficients (much faster), as long as the
         result stays at least this large.
-    header_size : (width, height) or None
-        The size its header declares, where the caller read it already (the API process
-        checks every frame's header before it reaches a worker): not read again.
+    header : Header or None
+        Its header, where the caller read it already (the API process checks every
+        frame's header before it reaches a worker): not read again.
 
     Returns
     -------
@@ -89,10 +113,11 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
     """
     if not data:
         raise ImageError("empty image")
-    size = _header_size(data) if header_size is None else tuple(header_size)
-    if size is None:
+    if header is None:
+        header = read_header(data)
+    if header is None:
         raise ImageError("not a decodable JPEG or PNG image")
-    width, height = size
+    width, height = header.width, header.height
     if width <= 0 or height <= 0:
         raise ImageError("image has no pixels")
     if width * height > max_pixels:
@@ -108,7 +133,7 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
     if looks_truncated(data):
         raise ImageError("truncated image")
     if data[:2] == b"\xff\xd8":
-        image = _decode_jpeg(data, (width, height), scale)
+        image = _decode_jpeg(data, header, scale)
         if image is not None:
             return image
         _check_jpeg_complete(data, (width, height))
@@ -123,7 +148,7 @@ _JPEG_COLOURS = {"Gray": "GRAY", "YCbCr": "GRAY", "RGB": "GRAY", "CMYK": "CMYK",
                  "YCCK": "CMYK"}
 
 
-def _decode_jpeg(data: bytes, size: tuple[int, int], scale: int) -> np.ndarray | None:
+def _decode_jpeg(data: bytes, header: Header, scale: int) -> np.ndarray | None:
     """A JPEG decoded once, strictly, at ``1/scale`` of its size, as OpenCV would decode it;
     None where OpenCV must decode it (a colour space other than grey or YCbCr, or an EXIF
     orientation to apply, which OpenCV applies).
@@ -139,10 +164,10 @@ def _decode_jpeg(data: bytes, size: tuple[int, int], scale: int) -> np.ndarray |
         height, width, colour, _ = simplejpeg.decode_jpeg_header(data)
     except ValueError as exc:
         raise ImageError(f"corrupt or incomplete JPEG data ({exc})") from None
-    if (width, height) != tuple(size):
+    if (width, height) != (header.width, header.height):
         raise ImageError(f"the JPEG's frame header says {width}x{height}, its file "
-                         f"header {size[0]}x{size[1]}")
-    if colour not in ("Gray", "YCbCr") or _exif_orientation(data) != 1:
+                         f"header {header.width}x{header.height}")
+    if colour not in ("Gray", "YCbCr") or header.orientation != 1:
         return None
     try:
         return simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True,
@@ -150,24 +175,6 @@ def _decode_jpeg(data: bytes, size: tuple[int, int], scale: int) -> np.ndarray |
                                       min_height=-(-height // scale))
     except ValueError as exc:
         raise ImageError(f"corrupt or incomplete JPEG data ({exc})") from None
-
-
-_EXIF_ORIENTATION = 0x0112
-
-
-def _exif_orientation(data: bytes) -> int | None:
-    """The JPEG's EXIF orientation (1: as stored), None where its EXIF cannot be read."""
-    if data.find(b"Exif\x00\x00", 0, 1 << 16) < 0:
-        return 1
-    from io import BytesIO
-
-    from PIL import Image
-
-    try:
-        with Image.open(BytesIO(data)) as im:
-            return int(im.getexif().get(_EXIF_ORIENTATION, 1))
-    except Exception:  # noqa: BLE001 - unreadable EXIF: OpenCV decides, as before
-        return None
 
 
 def _check_jpeg_complete(data: bytes, size: tuple[int, int]) -> None:
@@ -246,7 +253,7 @@ def prepare(image: np.ndarray, size: tuple[int, int] = WORK_SIZE) -> Frame:
 
 def load_frame(data: bytes, *, size: tuple[int, int] = WORK_SIZE,
                max_pixels: int = MAX_PIXELS,
-               header_size: tuple[int, int] | None = None) -> Frame:
-    """Decode and prepare in one call (``header_size``: :func:`decode_image`)."""
+               header: Header | None = None) -> Frame:
+    """Decode and prepare in one call (``header``: :func:`decode_image`)."""
     return prepare(decode_image(data, max_pixels=max_pixels, min_size=size,
-                                header_size=header_size), size)
+                                header=header), size)

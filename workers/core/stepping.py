@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from .estimate import Estimate
-from .image import load_frame
+from .image import Header, load_frame
 from .metadata import FrameMetadata
 
 # Only for the annotation: the localisers' package imports every localiser, which a worker
@@ -33,16 +33,16 @@ class StepRecord:
 
 def step_image(localiser: Localiser, data: bytes, *, max_pixels: int,
                captured_at: float | None = None, metadata: FrameMetadata | None = None,
-               header_size: tuple[int, int] | None = None) -> StepRecord:
+               header: Header | None = None) -> StepRecord:
     """Decode an encoded image (JPEG or PNG bytes) and step ``localiser`` on it once.
 
     ``metadata`` is the frame's sensor reports, validated where they arrived;
-    ``header_size`` the (width, height) its header declares, where it was read already. Raises
+    ``header`` what its file header says, where it was read already. Raises
     :class:`~workers.core.image.ImageError` (a ValueError) for bytes that do not decode,
     before the localiser is touched; anything the step raises passes through.
     """
     t0 = time.perf_counter()
-    frame = load_frame(data, max_pixels=max_pixels, header_size=header_size)
+    frame = load_frame(data, max_pixels=max_pixels, header=header)
     decode_ms = (time.perf_counter() - t0) * 1e3
     estimate = localiser.step(frame, captured_at=captured_at, metadata=metadata)
     return StepRecord(estimate, decode_ms)

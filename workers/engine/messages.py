@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from vloc.workers.core.estimate import Estimate
+from vloc.workers.core.image import Header
 from vloc.workers.core.metadata import FrameMetadata
 
 DEFAULT_FACTORY = "vloc.workers.core.localisers:make_localiser"
@@ -65,8 +66,9 @@ class FrameTask:
     metadata: FrameMetadata | None = None
     """The frame's sensor reports, as the API process validated them (pickled as they are:
     not validated again)."""
-    header_size: tuple[int, int] | None = None
-    """(width, height) from the image header the API process checked: not read again."""
+    header: Header | None = None
+    """What the image header the API process checked says (size, EXIF orientation): not
+    read again."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from vloc.workers.core.image import Header
     from vloc.workers.core.metadata import FrameMetadata
 
 import itertools
@@ -173,11 +174,11 @@ class LocalEngine:
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
                      captured_at: float | None = None,
                      metadata: FrameMetadata | None = None,
-                     header_size: tuple[int, int] | None = None) -> None:
+                     header: Header | None = None) -> None:
         """Queue a frame; its outcome comes back through ``on_outcome``.
 
-        ``metadata`` is the frame's sensor reports, already validated; ``header_size`` the
-        (width, height) its checked header declares.
+        ``metadata`` is the frame's sensor reports, already validated; ``header`` what its
+        checked image header says.
 
         Raises KeyError when the session is not open, ``EngineClosed`` when stopped.
         """
@@ -188,7 +189,7 @@ class LocalEngine:
             slot.frames[(session_id, seq)] = None
             slot.tasks.put(FrameTask(session_id, seq, data, captured_at,
                                      checkpoint=n % self.checkpoint_every == 0,
-                                     metadata=metadata, header_size=header_size))
+                                     metadata=metadata, header=header))
 
     def pending_frames(self, session_id: str) -> int:
         with self._lock:

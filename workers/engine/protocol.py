@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from vloc.workers.core.image import Header
     from vloc.workers.core.metadata import FrameMetadata
 
 from collections.abc import Callable
@@ -56,7 +57,7 @@ class Engine(Protocol):
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
                      captured_at: float | None = None,
                      metadata: FrameMetadata | None = None,
-                     header_size: tuple[int, int] | None = None) -> None:
+                     header: Header | None = None) -> None:
         """Queue a frame; its outcome comes through ``on_outcome``. KeyError when the
         session is not open here, EngineClosed when stopped, WorkerDied while its worker
         is being replaced."""

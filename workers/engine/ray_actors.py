@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from vloc.workers.core.image import Header
     from vloc.workers.core.metadata import FrameMetadata
 
 import asyncio
@@ -274,7 +275,7 @@ class Shard:
 
     async def frame(self, sid: str, seq: int, data: bytes, captured_at: float | None,
                     metadata: FrameMetadata | None,
-                    header_size: tuple[int, int] | None = None) -> FrameDone | FrameFailed:
+                    header: Header | None = None) -> FrameDone | FrameFailed:
         order = self._ready(sid)
         if order is None:
             return FrameFailed(sid, seq, "not_open", "the session is not open in its shard")
@@ -294,7 +295,7 @@ class Shard:
         order.count += 1
         try:
             return await self._run(FrameTask(
-                sid, seq, data, captured_at, metadata=metadata, header_size=header_size,
+                sid, seq, data, captured_at, metadata=metadata, header=header,
                 checkpoint=order.count % self.checkpoint_every == 0))
         finally:
             async with order.turn:

@@ -39,6 +39,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from vloc.workers.core.image import Header
     from vloc.workers.core.metadata import FrameMetadata
 
 import collections
@@ -313,10 +314,10 @@ class RayEngine:
     def submit_frame(self, session_id: str, seq: int, data: bytes, *,
                      captured_at: float | None = None,
                      metadata: FrameMetadata | None = None,
-                     header_size: tuple[int, int] | None = None) -> None:
+                     header: Header | None = None) -> None:
         self._check_running()
         ref = self.shard(session_id).frame.remote(session_id, seq, data, captured_at, metadata,
-                                                  header_size)
+                                                  header)
         with self._lock:
             self._pending[(session_id, seq)] = ref
         ref.future().add_done_callback(lambda f: self._frame_done(session_id, seq, f))

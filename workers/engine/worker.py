@@ -97,7 +97,7 @@ class WorkerState:
         try:
             record = step_image(localiser, task.data, max_pixels=self.max_pixels,
                                 captured_at=task.captured_at, metadata=task.metadata,
-                                header_size=task.header_size)
+                                header=task.header)
             state = localiser.get_state() if task.checkpoint else None
         except ImageError as exc:
             return FrameFailed(task.session_id, task.seq, "bad_image", str(exc))
