@@ -11,6 +11,8 @@ from fastapi.testclient import TestClient
 from tests.app.conftest import ADMIN, FAST, build_map, service_settings
 from tests.app.test_sessions import open_stream, post_frame
 from vloc.app.main import create_app
+from vloc.app.sessions.schemas import FrameError
+from vloc.app.stream.hub import Encoded
 from vloc.app.stream.redis_hub import RedisHub
 
 pytestmark = pytest.mark.redis
@@ -30,8 +32,9 @@ def test_messages_reach_the_subscribers_of_another_replica_in_order(redis_url):
             await a.ready(session)
             for i in range(50):
                 a.publish(session, {"type": "pose", "seq": i})
-            got_b = [await asyncio.wait_for(on_b.queue.get(), 5) for _ in range(50)]
-            got_a = [await asyncio.wait_for(on_a.queue.get(), 5) for _ in range(50)]
+            a.publish(session, written)
+            got_b = [await asyncio.wait_for(on_b.queue.get(), 5) for _ in range(51)]
+            got_a = [await asyncio.wait_for(on_a.queue.get(), 5) for _ in range(51)]
             b.unsubscribe(on_b)
             a.close_session(session)
             closed = await asyncio.wait_for(on_a.queue.get(), 5)
@@ -40,8 +43,12 @@ def test_messages_reach_the_subscribers_of_another_replica_in_order(redis_url):
             await a.stop()
             await b.stop()
 
+    # a frame's message, written once: the other replica sends the text it received
+    written = Encoded.of(FrameError(session_id=uuid.uuid4(), seq=50, captured_at=None,
+                                    kind="error", reason="r\u00e9ason", latency_ms=2.5))
     got_b, got_a, stray, closed = asyncio.run(scenario())
-    assert [m["seq"] for m in got_b] == list(range(50)) == [m["seq"] for m in got_a]
+    assert [m["seq"] for m in got_b] == list(range(51)) == [m["seq"] for m in got_a]
+    assert isinstance(got_b[-1], Encoded) and got_b[-1].text == written.text
     assert stray == 0 and closed["type"] == "closed"
 
 
