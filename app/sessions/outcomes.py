@@ -4,8 +4,9 @@ The engine's reader thread hands each outcome to :meth:`Outcomes.on_outcome`, wh
 into its message (:mod:`app.sessions.pose` for an estimate, a ``frame_error`` otherwise),
 written as JSON once (:class:`~app.stream.hub.Encoded`: the socket, Redis and a waiting
 request send that text), has the event loop publish the stream's copy at once and queues the
-message with its row for the writer: the stream never waits for the database. Once the writer has stored it (or the database refused
-it: the stream then also hears a ``frame_error`` of kind ``not_stored``),
+message with its row for the writer: the stream never waits for the database. Once the
+writer has stored it (or the database refused it: the stream then also hears a
+``frame_error`` of kind ``not_stored``),
 :meth:`Outcomes.settle` wakes the ``?wait=true`` request waiting on it and the frame leaves
 its session's arrivals.
 """

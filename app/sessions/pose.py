@@ -120,18 +120,17 @@ def _unwrap(annotation) -> tuple[object, bool]:
 
 # -- rows --------------------------------------------------------------------------------------
 
-def to_row(pose: PoseEstimate, navigation: dict | None = None) -> dict:
-    """The values of a pose's row in ``pose_estimates``: its stored fields and the revision
-    (``navigation``, where given, is its JSON column's value)."""
+def to_row(pose: PoseEstimate) -> dict:
+    """The values of a pose's row in ``pose_estimates``: its stored fields and the
+    revision."""
     row = {"map_revision": pose.map_revision}
     for name in stored_fields():
         value = getattr(pose, name)
         if name == "cov":
             row.update(zip(COV_COLUMNS, value, strict=True))
             continue
-        if name in JSON_FIELDS:
-            value = navigation if name == "navigation" else (
-                None if value is None else value.model_dump(mode="json"))
+        if name in JSON_FIELDS and value is not None:
+            value = value.model_dump(mode="json")
         row[name] = value
     return row
 
@@ -184,8 +183,7 @@ def from_estimate(estimate: Estimate, ctx: FrameContext, *, bound_m: float,
         **fields, session_id=uuid.UUID(ctx.session_id), seq=ctx.seq,
         captured_at=ctx.captured_at, received_at=ctx.received_at, latency_ms=ctx.latency_ms,
         navigation=navigation)
-    row = to_row(message, None if navigation is None else navigation.model_dump(mode="json"))
-    return message, row
+    return message, to_row(message)
 
 
 _NO_METADATA = FrameMetadata()

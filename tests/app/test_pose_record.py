@@ -83,7 +83,7 @@ def test_the_assembled_pose_is_what_validation_makes(change):
         text = made.model_dump_json()
     assert text == validated.model_dump_json()
     assert PoseEstimate.model_validate_json(text) == validated
-    assert row == pose.to_row(validated, change.get("navigation"))
+    assert row == pose.to_row(validated)
 
 
 def test_row_round_trip_keeps_every_field():
