@@ -27,8 +27,8 @@ GOING_AWAY = {"type": "going_away"}
 """Not sent: tells a stream to close with 1001 after the messages before it."""
 
 
-HEAD = ("type", "session_id", "seq", "prev_seq", "kind", "reason", "captured_at", "feature",
-        "processing_ms", "latency_ms", "converged")
+HEAD = ("type", "seq", "prev_seq", "kind", "reason", "captured_at", "feature", "processing_ms",
+        "latency_ms")
 """The fields of a frame's message the service reads itself (routing, ordering, metrics,
 the HTTP answer's status): kept beside its JSON text, so that it is never parsed back."""
 

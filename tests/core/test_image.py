@@ -16,8 +16,8 @@ from vloc.workers.core.image import WORK_SIZE, ImageError, decode_image, load_fr
 
 
 def _reference(data: bytes, min_size=WORK_SIZE) -> np.ndarray:
-    """OpenCV's decode at the scale the working size allows, after the strict check: the
-    two reads every JPEG took before."""
+    """OpenCV's decode at the scale the working size allows: the pixels every JPEG was
+    decoded to before."""
     with Image.open(BytesIO(data)) as im:
         width, height = im.size
     flag = cv2.IMREAD_COLOR
@@ -25,7 +25,6 @@ def _reference(data: bytes, min_size=WORK_SIZE) -> np.ndarray:
         if width // factor >= min_size[0] and height // factor >= min_size[1]:
             flag = reduced
             break
-    image._check_jpeg_complete(data, (width, height))
     return cv2.imdecode(np.frombuffer(data, np.uint8), flag)
 
 

@@ -136,7 +136,6 @@ def decode_image(data: bytes, *, max_pixels: int = MAX_PIXELS,
         image = _decode_jpeg(data, header, scale)
         if image is not None:
             return image
-        _check_jpeg_complete(data, (width, height))
     buf = np.frombuffer(data, dtype=np.uint8)
     image = cv2.imdecode(buf, flag)
     if image is None:
@@ -151,12 +150,15 @@ _JPEG_COLOURS = {"Gray": "GRAY", "YCbCr": "GRAY", "RGB": "GRAY", "CMYK": "CMYK",
 def _decode_jpeg(data: bytes, header: Header, scale: int) -> np.ndarray | None:
     """A JPEG decoded once, strictly, at ``1/scale`` of its size, as OpenCV would decode it;
     None where OpenCV must decode it (a colour space other than grey or YCbCr, or an EXIF
-    orientation to apply, which OpenCV applies).
+    orientation to apply, which OpenCV applies), once its blocks are checked.
 
-    OpenCV's decoder and simplejpeg are both libjpeg-turbo with its default (accurate)
-    inverse DCT and upsampling, so their pixels are the same (the tests hold them to it);
-    simplejpeg's strict mode refuses a stream whose blocks are not all in the file, which
-    OpenCV fills with grey (:func:`_check_jpeg_complete`). So one decode does both.
+    libjpeg fills the blocks of a stream cut short with grey and only warns (an end marker
+    appended to half a file decodes "successfully"), and OpenCV ignores the warning;
+    libjpeg-turbo in strict mode (simplejpeg's) turns it into an error. OpenCV's decoder and
+    simplejpeg are both libjpeg-turbo with its default (accurate) inverse DCT and
+    upsampling, so their pixels are the same (the tests hold them to it): one strict decode
+    does both. Where OpenCV decodes, the strict pass is at 1/8 scale: the whole
+    entropy-coded stream is read, only the inverse DCTs are cheaper.
     """
     import simplejpeg
 
@@ -167,35 +169,17 @@ def _decode_jpeg(data: bytes, header: Header, scale: int) -> np.ndarray | None:
     if (width, height) != (header.width, header.height):
         raise ImageError(f"the JPEG's frame header says {width}x{height}, its file "
                          f"header {header.width}x{header.height}")
-    if colour not in ("Gray", "YCbCr") or header.orientation != 1:
-        return None
+    ours = colour in ("Gray", "YCbCr") and header.orientation == 1
     try:
-        return simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True,
-                                      min_width=-(-width // scale),
-                                      min_height=-(-height // scale))
-    except ValueError as exc:
-        raise ImageError(f"corrupt or incomplete JPEG data ({exc})") from None
-
-
-def _check_jpeg_complete(data: bytes, size: tuple[int, int]) -> None:
-    """ImageError unless every block of the JPEG's scans is in the file.
-
-    libjpeg fills the blocks of a stream cut short with grey and only warns (an end marker
-    appended to half a file decodes "successfully"); OpenCV ignores the warning. libjpeg-turbo
-    in strict mode turns it into an error. The blocks are decoded at 1/8 scale: the whole
-    entropy-coded stream is read, only the inverse DCTs are cheaper.
-    """
-    import simplejpeg
-
-    try:
-        height, width, colour, _ = simplejpeg.decode_jpeg_header(data)
-        if (width, height) != tuple(size):
-            raise ImageError(f"the JPEG's frame header says {width}x{height}, its file "
-                             f"header {size[0]}x{size[1]}")
+        if ours:
+            return simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True,
+                                          min_width=-(-width // scale),
+                                          min_height=-(-height // scale))
         simplejpeg.decode_jpeg(data, colorspace=_JPEG_COLOURS.get(colour, "GRAY"),
                                strict=True, min_height=1, min_width=1)
     except ValueError as exc:
         raise ImageError(f"corrupt or incomplete JPEG data ({exc})") from None
+    return None
 
 
 def image_kind(data: bytes) -> str | None:
