@@ -40,6 +40,7 @@ def main() -> None:
         kinds = [f.outcomes[v][s]["type"] for s in f.accepted[v]]
         rows.append({
             "other_gap": float(f.gaps(o).max()),
+            "other_gap_after": float(f.gaps(o, since=f.kill_at).max()),
             "other_median": float(np.median(f.gaps(o))),
             "resumed": f.resumed_after(v),
             "victim_gap": float(f.gaps(v).max()),
@@ -57,17 +58,20 @@ def main() -> None:
         "one API server (SQLite). A session streams on each node, a frame every 0.25 s; "
         "the second node is killed 4 s in; 10 s more of frames.",
         "",
-        "| run | longest silence, surviving node's session | its median gap | killed "
+        "| run | longest silence, surviving node's session: whole run | from the kill on "
+        "| its median gap | killed "
         "node's session: kill to the first pose of a frame sent after it | its longest "
         "silence | frames accepted | answered or reported | reported lost (worker_died) |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for i, r in enumerate(rows, 1):
-        lines.append(f"| {i} | {r['other_gap']:.2f} s | {r['other_median']:.2f} s | "
+        lines.append(f"| {i} | {r['other_gap']:.2f} s | {r['other_gap_after']:.2f} s | "
+                     f"{r['other_median']:.2f} s | "
                      f"{r['resumed']:.2f} s | {r['victim_gap']:.2f} s | {r['accepted']} | "
                      f"{r['answered']} | {r['lost']} |")
     lines += ["", "The test `tests/e2e/test_multinode.py` runs the same scenario once and "
-              "requires the surviving session's longest silence to be at most 1.5 s.", ""]
+              "requires the surviving session's longest silence from the kill on to be at most "
+              "1.5 s (a stall of the loaded machine before the kill is not the loss's).", ""]
     args.out.write_text("\n".join(lines))
     print("\n".join(lines))
 

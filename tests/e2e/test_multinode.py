@@ -155,9 +155,12 @@ class Figures:
     victim: str
     other: str
 
-    def gaps(self, sid: str) -> np.ndarray:
-        times = [t for t, _ in self.arrivals[sid]]
-        return np.diff(times)
+    def gaps(self, sid: str, *, since: float | None = None) -> np.ndarray:
+        """Seconds between the session's consecutive messages; with ``since``, only the
+        silences that end after it (the one straddling it included)."""
+        times = np.array([t for t, _ in self.arrivals[sid]])
+        gaps = np.diff(times)
+        return gaps if since is None else gaps[times[1:] > since]
 
     def resumed_after(self, sid: str) -> float:
         """Seconds from the kill to the session's first pose of a frame accepted after
@@ -268,9 +271,12 @@ def test_a_killed_node_s_sessions_resume_on_the_other_and_the_others_never_pause
         assert f.accepted[sid], sid
         # every accepted frame answered or reported
         assert set(f.accepted[sid]) <= set(f.outcomes[sid])
-    # the other node's session lost nothing and never paused
+    # the other node's session lost nothing and never paused for the loss (a restart of
+    # its shard, or a wait on the dead node's, would silence it for seconds; a stall of the
+    # loaded machine before the kill is not the loss's)
     assert all(f.outcomes[other][s]["type"] == "pose" for s in f.accepted[other])
-    assert f.gaps(other).max() <= 1.5, f.gaps(other)
+    after_kill = f.gaps(other, since=f.kill_at)
+    assert after_kill.size > 10 and after_kill.max() <= 1.5, after_kill
     # the killed node's session: frames in flight reported, then poses again, from its
     # checkpoint, its shard restarted on the surviving node
     lost = [s for s in f.accepted[victim] if f.outcomes[victim][s]["type"] == "frame_error"]
