@@ -462,6 +462,27 @@ def test_a_global_step_without_a_fix_is_taken_back_for_sift(world, small_map):
     assert loc2.step(blank2).feature == "global"
 
 
+def test_a_global_step_s_orb_fix_weighs_the_particles_alone(world, small_map, monkeypatch):
+    loc, queries, truth = _converged(world, small_map)
+    assert loc.switch.next == "global"
+    nxt, nxt_truth = _queries(world, start=truth[-1, 0] + 5.0, n=1)
+    positions = []
+    step = loc.pf.step
+
+    def spy(measurements, dt, *, refine=None, drift=None):
+        def refine_and_keep(likelihoods):
+            positions.append(refine(likelihoods))
+            return positions[-1]
+        return step(measurements, dt, refine=refine_and_keep, drift=drift)
+
+    monkeypatch.setattr(loc.pf, "step", spy)
+    e = loc.step(nxt[0])
+    assert (e.feature, e.measurement) == ("global", "global+registered")
+    # the ORB pose replaces the global similarity in the weights
+    assert [p.alone for p in positions] == [True]
+    assert np.hypot(e.x - nxt_truth[0, 0], e.y - nxt_truth[0, 1]) < 6.0
+
+
 def test_a_global_step_whose_orb_fails_registers_with_sift_before_escalating(
         world, small_map, monkeypatch):
     loc, queries, truth = _converged(world, small_map)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from vloc.workers.core.pf.clusters import cluster_labels, heaviest_cluster
 from vloc.workers.core.pf.config import (
     CONFIGS,
     DEFAULT_OVERRIDES,
@@ -291,6 +292,56 @@ def test_a_position_alone_replaces_the_image_similarity_in_the_weights(alone):
     # alone, the heaviest particle lies by the position; multiplied, the images pull it away
     best = pf.xy[np.argmax(pf.w)]
     assert (np.linalg.norm(best - map_xy[30]) < 8.0) == alone
+
+
+@pytest.mark.parametrize("point_estimate", ["mean", "cluster"])
+def test_the_reported_position_is_the_heaviest_cluster_s_where_configured(point_estimate):
+    map_xy = _route()
+    cfg = WEISS2008.with_params(replace_fraction=0.0, point_estimate=point_estimate)
+    pf = ParticleFilter(map_xy, cKDTree(map_xy), cfg, MotionModel(pull=0.0, sigma_floor=1.0),
+                        2.0, np.random.default_rng(3), spacing=8.0)
+    assert pf.cluster_cell == pytest.approx(8.0 / (2 * np.sqrt(2)))
+    # never narrower than the motion's floor
+    dense = ParticleFilter(map_xy, cKDTree(map_xy), cfg, MotionModel(sigma_floor=4.0), 2.0,
+                           np.random.default_rng(3), spacing=0.5)
+    assert dense.cluster_cell == 4.0
+    # a sharp fix at image 30 over a cloud spread along the whole route
+    fix = Position("registered", map_xy[30].copy(), 2.0, 0.05, alone=True)
+    result = pf.step([_measure(_perfect(map_xy, map_xy[0], 20.0))], None,
+                     refine=lambda likelihoods: fix)
+    # nothing replaced: the filter's arrays are the weighted cloud the step estimated from
+    np.testing.assert_array_equal(result.stats.mean, cloud_stats(pf.xy, pf.w).mean)
+    if point_estimate == "mean":
+        assert result.estimate is result.stats
+        return
+    mode, share = heaviest_cluster(pf.xy, pf.w, pf.cluster_cell)
+    assert share > 0.5
+    np.testing.assert_array_equal(result.estimate.mean, mode)
+    np.testing.assert_allclose(result.estimate.cov, cloud_stats(pf.xy, pf.w, about=mode).cov)
+    # the cluster's position is by the fix; the whole cloud's is pulled away by the strays
+    assert np.linalg.norm(mode - map_xy[30]) < 2.0
+    assert np.linalg.norm(result.stats.mean - map_xy[30]) > \
+        np.linalg.norm(mode - map_xy[30])
+    # the covariance reported is about the cluster's position: never tighter than the
+    # cloud's own (the switching rule judges that one)
+    assert result.estimate.spread >= result.stats.spread
+
+
+def test_a_cloud_without_a_majority_cluster_reports_its_mean():
+    map_xy = _route()
+    cfg = WEISS2008.with_params(replace_fraction=0.0, point_estimate="cluster")
+    pf = ParticleFilter(map_xy, cKDTree(map_xy), cfg, MotionModel(pull=0.0, sigma_floor=0.5),
+                        2.0, np.random.default_rng(4), spacing=8.0)
+    # three hypotheses a third of the route apart, the frame alike everywhere: none holds
+    # most of the weight
+    rng = np.random.default_rng(5)
+    pf.xy = np.concatenate([map_xy[i] + rng.normal(0, 0.5, size=(100, 2)) for i in (0, 40, 80)])
+    pf.w = np.full(300, 1.0 / 300)
+    result = pf.step([_measure(lambda idx: np.ones(len(idx)))], None)
+    assert len(np.unique(cluster_labels(pf.xy, pf.cluster_cell))) == 3
+    _, share = heaviest_cluster(pf.xy, pf.w, pf.cluster_cell)
+    assert share < 0.5
+    assert result.estimate is result.stats
 
 
 def test_zero_similarity_everywhere_keeps_uniform_weights():

@@ -7,6 +7,7 @@
   optional velocity), scaled by the time between frames
 - :mod:`.measurement`: measurement models, what was measured -> particle log-likelihoods
 - :mod:`.filter`: the particle arrays, one filter step, estimate statistics, serialisable state
+- :mod:`.clusters`: the cloud's clusters and the heaviest one's position
 - :mod:`.switching`: the hybrid rule (IV-B) choosing each step's feature type, as a pure policy
 """
 

@@ -7,7 +7,9 @@ A step, in the paper's order:
 3. weight by the measurements (:mod:`.measurement`; the paper's is the frame's similarity
    with each particle's nearest map image times the distance factor, power 20 for global
    features); normalise;
-4. estimate: weighted mean and covariance; sigma_x, sigma_y by eq. 2;
+4. estimate: weighted mean and covariance; sigma_x, sigma_y by eq. 2 (and, under
+   ``point_estimate="cluster"``, the mean of the heaviest cluster as the position reported
+   where it holds most of the weight: :mod:`.clusters`);
 5. (the next step's features are the localiser's choice: :mod:`.switching`, IV-B);
 6. replace the worst 5 % by new particles with weight 1/m; renormalise.
 """
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .clusters import heaviest_cluster
 from .config import FilterConfig
 from .measurement import Likelihood, Measurement, Position, normalise_log
 from .motion import MotionModel
@@ -43,15 +46,18 @@ class CloudStats:
         return max(self.sigma_x, self.sigma_y)
 
 
-def cloud_stats(xy: np.ndarray, w: np.ndarray) -> CloudStats:
+def cloud_stats(xy: np.ndarray, w: np.ndarray, about: np.ndarray | None = None) -> CloudStats:
     """Weighted mean, covariance and the standard deviations of Weiss eq. 2.
 
     Parameters
     ----------
     xy : (m, 2) float ndarray
     w : (m,) float ndarray, summing to 1
+    about : (2,) float ndarray, optional
+        Another position to report, the covariance then being the cloud's second moment
+        about it (never smaller than that about the mean).
     """
-    mean = w @ xy
+    mean = w @ xy if about is None else np.asarray(about, np.float64)
     d = xy - mean
     cov = (d * w[:, None]).T @ d
     return CloudStats(mean, cov, float(np.sqrt(max(cov[0, 0], 0.0))),
@@ -97,13 +103,18 @@ class StepResult:
     Attributes
     ----------
     stats : CloudStats
-        The weighted cloud before replacement (the estimate).
+        The weighted cloud before replacement: its mean, covariance and spread.
     likelihoods : tuple of Likelihood
         One per measurement, in the order given.
+    estimate : CloudStats
+        What the step reports (``config.point_estimate``): ``stats`` itself, or, where the
+        cloud's heaviest cluster holds most of the weight, that cluster's mean with the
+        cloud's covariance about it.
     """
 
     stats: CloudStats
     likelihoods: tuple[Likelihood, ...]
+    estimate: CloudStats
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -125,16 +136,27 @@ class ParticleFilter:
         Length scale (m) of the distance factor.
     rng : numpy.random.Generator
         The only source of randomness; its state is part of the filter's state.
+    spacing : float, optional
+        The map images' typical spacing (m), the scale of the cloud's clusters under
+        ``point_estimate="cluster"``: the cells are an eighth of a spacing across the
+        diagonal (two touching cells hold particles at most one spacing apart) and never
+        narrower than the motion's floor (one step spreads a hypothesis that far; finer
+        cells would split it into fragments, as on the robot world, whose images lie half a
+        metre apart). The distance scale where not given.
     """
 
     def __init__(self, map_xy: np.ndarray, tree, config: FilterConfig, motion: MotionModel,
-                 distance_scale: float, rng: np.random.Generator) -> None:
+                 distance_scale: float, rng: np.random.Generator, *,
+                 spacing: float | None = None) -> None:
         self.map_xy = np.asarray(map_xy, dtype=np.float64)
         self.tree = tree
         self.config = config
         self.motion = motion
         self.distance_scale = float(distance_scale)
         self.rng = rng
+        scale = spacing if spacing is not None and spacing > 0 else self.distance_scale
+        # a cell's diagonal neighbour is at most 2 * sqrt(2) cells away
+        self.cluster_cell = max(scale / (2.0 * np.sqrt(2.0)), motion.sigma_floor)
         lo, hi = self.map_xy.min(axis=0), self.map_xy.max(axis=0)
         # Uniform particles cover the map's extent plus a margin of one distance scale,
         # so positions just beyond the outermost images stay reachable.
@@ -234,10 +256,15 @@ class ParticleFilter:
         self.w = np.full(len(self.xy), 1.0 / len(self.xy)) if w is None else w
         # 4. estimate
         stats = cloud_stats(self.xy, self.w)
+        estimate = stats
+        if cfg.point_estimate == "cluster":
+            position, share = heaviest_cluster(self.xy, self.w, self.cluster_cell)
+            if share > 0.5:  # a hypothesis holding most of the weight
+                estimate = cloud_stats(self.xy, self.w, about=position)
         # 6. replace the worst particles
         self._replace_worst(likelihoods)
         self.steps += 1
-        return StepResult(stats, likelihoods)
+        return StepResult(stats, likelihoods, estimate)
 
     def _replace_worst(self, likelihoods: tuple[Likelihood, ...]) -> None:
         m = len(self.w)

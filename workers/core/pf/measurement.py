@@ -186,8 +186,8 @@ class Position:
         Probability that the position is wrong.
     alone : bool
         The position replaces the frame's image similarity in the weights instead of
-        multiplying it: a fix registered with SIFT after the global features' best images
-        failed with ORB is far sharper than those features, whose likelihood would only
+        multiplying it: a global step's fix, registered against the images its global
+        features ranked, is far sharper than those features, whose likelihood would only
         pull the estimate towards the images they confused.
     """
 

@@ -17,6 +17,7 @@ RESAMPLERS = ("multinomial", "systematic")
 REPLACEMENTS = ("uniform", "retrieval")
 VERIFICATIONS = ("none", "homography", "fundamental")
 REDUCTIONS = ("both", "map", "query", "none")
+POINT_ESTIMATES = ("mean", "cluster")
 MAX_GLOBAL_FEATURES = 8
 """The most global features one configuration combines."""
 
@@ -163,6 +164,10 @@ PARAMS: dict[str, Param] = {
     "drift": Param("motion", "drift", bool,
                    doc="Move the cloud by the velocity tracked from fixes"),
     "resampler": Param(None, "resampler", str, choices=RESAMPLERS),
+    "point_estimate": Param(None, "point_estimate", str, choices=POINT_ESTIMATES,
+                            doc="The position reported: the weighted mean of the whole cloud, "
+                                "or of its heaviest cluster where it holds most of the "
+                                "weight"),
     "refine": Param("refine", "enabled", bool,
                     doc="Fuse a metric position solved against the best map images"),
     "refine_outlier": Param("refine", "outlier", float, gt=0, lt=1,
