@@ -122,7 +122,7 @@ class FilterLocaliser(Localiser):
             # the SIFT step counts the extraction the fallback already counted
             ms += more_ms - (query.sift()[1] if fell_back else 0.0)
         self._track(dt, result.stats.mean, anchored=bool(fixes))
-        evidence = StepEvidence(used, result.stats.spread, self._global_gap(used, result),
+        evidence = StepEvidence(used, result.spread, self._global_gap(used, result),
                                 registered=bool(fixes) if tried else None)
         if switching.judges_trust(self.config.switching, used, self.pinned):
             t_judge = time.perf_counter()
@@ -268,7 +268,7 @@ class FilterLocaliser(Localiser):
 
     def _result(self, result: StepResult, used: str, processing_ms: float,
                 heading: tuple[float, float] | None = None) -> Estimate:
-        if result.stats.spread < self.thresholds[1]:
+        if result.spread < self.thresholds[1]:
             status = Status.TRACKING
         else:
             status = Status.LOST if self.stats.get("ever_tracked") else Status.INITIALISING

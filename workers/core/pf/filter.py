@@ -8,8 +8,8 @@ A step, in the paper's order:
    with each particle's nearest map image times the distance factor, power 20 for global
    features); normalise;
 4. estimate: weighted mean and covariance; sigma_x, sigma_y by eq. 2 (and, under
-   ``point_estimate="cluster"``, the mean of the heaviest cluster as the position reported
-   where it holds most of the weight: :mod:`.clusters`);
+   ``point_estimate="cluster"``, the mean and spread of the heaviest cluster where it holds
+   most of the weight: :mod:`.clusters`);
 5. (the next step's features are the localiser's choice: :mod:`.switching`, IV-B);
 6. replace the worst 5 % by new particles with weight 1/m; renormalise.
 """
@@ -110,11 +110,15 @@ class StepResult:
         What the step reports (``config.point_estimate``): ``stats`` itself, or, where the
         cloud's heaviest cluster holds most of the weight, that cluster's mean with the
         cloud's covariance about it.
+    spread : float
+        What the switching rule and the tracking status judge: the cloud's spread (Weiss
+        IV-B), or that of the cluster ``estimate`` reports, where it reports one.
     """
 
     stats: CloudStats
     likelihoods: tuple[Likelihood, ...]
     estimate: CloudStats
+    spread: float
 
     @property
     def kinds(self) -> tuple[str, ...]:
@@ -256,15 +260,17 @@ class ParticleFilter:
         self.w = np.full(len(self.xy), 1.0 / len(self.xy)) if w is None else w
         # 4. estimate
         stats = cloud_stats(self.xy, self.w)
-        estimate = stats
+        estimate, spread = stats, stats.spread
         if cfg.point_estimate == "cluster":
-            position, share = heaviest_cluster(self.xy, self.w, self.cluster_cell)
+            members, share = heaviest_cluster(self.xy, self.w, self.cluster_cell)
             if share > 0.5:  # a hypothesis holding most of the weight
-                estimate = cloud_stats(self.xy, self.w, about=position)
+                own = cloud_stats(self.xy[members], self.w[members] / self.w[members].sum())
+                estimate = cloud_stats(self.xy, self.w, about=own.mean)
+                spread = own.spread
         # 6. replace the worst particles
         self._replace_worst(likelihoods)
         self.steps += 1
-        return StepResult(stats, likelihoods, estimate)
+        return StepResult(stats, likelihoods, estimate, spread)
 
     def _replace_worst(self, likelihoods: tuple[Likelihood, ...]) -> None:
         m = len(self.w)
