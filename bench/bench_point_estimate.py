@@ -1,8 +1,9 @@
 """Benchmark: what reporting the cloud's heaviest cluster costs a filter step.
 
 A step of the ``default`` configuration reports the mean of its cloud's heaviest cluster
-where that cluster holds most of the weight (:mod:`workers.core.pf.clusters`); ``weiss2008``
-reports the whole cloud's weighted mean (:func:`workers.core.pf.filter.cloud_stats`). Both
+where that cluster holds most of the weight, and judges its spread
+(:mod:`workers.core.pf.clusters`); ``weiss2008`` reports the whole cloud's weighted mean
+(:func:`workers.core.pf.filter.cloud_stats`). Both
 are timed side by side, in one run, on one core, on clouds shaped as a filter's are after a
 fix: most particles around it, the rest strays over the map. Medians of repeated runs.
 
@@ -69,9 +70,11 @@ def main() -> None:
             cloud_stats(xy, w)
 
         def cluster(xy=xy, w=w):
-            position, share = heaviest_cluster(xy, w, CELL_M)
+            cloud_stats(xy, w)  # the switching rule's figures, and the fallback
+            members, share = heaviest_cluster(xy, w, CELL_M)
             if share > 0.5:
-                cloud_stats(xy, w, about=position)
+                own = cloud_stats(xy[members], w[members] / w[members].sum())
+                cloud_stats(xy, w, about=own.mean)
 
         # interleaved, so that both see the same load
         a, b = [], []
