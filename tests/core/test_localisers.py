@@ -462,10 +462,9 @@ def test_a_global_step_without_a_fix_is_taken_back_for_sift(world, small_map):
     assert loc2.step(blank2).feature == "global"
 
 
-def test_a_global_step_s_orb_fix_weighs_the_particles_alone(world, small_map, monkeypatch):
-    loc, queries, truth = _converged(world, small_map)
-    assert loc.switch.next == "global"
-    nxt, nxt_truth = _queries(world, start=truth[-1, 0] + 5.0, n=1)
+def _positions_fused(loc, monkeypatch) -> list:
+    """The metric positions ``loc``'s filter steps fuse from now on, in order (None for a
+    step whose refinement found none)."""
     positions = []
     step = loc.pf.step
 
@@ -476,6 +475,14 @@ def test_a_global_step_s_orb_fix_weighs_the_particles_alone(world, small_map, mo
         return step(measurements, dt, refine=refine_and_keep, drift=drift)
 
     monkeypatch.setattr(loc.pf, "step", spy)
+    return positions
+
+
+def test_a_global_step_s_orb_fix_weighs_the_particles_alone(world, small_map, monkeypatch):
+    loc, queries, truth = _converged(world, small_map)
+    assert loc.switch.next == "global"
+    nxt, nxt_truth = _queries(world, start=truth[-1, 0] + 5.0, n=1)
+    positions = _positions_fused(loc, monkeypatch)
     e = loc.step(nxt[0])
     assert (e.feature, e.measurement) == ("global", "global+registered")
     # the ORB pose replaces the global similarity in the weights
@@ -491,16 +498,7 @@ def test_a_global_step_whose_orb_fails_registers_with_sift_before_escalating(
     steps_before = loc.stats["sift_steps"]
     # ORB finds nothing on this frame; SIFT against the same images does
     monkeypatch.setattr(filtering, "refine_orb", lambda *a, **k: None)
-    positions = []
-    step = loc.pf.step
-
-    def spy(measurements, dt, *, refine=None, drift=None):
-        def refine_and_keep(likelihoods):
-            positions.append(refine(likelihoods))
-            return positions[-1]
-        return step(measurements, dt, refine=refine_and_keep, drift=drift)
-
-    monkeypatch.setattr(loc.pf, "step", spy)
+    positions = _positions_fused(loc, monkeypatch)
     e = loc.step(nxt[0])
     assert e.feature == "sift"
     # one step with the global measurement and a SIFT-registered position, no SIFT scoring
