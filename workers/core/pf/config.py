@@ -377,6 +377,6 @@ def config_from_params(params: dict | None = None) -> FilterConfig:
 
 
 __all__ = ["CONFIGS", "DEFAULT_OVERRIDES", "PARAMS", "POINT_ESTIMATES", "REDUCTIONS",
-           "REPLACEMENTS", "RESAMPLERS",
-           "VERIFICATIONS", "WEISS2008", "FilterConfig", "MeasurementConfig", "MotionConfig",
-           "ResetConfig", "SiftConfig", "SwitchingConfig", "config_from_params"]
+           "REPLACEMENTS", "RESAMPLERS", "VERIFICATIONS", "WEISS2008", "FilterConfig",
+           "MeasurementConfig", "MotionConfig", "ResetConfig", "SiftConfig", "SwitchingConfig",
+           "config_from_params"]
