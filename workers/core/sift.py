@@ -114,18 +114,18 @@ def ratio_matches(a: np.ndarray, b: np.ndarray, *, ratio: float = RATIO) -> np.n
         return np.zeros((0, 2), np.int64)
     af = np.asarray(a, dtype=np.float32)
     bf = np.asarray(b, dtype=np.float32)
-    # |a|^2 - 2 a.b + |b|^2, with the row's constant |a|^2 added to the two distances the
-    # test reads rather than to the whole matrix: the nearest neighbours do not depend on
-    # it. The -2 rides in the product (scaling by a power of two is exact), so the matrix
+    # |a|^2 - 2 a.b + |b|^2: ``partial`` holds the last two terms; the row's constant
+    # |a|^2 is added to the two distances the test reads rather than to the whole matrix
+    # (the nearest neighbours do not depend on it). The -2 rides in the product (scaling by a power of two is exact), so the matrix
     # takes two passes after it instead of four. For byte descriptors (SIFT's) every term
     # is an integer below 2^24, exact in float32: the same matches as the plain formula.
-    d2 = af @ (bf * np.float32(-2.0)).T
-    d2 += np.einsum("ij,ij->i", bf, bf)[None, :]
+    partial = af @ (bf * np.float32(-2.0)).T
+    partial += np.einsum("ij,ij->i", bf, bf)[None, :]
     rows = np.arange(len(af))
-    first = d2.argmin(axis=1)
-    best = d2[rows, first]
-    d2[rows, first] = np.inf
-    second = d2.min(axis=1)
+    first = partial.argmin(axis=1)
+    best = partial[rows, first]
+    partial[rows, first] = np.inf
+    second = partial.min(axis=1)
     norms = np.einsum("ij,ij->i", af, af)
     # the tiny negatives of round-off, for descriptors that are not whole numbers
     best = np.maximum(best + norms, 0.0)
