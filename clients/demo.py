@@ -24,6 +24,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -107,7 +108,25 @@ def server_process(data_dir: Path, *, log_path: Path, admin_key: str,
                                             ) from exc
             yield url, proc.pid
         finally:
-            stop_process(proc)
+            # a second Ctrl-C while the server drains would cut the wait short and leave
+            # the server running on its own: it is held off until the server has stopped
+            with ctrl_c_held():
+                stop_process(proc)
+
+
+@contextlib.contextmanager
+def ctrl_c_held() -> Iterator[None]:
+    """SIGINT ignored inside the block, its handler put back after (a no-op outside the main
+    thread, where signal handlers cannot be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
 
 
 def stop_process(proc: subprocess.Popen, grace: float = STOP_GRACE_S) -> int:

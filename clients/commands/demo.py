@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import click
@@ -51,6 +52,10 @@ def demo_cmd(out: Path, frames: int, seed: int, query_light: str, config: str, w
         raise click.ClickException(f"demo failed: {exc}\n(server log: {out / 'server.log'})"
                                    ) from exc
     except KeyboardInterrupt:
+        # leaving: another Ctrl-C from here on (or one arriving as the interpreter shuts
+        # down, when Python's own handler is gone) must not turn exit 130 into a death by
+        # signal
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         click.echo("\ninterrupted; the server was stopped", err=True)
         raise SystemExit(130) from None
     click.echo(f"done in {results['timings_s']['total']:.0f} s; results in {out}")

@@ -14,6 +14,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -112,6 +113,32 @@ def test_ctrl_c_stops_the_server(demo):
             proc.kill()
     assert proc.returncode == 130, rest
     assert "interrupted; the server was stopped" in rest
+    assert not _alive(pid)
+
+
+def test_ctrl_c_again_while_stopping_still_stops_the_server(demo):
+    """Ctrl-C pressed again while the server drains (or a third time as the demo exits)
+    neither leaves the server running nor changes how the demo ends."""
+    _, out = demo
+    proc = _interruptible(demo_command(out), cwd=out, env=clean_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        pid = None
+        for line in proc.stdout:
+            ready = re.search(r"server: ready at \S+ \(pid (\d+)\)", line)
+            if ready:
+                pid = int(ready.group(1))
+                break
+        assert pid is not None and _alive(pid)
+        for pause in (0.3, 0.3, 0.0):  # the server takes seconds to drain
+            proc.send_signal(signal.SIGINT)
+            time.sleep(pause)
+        rest = proc.communicate(timeout=120)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, rest
+    assert rest.count("interrupted; the server was stopped") == 1, rest
     assert not _alive(pid)
 
 
