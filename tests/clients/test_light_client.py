@@ -52,8 +52,11 @@ print(json.dumps({"localized": where.type, "covered": m.id in covered, "module":
 
 
 def _pip(env_dir: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(env_dir / "bin" / "python"), "-m", "pip", "--disable-pip-version-check",
-                           *args], capture_output=True, text=True, timeout=300)
+    """pip acting on the environment at ``env_dir``: this environment's pip, pointed at it
+    (``--python``), so that the new environment needs no pip of its own."""
+    return subprocess.run([sys.executable, "-m", "pip", "--python", str(env_dir / "bin" / "python"),
+                           "--disable-pip-version-check", *args], capture_output=True,
+                          text=True, timeout=300)
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX virtual environment layout")
@@ -62,7 +65,7 @@ def test_the_client_installs_alone_and_talks_to_a_server(live_server, shots, tmp
     shutil.copytree(REPO_ROOT / "clients" / "sdk", source,
                     ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "build"))
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, with_pip=True)
+    venv.create(env_dir, with_pip=False)  # installed into by this environment's pip
     before = sorted(p.name for p in source.iterdir())
     out = _pip(env_dir, "install", "--quiet", str(source))
     if out.returncode:

@@ -459,11 +459,11 @@ def test_the_light_client_installs_with_the_mavlink_extra(tmp_path):
     shutil.copytree(REPO_ROOT / "clients" / "sdk", source,
                     ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "build"))
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, with_pip=True)
+    venv.create(env_dir, with_pip=False)  # installed into by this environment's pip
     py = str(env_dir / "bin" / "python")
-    out = subprocess.run([py, "-m", "pip", "--disable-pip-version-check", "install",
-                          "--quiet", f"{source}[mavlink]"], capture_output=True, text=True,
-                         timeout=600)
+    pip = [sys.executable, "-m", "pip", "--python", py, "--disable-pip-version-check"]
+    out = subprocess.run([*pip, "install", "--quiet", f"{source}[mavlink]"],
+                         capture_output=True, text=True, timeout=600)
     if out.returncode and ("No matching distribution" in out.stderr
                            or "connection" in out.stderr.lower()):
         if os.environ.get("VLOC_REQUIRE_SERVICES") == "1":
@@ -477,7 +477,7 @@ def test_the_light_client_installs_with_the_mavlink_extra(tmp_path):
     helped = subprocess.run([str(env_dir / "bin" / "vloc-mavlink"), "--help"],
                             capture_output=True, text=True, timeout=120)
     assert helped.returncode == 0 and "GPS_INPUT" in helped.stdout
-    frozen = subprocess.run([py, "-m", "pip", "freeze"], capture_output=True, text=True)
+    frozen = subprocess.run([*pip, "freeze"], capture_output=True, text=True)
     assert "opencv" not in frozen.stdout.lower() and "numpy" not in frozen.stdout.lower()
 
 
