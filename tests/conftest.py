@@ -225,10 +225,9 @@ def redis_url() -> str:
 def ray_cluster(tmp_path_factory) -> Iterator[str]:
     """The address of a real Ray cluster on this machine (2 CPUs), started once and shared:
     a head started with ``ray start --block``, so that API servers in other processes can
-    join it too; this process joins it as a driver. Stopped (its own process group) at the
-    end. Skipped where Ray is not installed, unless VLOC_REQUIRE_SERVICES=1."""
-    import signal
-    import socket
+    join it too; this process joins it as a driver. Stopped (its own process group) once the
+    last test here that uses it has run (:func:`pytest_runtest_teardown`), or at the end.
+    Skipped where Ray is not installed, unless VLOC_REQUIRE_SERVICES=1."""
     import subprocess
     import sys
     import time
@@ -237,9 +236,7 @@ def ray_cluster(tmp_path_factory) -> Iterator[str]:
         import ray
     except ImportError as exc:
         _service_missing("Ray (pip install 'vloc[ray]')", exc)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = _free_port()
     log = tmp_path_factory.mktemp("ray") / "head.log"
     # A cluster for this machine's tests alone; the servers the tests start inherit this.
     os.environ["RAY_AUTH_MODE"] = "disabled"
@@ -253,6 +250,7 @@ def ray_cluster(tmp_path_factory) -> Iterator[str]:
          "--node-ip-address=127.0.0.1", "--disable-usage-stats"],
         env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT, start_new_session=True)
     address = f"127.0.0.1:{port}"
+    _ray_stops.append(lambda: _stop_ray(head, port))
     try:
         deadline = time.monotonic() + 90
         while True:
@@ -266,15 +264,57 @@ def ray_cluster(tmp_path_factory) -> Iterator[str]:
                 time.sleep(0.5)
         yield address
     finally:
-        if ray.is_initialized():
-            ray.shutdown()
+        _stop_rays()
+
+
+_ray_stops: list = []
+"""How to stop the Ray cluster this process started, while it runs."""
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _stop_rays() -> None:
+    while _ray_stops:
+        _ray_stops.pop()()
+
+
+def _stop_ray(head, port: int) -> None:
+    import signal
+    import subprocess
+
+    import ray
+
+    if ray.is_initialized():
+        ray.shutdown()
+    with contextlib.suppress(ProcessLookupError):
         os.killpg(head.pid, signal.SIGTERM)
-        try:
-            head.wait(5)
-        except subprocess.TimeoutExpired:
-            os.killpg(head.pid, signal.SIGKILL)
-            head.wait(10)
-        # ``ray start`` leaves its address for a later ray.init() without one: not ours now.
-        current = Path("/tmp/ray/ray_current_cluster")
-        if current.is_file() and current.read_text().strip().endswith(f":{port}"):
-            current.unlink()
+    try:
+        head.wait(5)
+    except subprocess.TimeoutExpired:
+        os.killpg(head.pid, signal.SIGKILL)
+        head.wait(10)
+    # ``ray start`` leaves its address for a later ray.init() without one: not ours now.
+    current = Path("/tmp/ray/ray_current_cluster")
+    if current.is_file() and current.read_text().strip().endswith(f":{port}"):
+        current.unlink()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item, nextitem) -> None:
+    """Stop the Ray cluster after the last test that uses it, not at the end of the session:
+    idle, its processes take about 6 % of a core, for the rest of the run. Under ``--dist
+    loadgroup`` its tests run in one group, one after another, so this is once the group is
+    done; in any run, only once no test after this one uses it (trylast: after the module's
+    own fixtures, such as the engines on the cluster, are torn down)."""
+    if not _ray_stops or nextitem is None or "ray_cluster" not in item.fixturenames:
+        return
+    items = item.session.items
+    if any("ray_cluster" in later.fixturenames for later in items[items.index(item) + 1:]):
+        return
+    _stop_rays()
