@@ -236,7 +236,9 @@ def ray_cluster(tmp_path_factory) -> Iterator[str]:
         import ray
     except ImportError as exc:
         _service_missing("Ray (pip install 'vloc[ray]')", exc)
-    port = _free_port()
+    from vloc.clients.demo import free_port
+
+    port = free_port()
     log = tmp_path_factory.mktemp("ray") / "head.log"
     # A cluster for this machine's tests alone; the servers the tests start inherit this.
     os.environ["RAY_AUTH_MODE"] = "disabled"
@@ -250,7 +252,8 @@ def ray_cluster(tmp_path_factory) -> Iterator[str]:
          "--node-ip-address=127.0.0.1", "--disable-usage-stats"],
         env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT, start_new_session=True)
     address = f"127.0.0.1:{port}"
-    _ray_stops.append(lambda: _stop_ray(head, port))
+    global _ray_head
+    _ray_head = (head, port)
     try:
         deadline = time.monotonic() + 90
         while True:
@@ -264,32 +267,25 @@ def ray_cluster(tmp_path_factory) -> Iterator[str]:
                 time.sleep(0.5)
         yield address
     finally:
-        _stop_rays()
+        _stop_ray()
 
 
-_ray_stops: list = []
-"""How to stop the Ray cluster this process started, while it runs."""
+_ray_head = None
+"""The ``ray start`` process of the cluster this process started and its port, while it
+runs."""
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _stop_rays() -> None:
-    while _ray_stops:
-        _ray_stops.pop()()
-
-
-def _stop_ray(head, port: int) -> None:
+def _stop_ray() -> None:
+    """Stop the cluster this process started, if it runs (again: nothing)."""
     import signal
     import subprocess
 
     import ray
 
+    global _ray_head
+    if _ray_head is None:
+        return
+    (head, port), _ray_head = _ray_head, None
     if ray.is_initialized():
         ray.shutdown()
     with contextlib.suppress(ProcessLookupError):
@@ -312,9 +308,9 @@ def pytest_runtest_teardown(item, nextitem) -> None:
     loadgroup`` its tests run in one group, one after another, so this is once the group is
     done; in any run, only once no test after this one uses it (trylast: after the module's
     own fixtures, such as the engines on the cluster, are torn down)."""
-    if not _ray_stops or nextitem is None or "ray_cluster" not in item.fixturenames:
+    if _ray_head is None or nextitem is None or "ray_cluster" not in item.fixturenames:
         return
     items = item.session.items
     if any("ray_cluster" in later.fixturenames for later in items[items.index(item) + 1:]):
         return
-    _stop_rays()
+    _stop_ray()

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import csv
 import math
-import socket
+import sys
 import threading
 import time
+import venv
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -23,6 +24,7 @@ import cv2
 import numpy as np
 import pytest
 
+from vloc.clients.demo import free_port
 from vloc.workers.core.exif import encode_jpeg_with_gps
 
 if TYPE_CHECKING:
@@ -161,10 +163,12 @@ def built_map(vloc, shots) -> str:
     return m.id
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def bare_environment(env_dir: Path) -> list[str]:
+    """Make a virtual environment at ``env_dir`` without a pip of its own (bootstrapping one
+    costs seconds) and return the command of this environment's pip acting on it."""
+    venv.create(env_dir, with_pip=False)
+    return [sys.executable, "-m", "pip", "--python", str(env_dir / "bin" / "python"),
+            "--disable-pip-version-check"]
 
 
 @pytest.fixture(scope="module")
@@ -176,7 +180,7 @@ def live_server(tmp_path_factory) -> Iterator[str]:
     from vloc.app.main import create_app
 
     app = create_app(service_settings(tmp_path_factory.mktemp("live")))
-    port = _free_port()
+    port = free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,
                                            log_level="warning", lifespan="on"))
     thread = threading.Thread(target=server.run, daemon=True)

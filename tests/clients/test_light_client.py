@@ -10,12 +10,10 @@ import re
 import shutil
 import subprocess
 import sys
-import venv
-from pathlib import Path
 
 import pytest
 
-from tests.clients.conftest import ADMIN_KEY
+from tests.clients.conftest import ADMIN_KEY, bare_environment
 from tests.conftest import REPO_ROOT
 
 SCRIPT = r'''
@@ -51,23 +49,16 @@ print(json.dumps({"localized": where.type, "covered": m.id in covered, "module":
 '''
 
 
-def _pip(env_dir: Path, *args: str) -> subprocess.CompletedProcess:
-    """pip acting on the environment at ``env_dir``: this environment's pip, pointed at it
-    (``--python``), so that the new environment needs no pip of its own."""
-    return subprocess.run([sys.executable, "-m", "pip", "--python", str(env_dir / "bin" / "python"),
-                           "--disable-pip-version-check", *args], capture_output=True,
-                          text=True, timeout=300)
-
-
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX virtual environment layout")
 def test_the_client_installs_alone_and_talks_to_a_server(live_server, shots, tmp_path):
     source = tmp_path / "src"
     shutil.copytree(REPO_ROOT / "clients" / "sdk", source,
                     ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "build"))
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, with_pip=False)  # installed into by this environment's pip
+    pip = bare_environment(env_dir)
     before = sorted(p.name for p in source.iterdir())
-    out = _pip(env_dir, "install", "--quiet", str(source))
+    out = subprocess.run([*pip, "install", "--quiet", str(source)], capture_output=True,
+                         text=True, timeout=300)
     if out.returncode:
         if "No matching distribution" in out.stderr or "Could not find" in out.stderr or \
                 "connection" in out.stderr.lower():
@@ -79,7 +70,8 @@ def test_the_client_installs_alone_and_talks_to_a_server(live_server, shots, tmp
     # `pip install ./clients/sdk` leaves the checkout as it was: no build/, no egg-info
     assert sorted(p.name for p in source.iterdir()) == before
     installed = {re.match(r"[A-Za-z0-9_.-]+", line).group(0).lower().replace("_", "-")
-                 for line in _pip(env_dir, "freeze", "--all").stdout.splitlines() if line}
+                 for line in subprocess.run([*pip, "freeze", "--all"], capture_output=True,
+                                           text=True, timeout=300).stdout.splitlines() if line}
     assert {"vloc-client", "httpx", "websockets", "pydantic"} <= installed
     for heavy in ("opencv-python-headless", "opencv-python", "scipy", "numpy", "fastapi",
                   "starlette", "sqlalchemy", "vloc"):

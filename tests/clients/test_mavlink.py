@@ -12,7 +12,6 @@ import os
 import subprocess
 import sys
 import threading
-import venv
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import pytest
 
 pytest.importorskip("pymavlink", reason="the mavlink extra (pip install -e '.[dev]')")
 
-from tests.clients.conftest import ADMIN_KEY, FAST  # noqa: E402
+from tests.clients.conftest import ADMIN_KEY, FAST, bare_environment  # noqa: E402
 from tests.conftest import REPO_ROOT  # noqa: E402
 from vloc.clients.mavlink_sim import SimulatedAutopilot  # noqa: E402
 from vloc.clients.sdk import Client, Pose  # noqa: E402
@@ -459,9 +458,8 @@ def test_the_light_client_installs_with_the_mavlink_extra(tmp_path):
     shutil.copytree(REPO_ROOT / "clients" / "sdk", source,
                     ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "build"))
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, with_pip=False)  # installed into by this environment's pip
+    pip = bare_environment(env_dir)
     py = str(env_dir / "bin" / "python")
-    pip = [sys.executable, "-m", "pip", "--python", py, "--disable-pip-version-check"]
     out = subprocess.run([*pip, "install", "--quiet", f"{source}[mavlink]"],
                          capture_output=True, text=True, timeout=600)
     if out.returncode and ("No matching distribution" in out.stderr

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import pytest
+
+from vloc.clients.demo import free_port
 
 CANDIDATES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 
@@ -95,12 +96,6 @@ class LiveServer:
         self.loop.call_soon_threadsafe(hub.publish, session_id, message)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def serve_in_thread(settings, timeout: float = 60.0) -> Iterator[LiveServer]:
     """``create_app(settings)`` under uvicorn on a free port, until the generator closes."""
     import uvicorn
@@ -108,7 +103,7 @@ def serve_in_thread(settings, timeout: float = 60.0) -> Iterator[LiveServer]:
     from vloc.app.main import create_app
 
     app = create_app(settings)
-    port = _free_port()
+    port = free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,
                                            log_level="warning", lifespan="on"))
     thread = threading.Thread(target=server.run, name="viewer-test-server", daemon=True)

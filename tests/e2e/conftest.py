@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -18,6 +17,7 @@ import pytest
 
 from tests.conftest import REPO_ROOT
 from tests.e2e.browser import launch_browser, viewer_server, viewer_world
+from vloc.clients.demo import free_port
 
 
 @dataclass
@@ -36,12 +36,6 @@ class Server:
             self.process.send_signal(signal.SIGTERM)
             self.process.wait(timeout)
         return self.process.returncode
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_server(data_dir: Path, *, workers: int = 2, env: dict | None = None,

@@ -116,9 +116,10 @@ def ratio_matches(a: np.ndarray, b: np.ndarray, *, ratio: float = RATIO) -> np.n
     bf = np.asarray(b, dtype=np.float32)
     # |a|^2 - 2 a.b + |b|^2: ``partial`` holds the last two terms; the row's constant
     # |a|^2 is added to the two distances the test reads rather than to the whole matrix
-    # (the nearest neighbours do not depend on it). The -2 rides in the product (scaling by a power of two is exact), so the matrix
-    # takes two passes after it instead of four. For byte descriptors (SIFT's) every term
-    # is an integer below 2^24, exact in float32: the same matches as the plain formula.
+    # (the nearest neighbours do not depend on it). The -2 rides in the product (scaling
+    # by a power of two is exact), so the matrix takes two passes after it instead of
+    # four. For byte descriptors (SIFT's) every term is an integer below 2^24, exact in
+    # float32: the same matches as the plain formula.
     partial = af @ (bf * np.float32(-2.0)).T
     partial += np.einsum("ij,ij->i", bf, bf)[None, :]
     rows = np.arange(len(af))
