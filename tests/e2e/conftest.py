@@ -71,6 +71,20 @@ def start_server(data_dir: Path, *, workers: int = 2, env: dict | None = None,
     pytest.fail("the server did not become ready:\n" + stderr_path.read_text()[-3000:])
 
 
+def interruptible(cmd, **kwargs) -> subprocess.Popen:
+    """Popen of a command that a test stops with Ctrl-C (SIGINT). A test run started as a
+    background job of a non-interactive shell (``make test &``, ``nohup``) has SIGINT
+    ignored, and a child inherits an ignored signal (but not a handler), so a plain Popen's
+    child would never see the test's Ctrl-C: this one starts with Python's own handler."""
+    previous = signal.getsignal(signal.SIGINT)
+    if previous == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen(cmd, **kwargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 @pytest.fixture
 def server(tmp_path) -> Iterator[Server]:
     srv = start_server(tmp_path / "data")

@@ -18,6 +18,8 @@ import time
 
 import pytest
 
+from tests.e2e.conftest import interruptible
+
 FRAMES = 60
 """Frames per pass: the smallest (60 m) block, small enough for CI."""
 
@@ -102,7 +104,7 @@ def test_ctrl_c_stops_the_server(demo, pauses):
     exits 130 and leaves no server process behind; Ctrl-C pressed again while the server
     drains, and a third time as the demo exits, changes neither."""
     _, out = demo
-    proc = _interruptible(demo_command(out), cwd=out, env=clean_env(),
+    proc = interruptible(demo_command(out), cwd=out, env=clean_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         pid = None
@@ -132,7 +134,7 @@ def test_keep_leaves_the_server_up_for_the_viewer(tmp_path):
 
     cmd = [sys.executable, "-m", "vloc.clients.cli", "demo", "--frames", "10", "--out",
            str(tmp_path), "--quiet", "--keep"]
-    proc = _interruptible(cmd, cwd=tmp_path, env=clean_env(), stdout=subprocess.PIPE,
+    proc = interruptible(cmd, cwd=tmp_path, env=clean_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
         seen = []
@@ -161,19 +163,6 @@ def test_keep_leaves_the_server_up_for_the_viewer(tmp_path):
     assert not _alive(int(pid.group(1)))
     # kept: the server's data folder, with its database
     assert list(tmp_path.glob("vloc-demo-*/vloc.sqlite3"))
-
-
-def _interruptible(cmd, **kwargs) -> subprocess.Popen:
-    """Popen of a command that these tests stop with Ctrl-C (SIGINT). A test run started as a
-    background job of a non-interactive shell has SIGINT ignored, and a child inherits an
-    ignored signal (but not a handler): so the child starts with Python's own handler."""
-    previous = signal.getsignal(signal.SIGINT)
-    if previous == signal.SIG_IGN:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        return subprocess.Popen(cmd, **kwargs)
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def _alive(pid: int) -> bool:

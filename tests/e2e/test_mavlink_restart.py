@@ -18,7 +18,7 @@ pytest.importorskip("pymavlink", reason="the mavlink extra (pip install -e '.[de
 
 from tests.clients.conftest import FAST, make_shots  # noqa: E402
 from tests.clients.test_mavlink import check_messages  # noqa: E402
-from tests.e2e.conftest import free_port, start_server  # noqa: E402
+from tests.e2e.conftest import free_port, interruptible, start_server  # noqa: E402
 from vloc.clients.mavlink_sim import SimulatedAutopilot  # noqa: E402
 from vloc.clients.sdk import Client  # noqa: E402
 
@@ -96,7 +96,7 @@ def _fly_through_a_restart(servers, autopilot, maps, queries, tmp_path):
     folder = _flight_folder(tmp_path / "flight", queries)
     log = tmp_path / "bridge.jsonl"
     times: dict[str, float] = {}
-    bridge = subprocess.Popen(
+    bridge = interruptible(
         [sys.executable, "-m", "vloc.clients.cli", "mavlink", str(folder), "--loop",
          "--mavlink", autopilot.address, "--server", server.base_url, "--session",
          session.id, "--token", session.token, "--fps", "4", "--max-rate", "10",
