@@ -27,7 +27,7 @@ def pytest_runtest_protocol(item, nextitem):
     cpu, wall, start = _cpu_s(), time.perf_counter(), time.time()
     yield
     if folder:
-        own, children = (b - a for a, b in zip(cpu, _cpu_s()))
+        own, children = (b - a for a, b in zip(cpu, _cpu_s(), strict=True))
         record = {"id": item.nodeid, "cpu": own + children, "cpu_self": own,
                   "wall": time.perf_counter() - wall,
                   "start": start, "end": time.time(), "pid": os.getpid()}

@@ -65,7 +65,8 @@ class ProcessSampler(threading.Thread):
     included), read from ``/proc`` every ``interval`` seconds until :meth:`stop`.
 
     ``seen`` maps (pid, start in clock ticks since boot) to a dict with ``ppid``, ``cmd``,
-    ``start`` (seconds since the epoch) and ``cpu``: the CPU seconds it used while sampled,
+    ``start`` and ``last`` (when it started and was last seen, seconds since the epoch) and
+    ``cpu``: the CPU seconds it used while sampled,
     less what it had used before the first sample (the services' past)."""
 
     def __init__(self, interval: float = 0.2) -> None:
@@ -106,13 +107,14 @@ class ProcessSampler(threading.Thread):
             # a forked child shows its parent's command line until it execs: keep the last
             record["cmd"] = cmd.decode(errors="replace") or f"[{comm}]"
             record["cpu"] = (ticks - self._before.get(key, 0)) / HZ
+            record["last"] = time.time()
 
 
 def process_kind(cmd: str) -> str:
     """A process's kind, from its command line."""
     rules = [("postgres", "PostgreSQL"), ("redis-server", "Redis"), ("chrom", "Chromium"),
-             ("raylet", "Ray"), ("gcs_server", "Ray"), ("ray::", "Ray"), ("/ray/", "Ray"),
-             (" serve", "vloc serve"), ("multiprocessing", "worker processes"),
+             ("multiprocessing", "worker processes"), ("raylet", "Ray"),
+             ("gcs_server", "Ray"), ("ray::", "Ray"), ("/ray/", "Ray"), (" serve", "vloc serve"),
              ("exec(eval(", "pytest workers"), ("pytest", "pytest workers"),
              ("pip", "pip"), ("python", "other Python"), ("vloc", "other Python")]
     for needle, kind in rules:
@@ -125,7 +127,8 @@ def attribute(seen: dict[tuple[int, int], dict], rows: list[dict], suite_start: 
               ) -> tuple[dict[str, list[float]], dict[str, float]]:
     """Each sampled process's CPU by kind ([processes, CPU s]), and the CPU of the processes
     that descend from a pytest worker by the test file that was running on that worker when
-    the process started (the worker's own CPU is in ``rows`` already)."""
+    the process started (the worker's own CPU is in ``rows`` already). Each process that
+    descends from a worker gets that file as its ``file``."""
     by_kind: dict[str, list[float]] = collections.defaultdict(lambda: [0, 0.0])
     for p in seen.values():
         if p["cpu"] > 0 or p["start"] >= suite_start:
@@ -148,7 +151,8 @@ def attribute(seen: dict[tuple[int, int], dict], rows: list[dict], suite_start: 
             continue
         test = next((r for r in runs[ancestor] if r["start"] <= p["start"] <= r["end"]),
                     None)
-        by_file[test["id"].split("::")[0] if test else "(between tests)"] += p["cpu"]
+        p["file"] = test["id"].split("::")[0] if test else "(between tests)"
+        by_file[p["file"]] += p["cpu"]
     return by_kind, by_file
 
 
@@ -173,13 +177,13 @@ def run_suite(workers: int, records: Path, extra: list[str]
     summary = done.stdout.strip().splitlines()[-1] if done.stdout.strip() else ""
     if done.returncode:
         sys.stderr.write(done.stdout[-5000:] + done.stderr[-2000:])
-        raise SystemExit(f"the suite failed ({summary}): figures from a failing run are "
-                         "not written")
+        summary = f"FAILED: {summary}"
     return wall, busy1 - busy0, idle1 - idle0, summary, sampler, started
 
 
 def report(rows: list[dict], wall: float, busy: int, idle: int, summary: str, workers: int,
-           top: int, by_kind: dict[str, list[float]], by_file: dict[str, float]) -> str:
+           top: int, by_kind: dict[str, list[float]], by_file: dict[str, float],
+           processes: list[dict]) -> str:
     hz = HZ
     tests_cpu = sum(r["cpu"] for r in rows)
     tests_wall = sum(r["wall"] for r in rows)
@@ -221,6 +225,15 @@ def report(rows: list[dict], wall: float, busy: int, idle: int, summary: str, wo
         "| file | tests | CPU s | in their own worker | in other processes |",
         "|---|---|---|---|---|",
         *_whole_cpu_rows(rows, by_file, top),
+        "",
+        f"## The {top} processes with the most CPU (sampled; lived: from its start to its "
+        "last sample)",
+        "",
+        "| CPU s | lived s | kind | started during | command |",
+        "|---|---|---|---|---|",
+        *(f"| {p['cpu']:.1f} | {p['last'] - p['start']:.0f} | {process_kind(p['cmd'])} | "
+          f"`{p.get('file', '-')}` | `{p['cmd'][:110].replace('|', '/')}` |"
+          for p in sorted(processes, key=lambda p: -p["cpu"])[:top]),
         "",
         f"## The {top} files with the most CPU",
         "",
@@ -269,7 +282,12 @@ def main() -> None:
         rows = [json.loads(line) for f in sorted(records.glob("*.jsonl"))
                 for line in f.read_text().splitlines() if line]
     by_kind, by_file = attribute(sampler.seen, rows, started)
-    text = report(rows, wall, busy, idle, summary, args.workers, args.top, by_kind, by_file)
+    text = report(rows, wall, busy, idle, summary, args.workers, args.top, by_kind, by_file,
+                  list(sampler.seen.values()))
+    if summary.startswith("FAILED"):
+        # a failing run's figures are not a result: printed to look into, not written
+        print(text)
+        raise SystemExit(f"the suite failed ({summary}): {args.out} left as it was")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(text)
