@@ -54,10 +54,10 @@ HZ = os.sysconf("SC_CLK_TCK")
 
 
 def _boot_time() -> float:
-    for line in Path("/proc/stat").read_text().splitlines():
-        if line.startswith("btime "):
-            return float(line.split()[1])
-    raise RuntimeError("/proc/stat has no btime")
+    """When the machine started, in seconds since the epoch, to a hundredth of a second
+    (``btime`` in ``/proc/stat`` is whole seconds: too coarse to tell which of two tests
+    a second apart started a process)."""
+    return time.time() - float(Path("/proc/uptime").read_text().split()[0])
 
 
 class ProcessSampler(threading.Thread):

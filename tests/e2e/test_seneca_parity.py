@@ -2,11 +2,11 @@
 streamed as frames, hybrid mode, the same seed -> the same errors, whether the frames come as
 plain HTTP requests or from ``vloc replay``.
 
-Building the map is most of the cost (the frames take a few seconds), so the module builds it
-twice, not four times: once offline by ``vloc eval`` and once by the service, whose map both
-of the service's paths then use; and it flies the first half of the survey (pass 1's first
-40 images, the 48 frames of pass 2 over them), which localises as the whole does (about
-7 m mean, 3.5 m median, SIFT on 40 % of steps) at about 60 % of the cost of a build."""
+Building the map is most of the cost (the frames take a few seconds), so the module builds
+it twice, not four times, and both at once: offline by ``vloc eval`` and by the service, whose
+map both of the service's paths then use. It flies the first half of the survey (pass 1's
+first 40 images, the 48 frames of pass 2 over them), which localises as the whole does
+(about 7 m mean, 3.5 m median, SIFT on 40 % of steps) at about 60 % of a build's cost."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -60,14 +61,33 @@ def survey(seneca_dir, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def offline(survey) -> dict:
-    return _eval(survey)
+def offline_run(survey) -> Iterator[subprocess.Popen]:
+    """``vloc eval`` on the survey, started first: it runs while the service builds."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vloc.clients.cli", "eval", str(survey), "--map-pass", "1",
+         "--query-pass", "2", "--modes", "hybrid", "--starts", "1", "--skip", str(SKIP),
+         "--seed", str(SEED), "--json"], cwd=REPO_ROOT, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
 
 
 @pytest.fixture(scope="module")
-def served(survey, tmp_path_factory):
-    """A two-worker ``vloc serve`` with the survey's pass 1 map built through its API, the
-    map's record and the poses of pass 2 posted to it frame by frame."""
+def offline(offline_run) -> dict:
+    out, err = offline_run.communicate(timeout=1200)
+    assert offline_run.returncode == 0, err[-3000:]
+    return json.loads(out)["modes"]["hybrid"]
+
+
+@pytest.fixture(scope="module")
+def served(offline_run, survey, tmp_path_factory):
+    """A two-worker ``vloc serve`` with the survey's pass 1 map built through its API (while
+    ``vloc eval`` builds its own), the map's record and the poses of pass 2 posted to it
+    frame by frame."""
     ds = load_dataset(survey)
     map_images, query_images = split(ds, "pass", map_pass=1, query_pass=2)
     assert (len(map_images), len(query_images)) == (MAP_IMAGES, QUERY_FRAMES)
@@ -77,15 +97,6 @@ def served(survey, tmp_path_factory):
         yield server, the_map, poses, query_images
     finally:
         server.stop()
-
-
-def _eval(dataset) -> dict:
-    out = subprocess.run(
-        [sys.executable, "-m", "vloc.clients.cli", "eval", str(dataset), "--map-pass", "1",
-         "--query-pass", "2", "--modes", "hybrid", "--starts", "1", "--skip", str(SKIP),
-         "--seed", str(SEED), "--json"], cwd=REPO_ROOT, capture_output=True, text=True,
-        check=True, timeout=1200)
-    return json.loads(out.stdout)["modes"]["hybrid"]
 
 
 def _service(server, map_images, query_images) -> tuple[dict, list[dict]]:
@@ -118,7 +129,7 @@ def _service(server, map_images, query_images) -> tuple[dict, list[dict]]:
     return the_map, poses
 
 
-def test_service_errors_match_vloc_eval(offline, served):
+def test_service_errors_match_vloc_eval(served, offline):
     _, the_map, poses, query_images = served
     # the half survey keeps what makes the hybrid the hybrid: a geometry frames' fixes use
     assert the_map["geometry"]["status"] == "accepted", the_map["geometry"]
@@ -139,7 +150,7 @@ def test_service_errors_match_vloc_eval(offline, served):
     assert sift_share == pytest.approx(offline["sift_step_share"], abs=1e-12)
 
 
-def test_vloc_replay_on_the_served_map_matches_vloc_eval(offline, served, survey):
+def test_vloc_replay_on_the_served_map_matches_vloc_eval(served, offline, survey):
     server, the_map, _, query_images = served
     result = CliRunner().invoke(cli, [
         "replay", str(survey), "--server", server.base_url, "--admin-key",
