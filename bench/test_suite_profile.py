@@ -14,7 +14,8 @@ Every process's own CPU is also sampled from ``/proc`` five times a second while
 runs (:class:`ProcessSampler`), so the uncounted part is named too: by kind of process (the
 services, Ray, browsers, servers, their worker processes) and by the test file whose test
 was running on the worker that started it. A process that lives less than a sample's
-interval is missed, and each loses at most its last interval's CPU: a lower bound.
+interval is missed, and each loses at most its last interval's CPU: a lower bound. The
+sampling itself takes about 2.5 % of a core (17 CPU s of a 700 s run), listed with the rest.
 
 Usage::
 
@@ -111,12 +112,15 @@ class ProcessSampler(threading.Thread):
 
 
 def process_kind(cmd: str) -> str:
-    """A process's kind, from its command line."""
+    """A process's kind, from its command line (the first rule that matches; test folders
+    are named ``pytest-of-...``, so the pytest rules look for how pytest starts)."""
     rules = [("postgres", "PostgreSQL"), ("redis-server", "Redis"), ("chrom", "Chromium"),
              ("multiprocessing", "worker processes"), ("raylet", "Ray"),
-             ("gcs_server", "Ray"), ("ray::", "Ray"), ("/ray/", "Ray"), (" serve", "vloc serve"),
-             ("exec(eval(", "pytest workers"), ("pytest", "pytest workers"),
-             ("pip", "pip"), ("python", "other Python"), ("vloc", "other Python")]
+             ("gcs_server", "Ray"), ("ray::", "Ray"), ("/ray/", "Ray"),
+             ("ray.scripts", "Ray"), ("vloc.clients.cli serve", "vloc serve"),
+             ("exec(eval(sys.stdin", "pytest workers"), ("-m pytest", "pytest workers"),
+             ("vloc.clients.cli", "other vloc commands"), ("bin/vloc", "other vloc commands"),
+             ("pip", "pip"), ("python", "other Python")]
     for needle, kind in rules:
         if needle in cmd:
             return kind
