@@ -105,8 +105,13 @@ class ProcessSampler(threading.Thread):
                 self._before[key] = ticks
             record = self.seen.setdefault(key, {"ppid": int(fields[1]),
                                                 "start": self._boot + started / HZ})
-            # a forked child shows its parent's command line until it execs: keep the last
-            record["cmd"] = cmd.decode(errors="replace") or f"[{comm}]"
+            # a forked child shows its parent's command line until it execs: keep the last;
+            # one that has exited and waits to be reaped (a zombie) shows none: keep the one
+            # it had
+            if cmd:
+                record["cmd"] = cmd.decode(errors="replace")
+            else:
+                record.setdefault("cmd", f"[{comm}]")
             record["cpu"] = (ticks - self._before.get(key, 0)) / HZ
             record["last"] = time.time()
 

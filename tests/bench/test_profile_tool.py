@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 from bench.test_suite_profile import ProcessSampler, attribute, process_kind
 
@@ -16,6 +17,11 @@ def _my_cpu_s() -> float:
     return t.user + t.system
 
 
+def _state(pid: int) -> str:
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return stat[stat.rindex(")") + 2]
+
+
 def test_the_sampler_sees_a_child_s_cpu_and_parent():
     before = _my_cpu_s()
     sampler = ProcessSampler(interval=0.05)
@@ -23,6 +29,11 @@ def test_the_sampler_sees_a_child_s_cpu_and_parent():
     busy = subprocess.Popen([sys.executable, "-c",
                              "import time\nt = time.process_time()\n"
                              "while time.process_time() - t < 0.6: pass\ntime.sleep(0.3)"])
+    # left unreaped a while after it exits: a zombie shows no command line
+    deadline = time.monotonic() + 30
+    while _state(busy.pid) != "Z" and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.2)
     busy.wait(30)
     sampler.stop()
     (child,) = [p for (pid, _), p in sampler.seen.items() if pid == busy.pid]
