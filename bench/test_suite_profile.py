@@ -67,8 +67,8 @@ class ProcessSampler(threading.Thread):
 
     ``seen`` maps (pid, start in clock ticks since boot) to a dict with ``ppid``, ``cmd``,
     ``start`` and ``last`` (when it started and was last seen, seconds since the epoch) and
-    ``cpu``: the CPU seconds it used while sampled,
-    less what it had used before the first sample (the services' past)."""
+    ``cpu``: the CPU seconds it used while sampled, less what it had used before the first
+    sample (the services' past)."""
 
     def __init__(self, interval: float = 0.2) -> None:
         super().__init__(daemon=True)
