@@ -14,6 +14,7 @@ from click.testing import CliRunner
 from tests.clients.conftest import ADMIN_KEY, FAST
 from vloc.clients.cli import COMMANDS
 from vloc.clients.cli import main as cli
+from vloc.clients.demo import free_port
 from vloc.clients.sdk import Client
 
 UUID = re.compile(r"^[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}$")
@@ -243,11 +244,7 @@ def test_errors_and_exit_codes(vloc, live_server, dataset_dir, tmp_path):
     assert "403" in wrong.stderr
     nokey = vloc("map", "list", env_extra={"VLOC_ADMIN_KEY": ""}, code=1)
     assert "401" in nokey.stderr and "--admin-key" in nokey.stderr
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()  # nothing listens there
     down = vloc("map", "list", "--server", f"http://127.0.0.1:{port}", code=3)
     assert "cannot reach" in down.stderr and "vloc serve" in down.stderr
     # Replay: usage errors exit 2, bad inputs 1.

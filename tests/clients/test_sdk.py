@@ -17,6 +17,7 @@ import pytest
 
 import vloc.clients as clients
 from tests.clients.conftest import ADMIN_KEY, FAST
+from vloc.clients.demo import free_port
 from vloc.clients.sdk import (
     APIError,
     AsyncClient,
@@ -593,11 +594,7 @@ def test_retried_frame_answered_duplicate_counts_as_accepted():
 
 
 def test_nothing_listening_is_a_transport_error():
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()  # nothing listens there
     with Client(f"http://127.0.0.1:{port}", retry=0) as vloc, pytest.raises(TransportError):
         vloc.health()
     with pytest.raises(WaitTimeout):

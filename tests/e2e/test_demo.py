@@ -105,7 +105,7 @@ def test_ctrl_c_stops_the_server(demo, pauses):
     drains, and a third time as the demo exits, changes neither."""
     _, out = demo
     proc = interruptible(demo_command(out), cwd=out, env=clean_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         pid = None
         for line in proc.stdout:
@@ -135,7 +135,7 @@ def test_keep_leaves_the_server_up_for_the_viewer(tmp_path):
     cmd = [sys.executable, "-m", "vloc.clients.cli", "demo", "--frames", "10", "--out",
            str(tmp_path), "--quiet", "--keep"]
     proc = interruptible(cmd, cwd=tmp_path, env=clean_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                         stderr=subprocess.STDOUT, text=True)
     try:
         seen = []
         for line in proc.stdout:

@@ -18,7 +18,8 @@ pytest.importorskip("pymavlink", reason="the mavlink extra (pip install -e '.[de
 
 from tests.clients.conftest import FAST, make_shots  # noqa: E402
 from tests.clients.test_mavlink import check_messages  # noqa: E402
-from tests.e2e.conftest import free_port, interruptible, start_server  # noqa: E402
+from tests.e2e.conftest import interruptible, start_server  # noqa: E402
+from vloc.clients.demo import free_port  # noqa: E402
 from vloc.clients.mavlink_sim import SimulatedAutopilot  # noqa: E402
 from vloc.clients.sdk import Client  # noqa: E402
 

@@ -30,8 +30,9 @@ from websockets.asyncio.client import connect
 
 from tests.app.imagery import map_and_queries
 from tests.conftest import REPO_ROOT, _service_missing
-from tests.e2e.conftest import Server, free_port, start_server
+from tests.e2e.conftest import Server, start_server
 from tests.e2e.test_server import _build_map
+from vloc.clients.demo import free_port
 
 ADMIN_KEY = "multinode-test-admin-key-0123456789"
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
