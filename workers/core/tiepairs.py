@@ -27,11 +27,12 @@ from .mapbuild import load_tie_points, local_frame
 RESULTS_GLOB = "pairs-*.npz"
 KEPT = "pairs-kept.npz"
 """The results earlier builds matched that still hold, gathered into one file."""
-FORMAT = 3
+FORMAT = 4
 """Version of the results files, raised whenever what a pair's matching gives changes:
-3 names the images (ids) and holds keypoint indices and two-view configurations, matched
-with :data:`~workers.core.geometry.pairs.TIE_RANSAC_TRIALS`; results of another version are
-matched again."""
+3 named the images (ids) and held keypoint indices and two-view configurations, matched
+with :data:`~workers.core.geometry.pairs.TIE_RANSAC_TRIALS`; 4 the same, each pair's RANSAC
+capped by the inlier ratio it could verify with (:func:`~workers.core.geometry.pairs.
+ransac_floor`). Results of another version are matched again."""
 
 
 def plan(lats, lons, alts, times=None, flights=None) -> list[tuple[int, int]]:

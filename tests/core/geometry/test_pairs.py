@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from tests.core.geometry.scene import HEIGHT, WIDTH, survey
-from vloc.workers.core.geometry.pairs import match_pair
+from vloc.workers.core.geometry import pairs
+from vloc.workers.core.geometry.pairs import match_pair, ransac_floor
 
 
 def _thin_pair(seed: int, common: int, outliers: int):
@@ -54,3 +55,27 @@ def test_a_thin_pair_of_chance_matches_is_refused(seed):
 def test_too_few_ratio_matches_are_refused_before_any_geometry():
     kpa, da, kpb, db = _thin_pair(0, common=14, outliers=0)
     assert match_pair(0, 1, kpa, da, kpb, db, min_inliers=15) is None
+
+
+def test_the_ransac_floor_is_the_least_inlier_ratio_a_pair_could_verify_with():
+    assert ransac_floor(28, 15) == pytest.approx(15 / 28)
+    assert ransac_floor(15, 15) == 1.0
+    assert ransac_floor(60, 15) == 0.25 and ransac_floor(400, 15) == 0.25   # COLMAP's own
+    assert ransac_floor(10, 15) == 1.0 and ransac_floor(0, 15) == 1.0
+
+
+@pytest.mark.parametrize("matches", [20, 25, 30, 40])
+@pytest.mark.parametrize("seed", range(6))
+def test_a_pair_at_the_floor_verifies_as_it_does_without_the_cap(monkeypatch, matches, seed):
+    # just the 15 true matches a pair needs among ``matches``: the inlier ratio the cap
+    # assumes. Capped, the RANSAC finds as many of them as without the cap (without it,
+    # more trials may take in another chance match that fits the epipolar lines too).
+    kpa, da, kpb, db = _thin_pair(seed, common=15, outliers=matches - 15)
+    capped = match_pair(0, 1, kpa, da, kpb, db, min_inliers=15, seed=seed)
+    monkeypatch.setattr(pairs, "ransac_floor", lambda n, k: 0.25)        # COLMAP's default
+    uncapped = match_pair(0, 1, kpa, da, kpb, db, min_inliers=15, seed=seed)
+    assert capped is not None and uncapped is not None
+    true = capped.matches[:, 0] < 15
+    assert true.sum() >= 13
+    assert np.array_equal(capped.matches[true, 0], capped.matches[true, 1])
+    assert true.sum() == (uncapped.matches[:, 0] < 15).sum()

@@ -1,0 +1,154 @@
+"""The tie points' RANSAC budget: time against the pairs that verify.
+
+A map's tie-point pairs are verified by COLMAP's two-view geometry
+(:func:`workers.core.geometry.pairs.match_pair`). A pair that overlaps stops early; one that
+does not runs every trial its budget allows, for the fundamental matrix and the homography
+both. This measures, over the pairs real map builds plan, the RANSAC CPU time and the pairs
+and tie points that verify at several budgets, with and without the cap of
+:func:`~workers.core.geometry.pairs.ransac_floor` (the build runs
+:data:`~workers.core.geometry.pairs.TIE_RANSAC_TRIALS` with the cap); each pair's variants
+run one after the other, so that the machine's load falls alike on all of them.
+
+The maps: seneca-uav pass 1 and lewis-uav's alternate split, as ``vloc eval`` builds them.
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bench_tie_ransac.py [--variants 2000,2000c,500]
+                                                                 [--out bench/results/tie_ransac.md]
+
+A variant is a budget, capped where it ends in ``c``; the first is the reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from vloc.workers.core import tiepairs  # noqa: E402
+from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
+from vloc.workers.core.geometry import pairs  # noqa: E402
+from vloc.workers.core.mapbuild import extract_tie_points  # noqa: E402
+from vloc.workers.core.sift import ratio_matches  # noqa: E402
+
+DATASETS = REPO.parent / "shared" / "datasets"
+MAPS = {"seneca-uav pass 1": ("seneca-uav", {"rule": "pass", "map_pass": 1, "query_pass": 2}),
+        "lewis-uav alternate": ("lewis-uav", {"rule": "alternate"})}
+
+
+def verify(m: np.ndarray, ka, kb, a: int, b: int, variant: str,
+           ) -> tuple[float, np.ndarray | None]:
+    """CPU seconds of one pair's two-view geometry in ``variant`` (a budget of trials,
+    capped by :func:`~workers.core.geometry.pairs.ransac_floor` where it ends in ``c``), and
+    its inlier matches (None where it does not verify), as
+    :func:`~workers.core.geometry.pairs.match_pair` runs it."""
+    import pycolmap
+
+    from vloc.workers.core.geometry.sfm import colmap_camera, to_colmap_pixels
+
+    options = pycolmap.TwoViewGeometryOptions()
+    options.min_num_inliers = 15
+    options.ransac.max_num_trials = int(variant.rstrip("c"))
+    if variant.endswith("c"):
+        options.ransac.min_inlier_ratio = pairs.ransac_floor(len(m), 15)
+    options.ransac.random_seed = (a * 100_003 + b) % 2 ** 31
+    camera = colmap_camera(None)
+    t0 = time.thread_time()
+    g = pycolmap.estimate_two_view_geometry(camera, to_colmap_pixels(ka), camera,
+                                            to_colmap_pixels(kb), m.astype(np.uint32), options)
+    seconds = time.thread_time() - t0
+    inliers = np.asarray(g.inlier_matches, np.int64).reshape(-1, 2)
+    return seconds, inliers if len(inliers) >= 15 else None
+
+
+def measure(name: str, folder: Path, rule: dict, variants: list[str]) -> dict:
+    ds = load_dataset(folder)
+    images, _ = split(ds, **rule)
+    ties = [extract_tie_points(im.path.read_bytes()) for im in images]
+    times = [np.nan if im.captured_at is None else im.captured_at.timestamp() for im in images]
+    planned = tiepairs.plan([im.lat for im in images], [im.lon for im in images],
+                            [im.alt for im in images], times)
+    seconds = {v: 0.0 for v in variants}
+    inliers = {v: np.zeros(len(planned), np.int64) for v in variants}
+    same = {v: 0 for v in variants}
+    ratio_s, tried = 0.0, 0
+    for k, (a, b) in enumerate(planned):
+        t0 = time.thread_time()
+        m = ratio_matches(ties[a].descriptors, ties[b].descriptors)
+        ratio_s += time.thread_time() - t0
+        if len(m) < 15:
+            continue
+        tried += 1
+        found = {}
+        for v in variants:
+            s, found[v] = verify(m, ties[a].keypoints, ties[b].keypoints, a, b, v)
+            seconds[v] += s
+            inliers[v][k] = 0 if found[v] is None else len(found[v])
+        ref = found[variants[0]]
+        for v in variants:
+            same[v] += (ref is None and found[v] is None) or (
+                ref is not None and found[v] is not None and np.array_equal(ref, found[v]))
+    return {"name": name, "images": len(images), "pairs": len(planned), "tried": tried,
+            "ratio_s": ratio_s, "seconds": seconds, "inliers": inliers, "same": same}
+
+
+def label(variant: str) -> str:
+    return f"{variant.rstrip('c')}, capped" if variant.endswith("c") else variant
+
+
+def table(rows: list[dict], variants: list[str]) -> str:
+    ref = variants[0]
+    out = ["| map | pairs (RANSAC run) | trials | RANSAC CPU s | against the first | verified "
+           "pairs | lost / gained | pairs as the first's | tie points | ratio test CPU s |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        base = r["inliers"][ref] > 0
+        for v in variants:
+            ok = r["inliers"][v] > 0
+            out.append(
+                f"| {r['name']} ({r['images']} images) | {r['pairs']} ({r['tried']}) "
+                f"| {label(v)} | {r['seconds'][v]:.1f} | {r['seconds'][v] / r['seconds'][ref]:.2f} "
+                f"| {int(ok.sum())} | {int((base & ~ok).sum())} / {int((~base & ok).sum())} "
+                f"| {r['same'][v]} of {r['tried']} | {int(r['inliers'][v].sum()):,} "
+                f"| {r['ratio_s']:.1f} |")
+    return "\n".join(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--variants", default="2000,2000c,1000c,500",
+                    help="RANSAC trial budgets, capped where they end in c; the reference first")
+    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "tie_ransac.md")
+    args = ap.parse_args()
+    variants = args.variants.split(",")
+    rows = []
+    with threadpool_limits(limits=1):
+        for name, (folder, rule) in MAPS.items():
+            if not (DATASETS / folder / "images").is_dir():
+                print(f"{name}: {DATASETS / folder} absent, skipped")
+                continue
+            rows.append(measure(name, DATASETS / folder, rule, variants))
+            print(table(rows[-1:], variants), flush=True)
+    if not rows:
+        sys.exit("no data set found")
+    text = (f"# The tie points' RANSAC budget\n\n"
+            f"`OMP_NUM_THREADS=1 .venv/bin/python bench/bench_tie_ransac.py --variants "
+            f"{args.variants}` ({platform.machine()}, Python {platform.python_version()}, one "
+            f"thread; CPU time of the matching thread). The build runs "
+            f"{pairs.TIE_RANSAC_TRIALS} trials, capped by the inlier ratio a pair could verify "
+            f"with (`pairs.ransac_floor`). Lost / gained: pairs that verify with "
+            f"{label(variants[0])} trials and not with these, and the reverse; as the first's: "
+            f"pairs whose result (not verified, or every inlier match) is the first's.\n\n"
+            + table(rows, variants) + "\n")
+    args.out.write_text(text)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
