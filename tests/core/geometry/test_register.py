@@ -260,3 +260,24 @@ def test_register_frame_rejects_an_implausible_pose():
     reg = register_frame(px, pts, image_of, K_TRUE, altitude_range=ALTITUDES,
                          view_prior=(DOWN[0], 10.0))
     assert reg is not None and reg.tilt_deg == pytest.approx(40.0, abs=0.5)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_register_frame_survives_a_consensus_of_two_points_seen_many_times(seed):
+    # Map keypoints of several images share a 3-D point, so a frame's keypoints may match
+    # the same few points many times over (a build's uav-drift world met this). Here every
+    # correspondence sees one of two points (to a micrometre): OpenCV's SQPnP, given the
+    # similarity's consensus, fails an assertion ("num_null_vectors") instead of returning
+    # no pose. That start is then passed over like one that found nothing; the three-point
+    # start, with the view prior, may still place the camera, and then where it is.
+    rng = np.random.default_rng(seed)
+    R = tilted_rotation(0.3, 0.0, 1.0)
+    C = np.array([10.0, -5.0, GROUND_ALT + 50.0])
+    two = _on_ground(R, C, np.array([[100.0, 80.0], [220.0, 150.0]]))
+    pts = np.repeat(two, 12, axis=0) + rng.normal(0.0, 1e-6, (24, 3))
+    px = project(R, C, K_TRUE, pts)
+    image_of = rng.integers(0, 3, len(px))
+    reg = register_frame(px, pts, image_of, K_TRUE, altitude_range=ALTITUDES,
+                         view_prior=DOWN)
+    assert reg is None or (np.linalg.norm(reg.xy - C[:2]) < 0.1
+                           and reg.height == pytest.approx(C[2], abs=0.1))

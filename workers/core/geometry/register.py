@@ -137,12 +137,17 @@ def register_frame(frame_px: np.ndarray, points: np.ndarray, image_of: np.ndarra
     for make in starts:
         if best is not None and len(best[2]) >= CLEAR_CONSENSUS * len(img_pts):
             break
-        start = make()
-        if start is None:
+        try:
+            start = make()
+            if start is None:
+                continue
+            rvec, tvec, inl = start
+            rvec, tvec = cv2.solvePnPRefineLM(obj_c[inl], img_pts[inl], K.matrix, dist,
+                                              rvec, tvec)
+        except cv2.error:
+            # OpenCV's solvers assert on degenerate points (a consensus of the few 3-D
+            # points several map keypoints share, SQPnP's "num_null_vectors"): no pose
             continue
-        rvec, tvec, inl = start
-        rvec, tvec = cv2.solvePnPRefineLM(obj_c[inl], img_pts[inl], K.matrix, dist, rvec,
-                                          tvec)
         # every correspondence is judged again under the refined pose
         proj, _ = cv2.projectPoints(obj_c, rvec, tvec, K.matrix, dist)
         inl = np.flatnonzero(np.linalg.norm(proj.reshape(-1, 2) - img_pts, axis=1)
