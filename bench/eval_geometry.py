@@ -15,7 +15,7 @@ The surveys:
 
 Usage::
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/eval_geometry.py [--only seneca,lewis]
+    OMP_NUM_THREADS=1 .venv/bin/python bench/eval_geometry.py [--only seneca,lewis] [--seed 0]
 """
 
 from __future__ import annotations
@@ -63,9 +63,10 @@ def folder_of(name: str, source) -> Path | None:
     return out
 
 
-def run_case(name: str, folder: Path, split: dict, starts: int, skip: int) -> dict:
+def run_case(name: str, folder: Path, split: dict, starts: int, skip: int,
+             build_seed: int = 0) -> dict:
     t0 = time.perf_counter()
-    exp = load_experiment(folder, **split)
+    exp = load_experiment(folder, **split, build_seed=build_seed)
     build_s = time.perf_counter() - t0
     report = exp.geometry or {"status": "none"}
     results = evaluate(exp.map_data, exp.queries, exp.truth, modes=["hybrid", "sift"],
@@ -102,6 +103,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=",".join(CASES))
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="the maps' build seed: another shows the spread the build's chance "
+                         "alone gives")
     args = ap.parse_args()
     rows = []
     with threadpool_limits(limits=1):
@@ -111,14 +115,15 @@ def main() -> None:
             if folder is None:
                 print(f"{name}: data set not found, skipped", file=sys.stderr)
                 continue
-            row = run_case(name, folder, split, starts, skip)
+            row = run_case(name, folder, split, starts, skip, build_seed=args.seed)
             rows.append(row)
             print(table([row]).splitlines()[-1], flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     text = "\n".join([
         "# Map geometry: real surveys and worlds that break planes", "",
         f"{platform.machine()}, Python {platform.python_version()}, one BLAS thread. Command: "
-        f"`OMP_NUM_THREADS=1 .venv/bin/python bench/eval_geometry.py --only {args.only}`.",
+        f"`OMP_NUM_THREADS=1 .venv/bin/python bench/eval_geometry.py --only {args.only} "
+        f"--seed {args.seed}`.",
         "Default configuration; errors over the frames after each run's `skip`; speed-up is "
         "`sift`'s time per frame over `hybrid`'s, measured in the same run.", "",
         table(rows), ""])

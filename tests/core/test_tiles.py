@@ -10,7 +10,7 @@ import pytest
 from tests.core.geometry.scene import F_TRUE, survey
 from vloc.workers.core import tiepairs, tiles
 from vloc.workers.core.geo import GeoOrigin
-from vloc.workers.core.geometry import TIE_NEIGHBOURS, build_geometry, tie_pairs, tiling
+from vloc.workers.core.geometry import TIE_NEIGHBOURS, build_geometry, sfm, tie_pairs, tiling
 from vloc.workers.core.geometry import pairs as pairs_module
 from vloc.workers.core.geometry.pairs import match_pairs
 from vloc.workers.core.mapbuild import local_frame, save_tie_points
@@ -94,6 +94,22 @@ def test_a_tile_done_for_other_inputs_is_redone(surveyed, small_tiles, tmp_path)
     stamp = (tmp_path / tiles.RESULT.format(0)).stat().st_mtime_ns
     tiles.reconstruct(tmp_path, 0)
     assert (tmp_path / tiles.RESULT.format(0)).stat().st_mtime_ns == stamp
+
+
+def test_a_tile_done_with_other_mapper_settings_is_redone(surveyed, small_tiles, tmp_path,
+                                                          monkeypatch):
+    s, stems, pairs = surveyed
+    tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems)
+    tiles.reconstruct(tmp_path, 0)
+    stamp = (tmp_path / tiles.RESULT.format(0)).stat().st_mtime_ns
+    before = set(tiles.load_results(tmp_path))
+    # an earlier build's tile, kept in the map's folder, after the mapper's settings changed
+    monkeypatch.setattr(sfm, "MIN_POSE_INLIER_RATIO", 0.3)
+    assert set(tiles.load_results(tmp_path)) == before
+    tiles.reconstruct(tmp_path, 0)
+    assert (tmp_path / tiles.RESULT.format(0)).stat().st_mtime_ns != stamp
+    assert len(set(tiles.load_results(tmp_path))) == 1
+    assert set(tiles.load_results(tmp_path)) != before
 
 
 def test_tiles_of_an_earlier_plan_go_when_a_plan_has_fewer(surveyed, small_tiles, tmp_path,

@@ -256,3 +256,24 @@ def test_seneca_positions_and_pass_split(seneca_dir):
     # consecutive query images are about 32 m apart (data set README)
     xy = positions_enu(q, ds.origin())
     assert 25 < np.median(np.linalg.norm(np.diff(xy, axis=0), axis=1)) < 40
+
+
+@pytest.mark.parametrize("build_seed", [0, 5])
+def test_the_build_seed_reaches_the_map_build_and_the_photometric_seed_does_not(
+        tmp_path, monkeypatch, build_seed):
+    from vloc.workers.core.evaluation import experiment
+
+    seen = {}
+
+    class Built(Exception):
+        pass
+
+    def assemble(**kwargs):
+        seen.update(kwargs)
+        raise Built
+
+    monkeypatch.setattr(experiment, "assemble_map", assemble)
+    with pytest.raises(Built):
+        experiment.load_experiment(_line(tmp_path, 6, None), rule="alternate", seed=3,
+                                   geometry=False, build_seed=build_seed)
+    assert seen["seed"] == build_seed and len(seen["names"]) == 3

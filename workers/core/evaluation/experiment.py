@@ -38,9 +38,10 @@ def _timestamp(img: DatasetImage) -> float | None:
 
 
 def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
-              report: dict | None = None, geometry: bool = True) -> MapData:
+              report: dict | None = None, geometry: bool = True, seed: int = 0) -> MapData:
     """Extract every feature of the map images and pack the map (without camera geometry
-    where ``geometry`` is false); ``report`` is filled with what became of its geometry."""
+    where ``geometry`` is false) with the build's ``seed``; ``report`` is filled with what
+    became of its geometry."""
     feats = [replace(extract_image_features(f),
                      tie=extract_tie_points(im.path.read_bytes()) if geometry else None)
              for im, f in zip(images, frames, strict=True)]
@@ -48,7 +49,8 @@ def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
     return assemble_map(names=[im.name for im in images], lats=[im.lat for im in images],
                         lons=[im.lon for im in images], alts=[im.alt for im in images],
                         features=feats, captured_at=[_timestamp(im) for im in images],
-                        map_id=map_id, focal_px=focal, report=report, geometry=geometry)
+                        map_id=map_id, focal_px=focal, report=report, geometry=geometry,
+                        seed=seed)
 
 
 def truth_positions(images: list[DatasetImage], map_data: MapData) -> np.ndarray:
@@ -61,17 +63,19 @@ def truth_positions(images: list[DatasetImage], map_data: MapData) -> np.ndarray
 def load_experiment(folder: str | Path, *, rule: str = "pass",
                     map_pass: int | tuple[int, ...] | None = None,
                     query_pass: int | None = None, photometric: str = "none",
-                    seed: int = 0, geometry: bool = True) -> Experiment:
+                    seed: int = 0, geometry: bool = True, build_seed: int = 0) -> Experiment:
     """Load, split, build the map and prepare the (possibly relit) query frames; the map
     without camera geometry where ``geometry`` is false (a configuration that does not
-    refine, such as the papers' own, has no use for it)."""
+    refine, such as the papers' own, has no use for it). ``seed`` draws the relighting,
+    ``build_seed`` seeds the map's build (its RANSACs, COLMAP, its vocabularies): another
+    build seed shows how much of a change in the errors the build's chance alone makes."""
     from .photometric import apply_variant, variant_rng
 
     ds = load_dataset(folder)
     map_images, query_images = split(ds, rule, map_pass=map_pass, query_pass=query_pass)
     report: dict = {}
     map_data = build_map(map_images, load_frames(map_images), map_id=ds.folder.name,
-                         report=report, geometry=geometry)
+                         report=report, geometry=geometry, seed=build_seed)
     frames = load_frames(query_images)
     if photometric != "none":
         frames = [prepare(apply_variant(f.colour, photometric, rng=variant_rng(seed, i)))

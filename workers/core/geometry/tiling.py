@@ -19,7 +19,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .pairs import PairMatches
-from .sfm import Structure, TileModel, reconstruct_images, structure_of, tags
+from .sfm import (
+    Structure,
+    TileModel,
+    reconstruct_images,
+    settings_key,
+    structure_of,
+    tags,
+)
 
 MAX_TILE: int = 400
 """A map of more images is reconstructed in overlapping spatial tiles of at most this many
@@ -131,11 +138,12 @@ def tile_pairs(pairs: list[PairMatches], inside: np.ndarray) -> list[PairMatches
 def tile_key(inside: np.ndarray, pairs: list[PairMatches], gps: np.ndarray,
              focal_px: float | None, seed: int) -> str:
     """What a tile's reconstruction depends on, hashed: its images, their tags (:func:`tags`),
-    their pairs
-    (:func:`tile_pairs`), the focal length and the seed. A tile reconstructed elsewhere
+    their pairs (:func:`tile_pairs`), the focal length, the seed, and the mapper's settings
+    and COLMAP's version (:func:`.sfm.settings_key`). A tile reconstructed elsewhere
     (:mod:`workers.core.tiles`) is taken up where its key is the one the packing finds."""
     inside = np.ascontiguousarray(inside, np.int64)
     h = hashlib.sha1()
+    h.update(settings_key().encode())
     h.update(inside.tobytes())
     h.update(np.ascontiguousarray(gps[inside], np.float64).tobytes())
     h.update(repr((None if focal_px is None else float(focal_px), int(seed))).encode())
