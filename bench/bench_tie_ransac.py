@@ -46,25 +46,12 @@ def verify(m: np.ndarray, ka, kb, a: int, b: int, variant: str,
            ) -> tuple[float, np.ndarray | None]:
     """CPU seconds of one pair's two-view geometry in ``variant`` (a budget of trials,
     capped by :func:`~workers.core.geometry.pairs.ransac_floor` where it ends in ``c``), and
-    its inlier matches (None where it does not verify), as
-    :func:`~workers.core.geometry.pairs.match_pair` runs it."""
-    import pycolmap
-
-    from vloc.workers.core.geometry.sfm import colmap_camera, to_colmap_pixels
-
-    options = pycolmap.TwoViewGeometryOptions()
-    options.min_num_inliers = 15
-    options.ransac.max_num_trials = int(variant.rstrip("c"))
-    if variant.endswith("c"):
-        options.ransac.min_inlier_ratio = pairs.ransac_floor(len(m), 15)
-    options.ransac.random_seed = (a * 100_003 + b) % 2 ** 31
-    camera = colmap_camera(None)
+    its inlier matches (None where it does not verify), as the build verifies a pair
+    (:func:`~workers.core.geometry.pairs.verify_matches`)."""
     t0 = time.thread_time()
-    g = pycolmap.estimate_two_view_geometry(camera, to_colmap_pixels(ka), camera,
-                                            to_colmap_pixels(kb), m.astype(np.uint32), options)
-    seconds = time.thread_time() - t0
-    inliers = np.asarray(g.inlier_matches, np.int64).reshape(-1, 2)
-    return seconds, inliers if len(inliers) >= 15 else None
+    found = pairs.verify_matches(a, b, ka, kb, m, trials=int(variant.rstrip("c")),
+                                 capped=variant.endswith("c"))
+    return time.thread_time() - t0, None if found is None else found.matches
 
 
 def measure(name: str, folder: Path, rule: dict, variants: list[str]) -> dict:

@@ -104,23 +104,37 @@ def match_pair(a: int, b: int, keypoints_a: np.ndarray, descriptors_a: np.ndarra
     COLMAP's RANSAC is seeded by ``(seed, a, b)`` alone, so a pair gives the same tie points
     whichever process matches it and whatever it matched before.
     """
-    import pycolmap
-
     from ..sift import ratio_matches
-    from .sfm import colmap_camera, to_colmap_pixels
 
     m = ratio_matches(descriptors_a, descriptors_b, ratio=ratio)
     if len(m) < min_inliers:
         return None
+    return verify_matches(a, b, keypoints_a, keypoints_b, m, min_inliers=min_inliers,
+                          seed=seed)
+
+
+def verify_matches(a: int, b: int, keypoints_a: np.ndarray, keypoints_b: np.ndarray,
+                   matches: np.ndarray, *, min_inliers: int = 15, seed: int = 0,
+                   trials: int = TIE_RANSAC_TRIALS, capped: bool = True,
+                   ) -> PairMatches | None:
+    """The ``matches`` (rows of keypoint indices into ``a`` and ``b``) that agree with the
+    pair's two-view geometry, by COLMAP's RANSAC of at most ``trials`` trials, capped by
+    :func:`ransac_floor` where ``capped``; None when fewer than ``min_inliers`` agree.
+    :func:`match_pair`'s second half (``bench/bench_tie_ransac.py`` tries other budgets)."""
+    import pycolmap
+
+    from .sfm import colmap_camera, to_colmap_pixels
+
     options = pycolmap.TwoViewGeometryOptions()
     options.min_num_inliers = min_inliers
-    options.ransac.max_num_trials = TIE_RANSAC_TRIALS
-    options.ransac.min_inlier_ratio = ransac_floor(len(m), min_inliers)
+    options.ransac.max_num_trials = trials
+    if capped:
+        options.ransac.min_inlier_ratio = ransac_floor(len(matches), min_inliers)
     options.ransac.random_seed = (seed * 1_000_003 + a * 100_003 + b) % 2 ** 31
     camera = colmap_camera(None)
     geometry = pycolmap.estimate_two_view_geometry(
         camera, to_colmap_pixels(keypoints_a), camera, to_colmap_pixels(keypoints_b),
-        m.astype(np.uint32), options)
+        np.asarray(matches).astype(np.uint32), options)
     inliers = np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)
     if len(inliers) < min_inliers:
         return None
