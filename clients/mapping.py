@@ -106,8 +106,8 @@ def import_images(client: Client, map_id: str, images: Sequence[DatasetImage], *
 
 def build_and_wait(client: Client, map_id: str, *, timeout: float = 1800.0,
                    on_progress: Callable[[Job], None] | None = None,
-                   force: bool = False) -> Job:
+                   force: bool = False, full: bool = False) -> Job:
     """Start a build of the map and wait for it (raises JobFailed / WaitTimeout)."""
-    job = client.build_map(map_id, force=force)
+    job = client.build_map(map_id, force=force, full=full)
     return client.wait_for_job(job.id, timeout=timeout, on_progress=on_progress,
                                poll_interval=0.25)

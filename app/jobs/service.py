@@ -57,6 +57,17 @@ def _drop_revision_tie_folders(map_dir: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+def forget_reconstruction(tie_dir: Path) -> None:
+    """Delete what the map's store keeps of its reconstruction (COLMAP's models, a large
+    map's tiles), so that the next build reconstructs the map whole (``full``); the tie
+    points and matched pairs, which no earlier build shapes, stay."""
+    from vloc.workers.core import tiles
+
+    shutil.rmtree(tie_dir / tiles.MODELS, ignore_errors=True)
+    for result in tie_dir.glob(tiles.RESULTS_GLOB):
+        result.unlink(missing_ok=True)
+
+
 def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
     """Queue a build of a map; 409 while one runs, when the map has no image, or (unless
     ``force``) when its current revision already holds every image with all its features:

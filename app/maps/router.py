@@ -9,7 +9,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 
 from vloc.app.deps import Ctx, DbSession, SettingsDep, require_admin
-from vloc.app.jobs.service import start_build
+from vloc.app.jobs.service import forget_reconstruction, start_build
 from vloc.app.maps import history, service
 from vloc.app.maps.coverage import Coverage, covering_maps
 from vloc.app.maps.dependencies import ImageVerifier, MapDep, parse_id
@@ -144,11 +144,17 @@ async def add_images(map_id: str, settings: SettingsDep, ctx: Ctx, verify: Image
 @router.post("/{map_id}/build", status_code=202, response_model=BuildAccepted)
 def build_map(map_: MapDep, db: DbSession, ctx: Ctx, response: Response,
               force: bool = Query(False, description="Pack a new revision even when the "
-                                                     "current one holds every image")
+                                                     "current one holds every image"),
+              full: bool = Query(False, description="Reconstruct the map's camera geometry "
+                                                    "whole instead of registering the images "
+                                                    "added since the last build into it "
+                                                    "(implies force)")
               ) -> BuildAccepted:
     """Extract the new images' features and pack a new revision, in the background
-    (409 ``map-up-to-date`` when there is nothing new, unless ``force``)."""
-    job = start_build(db, map_=map_, force=force)
+    (409 ``map-up-to-date`` when there is nothing new, unless ``force`` or ``full``)."""
+    job = start_build(db, map_=map_, force=force or full)
+    if full:
+        forget_reconstruction(ctx.settings.tie_store_dir(str(map_.id)))
     ctx.builds.launch(job.id)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return BuildAccepted(job_id=job.id, status=job.status)

@@ -256,7 +256,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     is missing or unreadable is tied by its stored SIFT. Without ``tie_dir`` they go to a
     folder beside ``folder``, removed afterwards. Pairs of them matched in ``tie_dir``
     beforehand (:func:`match_tie_pairs`) are not matched again, nor tiles of the
-    reconstruction reconstructed there (:func:`reconstruct_tile`) reconstructed again.
+    reconstruction reconstructed there (:func:`reconstruct_tile`) reconstructed again; COLMAP's
+    models kept there from the map's last build take in the images added since
+    (:mod:`vloc.workers.core.geometry.kept`).
 
     The place descriptors' vocabularies are trained here on the map's images and stored in
     ``map_vocabularies`` under ``revision`` (replacing rows a failed earlier attempt at the
@@ -274,6 +276,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         geometry (:func:`vloc.workers.core.mapbuild.geometry_report`).
     """
     from vloc.workers.core import tiepairs, tiles
+    from vloc.workers.core.geometry import KeptModels
     from vloc.workers.core.mapbuild import (
         TiePointFiles,
         assemble_map,
@@ -317,6 +320,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                             flights=[img["flight"] for img in images],
                             map_id=map_id, revision=revision, known_pairs=known,
                             known_tiles=reconstructed,
+                            kept=None if own else KeptModels(
+                                ties_at / tiles.MODELS, tuple(str(img["id"]) for img in images)),
                             focal_px=typical_focal_px(_readers(lens_files or [])),
                             timings=timings, report=report,
                             on_stage=lambda name: on_stage(

@@ -164,12 +164,12 @@ def no_bar(quiet: bool) -> bool:
 
 
 def build_with_bar(vloc, map_id: str, *, quiet: bool = False, timeout: float = 3600.0,
-                   force: bool = False):
+                   force: bool = False, full: bool = False):
     """Build a map and wait for it behind a progress bar; returns the finished job."""
     from vloc.clients.sdk import Conflict
 
     try:
-        return _build(vloc, map_id, quiet=quiet, timeout=timeout, force=force)
+        return _build(vloc, map_id, quiet=quiet, timeout=timeout, force=force, full=full)
     except Conflict as exc:
         if exc.kind != "map-up-to-date":
             raise
@@ -178,7 +178,8 @@ def build_with_bar(vloc, map_id: str, *, quiet: bool = False, timeout: float = 3
         return None
 
 
-def _build(vloc, map_id: str, *, quiet: bool, timeout: float, force: bool = False):
+def _build(vloc, map_id: str, *, quiet: bool, timeout: float, force: bool = False,
+           full: bool = False):
     from tqdm import tqdm
 
     from vloc.clients.mapping import build_and_wait
@@ -188,7 +189,8 @@ def _build(vloc, map_id: str, *, quiet: bool, timeout: float, force: bool = Fals
         def progress(job) -> None:
             bar.update(round(100 * job.progress) - bar.n)
 
-        job = build_and_wait(vloc, map_id, timeout=timeout, on_progress=progress, force=force)
+        job = build_and_wait(vloc, map_id, timeout=timeout, on_progress=progress, force=force,
+                             full=full)
     click.echo(f"map {map_id} built: revision {job.revision}, {job.n_extracted} images "
                "extracted", err=True)
     return job

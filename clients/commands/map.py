@@ -192,16 +192,19 @@ def _flight_of(flight: str | None, per_pass: bool):
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @click.option("--force", is_flag=True,
               help="Pack a new revision even when no image was added or deleted.")
+@click.option("--full", is_flag=True,
+              help="Reconstruct the map's camera geometry whole instead of registering the "
+                   "images added since the last build into it (implies --force).")
 @server_options
 @reports_errors
-def build_cmd(map_id: str, wait: bool, timeout: float, quiet: bool, force: bool, server: str,
-              admin_key: str | None) -> None:
+def build_cmd(map_id: str, wait: bool, timeout: float, quiet: bool, force: bool, full: bool,
+              server: str, admin_key: str | None) -> None:
     """Extract the features of the new images of MAP_ID and pack a new revision."""
     with make_client(server, admin_key) as vloc:
         if not wait:
-            click.echo(vloc.build_map(map_id, force=force).id)
+            click.echo(vloc.build_map(map_id, force=force, full=full).id)
             return
-        build_with_bar(vloc, map_id, quiet=quiet, timeout=timeout, force=force)
+        build_with_bar(vloc, map_id, quiet=quiet, timeout=timeout, force=force, full=full)
 
 
 @map_group.command("revisions")

@@ -169,13 +169,13 @@ def upload_images(map_id: str, images: Sequence[ImageSource], *, lat: float | No
                 data=form or None)
 
 
-def build_map(map_id: str, *, force: bool = False) -> Call:
+def build_map(map_id: str, *, force: bool = False, full: bool = False) -> Call:
     def parse(r: httpx.Response) -> Job:
         body = r.json()
         return Job(id=str(body["job_id"]), map_id=str(map_id), status=body.get("status", ""))
 
     return Call("POST", f"/v1/maps/{map_id}/build", parse,
-                params={"force": "true"} if force else None)
+                params={k: "true" for k, v in (("force", force), ("full", full)) if v} or None)
 
 
 def list_revisions(map_id: str) -> Call:

@@ -92,11 +92,13 @@ class Routes(ABC):
         return self._call(rq.upload_images(map_id, images, lat=lat, lon=lon, alt=alt,
                                            captured_at=captured_at, flight=flight))
 
-    def build_map(self, map_id: str, *, force: bool = False) -> Job:
+    def build_map(self, map_id: str, *, force: bool = False, full: bool = False) -> Job:
         """Start a build of the images added since the last one; returns the queued job.
         ``force`` packs a new revision even when there is nothing new (else 409
-        ``map-up-to-date``)."""
-        return self._call(rq.build_map(map_id, force=force))
+        ``map-up-to-date``). The images added are registered into the map's camera
+        geometry as it stands; ``full`` reconstructs it whole instead (and implies
+        ``force``)."""
+        return self._call(rq.build_map(map_id, force=force, full=full))
 
     def list_revisions(self, map_id: str) -> list[MapRevision]:
         """The map's packed revisions, newest first."""

@@ -21,12 +21,15 @@ from tests.app.conftest import (
     wait_job,
 )
 from tests.app.imagery import plain_jpeg, png, png_bomb
+from tests.core.geometry.scene import similarity_residual
+from vloc.app.jobs.service import forget_reconstruction
 from vloc.app.maps.codecs import decode_vocabulary
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
-from vloc.workers.core import tiepairs
+from vloc.workers.core import tiepairs, tiles
 from vloc.workers.core.features import DESCRIPTOR_NAMES
 from vloc.workers.core.features.orb import extract_orb
 from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.geometry.kept import read_order
 from vloc.workers.core.image import load_frame
 from vloc.workers.core.mapdata import MapData
 from vloc.workers.core.sift import extract_sift
@@ -320,18 +323,48 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     rematched = [(a, b) for path in store.glob(tiepairs.RESULTS_GLOB)
                  if path.name != tiepairs.KEPT for a, b, _ in tiepairs.read_results(path)]
     assert rematched and all(b >= 6 for _, b in rematched)
-    # ...and its map is the one a build of all ten images at once gives
+    # ...and registered the new images into the COLMAP model the first build kept, whose
+    # cameras stay where they were (tests/core/geometry/test_kept.py)
+    models = store / tiles.MODELS
+    if first.geometry is not None:
+        assert second.geometry is not None
+        (kept,) = models.iterdir()
+        assert sorted(read_order(kept)) == sorted(str(i["id"]) for i in images)
+        both = np.isfinite(first.geometry.centres[:, 0]) & \
+            np.isfinite(second.geometry.centres[:6, 0])
+        assert both.sum() >= 3
+        assert similarity_residual(first.geometry.centres[both],
+                                    second.geometry.centres[:6][both]) < 1e-3
+    # A full rebuild reconstructs it whole: the map a build of all ten at once gives.
+    job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", params={"full": "true"},
+                             headers=ADMIN).json()["job_id"])
+    assert (job["status"], job["n_images"], job["revision"]) == ("done", 0, 3)
+    third = MapData.load(ctx.settings.packed_map_dir(map_id, 3))
     fresh_id = new_map(c)
     c.post(f"/v1/maps/{fresh_id}/images", files=jpeg_files(maps), headers=ADMIN)
     assert wait_job(c, c.post(f"/v1/maps/{fresh_id}/build", headers=ADMIN)
                     .json()["job_id"])["status"] == "done"
     fresh = MapData.load(ctx.settings.packed_map_dir(fresh_id, 1))
-    assert (second.geometry is None) == (fresh.geometry is None)
+    assert (third.geometry is None) == (fresh.geometry is None)
     if fresh.geometry is not None:
-        np.testing.assert_array_equal(second.geometry.centres, fresh.geometry.centres)
-        np.testing.assert_array_equal(second.geometry.points["sift"],
+        np.testing.assert_array_equal(third.geometry.centres, fresh.geometry.centres)
+        np.testing.assert_array_equal(third.geometry.points["sift"],
                                       fresh.geometry.points["sift"])
 
+
+
+
+def test_forget_reconstruction_keeps_the_tie_points_and_pairs(tmp_path):
+    (tmp_path / "7.kp.npy").write_bytes(b"k")
+    (tmp_path / "pairs-000000.npz").write_bytes(b"p")
+    (tmp_path / tiles.PLAN_FILE).write_bytes(b"plan")
+    (tmp_path / "tile-00003.npz").write_bytes(b"t")
+    (tmp_path / tiles.MODELS / "abc").mkdir(parents=True)
+    (tmp_path / tiles.MODELS / "abc" / "order.txt").write_text("7\n")
+    forget_reconstruction(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == \
+        ["7.kp.npy", "pairs-000000.npz", tiles.PLAN_FILE]
+    forget_reconstruction(tmp_path / "absent")  # a map never built: nothing to forget
 
 def _assert_vocabularies_stored(ctx, map_id: str, revision: int, packed: MapData) -> None:
     """The database holds the packed revision's vocabularies, bit for bit."""

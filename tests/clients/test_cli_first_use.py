@@ -121,3 +121,16 @@ def test_eval_pins_the_threads_and_reports_cpu_beside_wall_time(dataset_dir, mon
     assert timing["threads"] == 1 and timing["wall_s"] > 0 and timing["cpu_s"] > 0
     table = CliRunner().invoke(cli, args).output
     assert "s wall clock" in table and "s CPU, 1 thread" in table
+
+
+def test_build_full_forgets_the_kept_reconstruction_and_packs_anew(vloc, built, monkeypatch):
+    from vloc.app.maps import router
+
+    forgotten = []
+    real = router.forget_reconstruction
+    monkeypatch.setattr(router, "forget_reconstruction",
+                        lambda tie_dir: (forgotten.append(tie_dir), real(tie_dir)))
+    before = json.loads(vloc("map", "show", built, "--json").output)["revision"]
+    vloc("map", "build", built, "--full", "--quiet")  # nothing new: full implies force
+    assert json.loads(vloc("map", "show", built, "--json").output)["revision"] == before + 1
+    assert len(forgotten) == 1 and forgotten[0].parent.name == built

@@ -176,7 +176,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  focal_px: float | None = None,
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
                  known_pairs: dict | None = None, known_tiles: dict | None = None,
-                 timings: dict[str, tuple[float, float]] | None = None,
+                 kept=None, timings: dict[str, tuple[float, float]] | None = None,
                  report: dict | None = None,
                  on_stage: Callable[[str], None] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
@@ -214,6 +214,9 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         The reconstruction's tie-point pairs matched beforehand with the same ``seed``
         (:mod:`workers.core.tiepairs`), and a large map's tiles reconstructed beforehand
         (:mod:`workers.core.tiles`); the others are matched and reconstructed here.
+    kept : KeptModels, optional
+        COLMAP's models kept from the map's last build, which images added since are
+        registered into (:mod:`workers.core.geometry.kept`).
     timings : dict, optional
         Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
         ``"vocabularies"`` (training and describing every image), ``"packing"``,
@@ -271,7 +274,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         with stage(timings, "geometry"):
             data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
                                          known_pairs=known_pairs, known_tiles=known_tiles,
-                                         report=report)
+                                         kept=kept, report=report)
     return data
 
 
@@ -290,14 +293,14 @@ def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
                  tie_points: list[SiftFeatures | TiePointFiles | None] | None = None,
                  known_pairs: dict | None = None, known_tiles: dict | None = None,
-                 report: dict | None = None):
+                 kept=None, report: dict | None = None):
     """The map's camera geometry with every stored SIFT (and ORB) keypoint's 3-D point,
     checked by localising the map's own images (:func:`workers.core.selfcheck.self_check`),
     or None.
 
     ``tie_points`` (one per image, None where missing) tie the images together; an image
     without them is tied by its stored SIFT. ``known_pairs`` and ``known_tiles`` are pairs
-    matched and tiles reconstructed beforehand
+    matched and tiles reconstructed beforehand, ``kept`` the models kept from the last build
     (:func:`~workers.core.geometry.build_geometry`). ``report`` is filled with what became
     of the geometry (:func:`geometry_report`).
     """
@@ -314,7 +317,7 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     built = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
                            focal_px, seed=seed, known_pairs=known_pairs,
                            known_tiles=known_tiles, times=data.captured_at,
-                           flights=data.flights)
+                           flights=data.flights, kept=kept)
     if built is None:
         report.update(status="none", images=n,
                       reason="structure from motion placed too few cameras consistently "

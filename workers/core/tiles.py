@@ -5,7 +5,8 @@ overlapping spatial tiles (:func:`~workers.core.geometry.tiling.spatial_tiles`),
 on its own and aligned to its own GPS. Once the tie points' pairs are matched
 (:mod:`.tiepairs`), a build writes each tile's pairs and what the tiles share to disk
 (:func:`plan`), lets the engine's workers reconstruct the tiles (:func:`reconstruct`, one
-file of results per tile, the tie points read from disk) and hands them to the packing
+file of results per tile, the tie points read from disk; each tile grows from the model kept
+from the map's last build where one fits, :mod:`.geometry.kept`) and hands them to the packing
 (:func:`load_results`), which reconstructs only tiles whose inputs it does not find among
 them (:func:`~workers.core.geometry.tiling.tile_key`): the map comes out the same as when one
 process reconstructs every tile.
@@ -20,6 +21,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .geometry import tiling
+from .geometry.kept import KeptModels
 from .geometry.pairs import PairMatches
 from .geometry.sfm import TileModel, tags
 from .geometry.tiling import spatial_tiles, tile_key, tile_models, tile_pairs
@@ -27,6 +29,9 @@ from .mapbuild import load_tie_points
 from .tiepairs import read_results, save_results
 
 PLAN_FILE = "tiles-plan.npz"
+MODELS = "models"
+"""The folder beside the plan where COLMAP's models are kept from build to build
+(:mod:`.geometry.kept`); an image is named there by its tie points' file (its image id)."""
 INPUT = "tile-{:05d}-pairs.npz"
 RESULT = "tile-{:05d}.npz"
 RESULTS_GLOB = "tile-?????.npz"
@@ -86,8 +91,10 @@ def reconstruct(folder: str | Path, tile: int) -> int:
         if found is not None and found[0] == key:
             return sum(len(m.images) for m in found[1] or [])
     # one BLAS thread, as the packing reconstructs with (build_geometry)
+    kept = KeptModels(folder / MODELS, tuple(Path(s).name for s in stems))
     with threadpool_limits(limits=1, user_api="blas"):
-        models = tile_models(_TiePoints(stems), pairs, gps, focal_px, inside, seed=seed)
+        models = tile_models(_TiePoints(stems), pairs, gps, focal_px, inside, seed=seed,
+                             key=key, kept=kept)
     _write(out, key, models)
     return sum(len(m.images) for m in models or [])
 

@@ -78,9 +78,9 @@ def test_a_large_reconstruction_adjusts_lighter_and_still_recovers_the_scene(mon
     seen = []
     real = pycolmap.incremental_mapping
 
-    def spy(database, images, out, options):
+    def spy(database, images, out, options, **kw):
         seen.append(options.todict())
-        return real(database, images, out, options)
+        return real(database, images, out, options, **kw)
 
     monkeypatch.setattr(pycolmap, "incremental_mapping", spy)
     s = survey(np.random.default_rng(0))

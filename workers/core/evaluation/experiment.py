@@ -38,10 +38,17 @@ def _timestamp(img: DatasetImage) -> float | None:
 
 
 def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
-              report: dict | None = None, geometry: bool = True, seed: int = 0) -> MapData:
+              report: dict | None = None, geometry: bool = True, seed: int = 0,
+              kept: str | Path | None = None,
+              timings: dict[str, tuple[float, float]] | None = None) -> MapData:
     """Extract every feature of the map images and pack the map (without camera geometry
     where ``geometry`` is false) with the build's ``seed``; ``report`` is filled with what
-    became of its geometry."""
+    became of its geometry, ``timings`` with its stages' (wall, CPU) seconds. With a
+    folder ``kept``, the build registers the images into the COLMAP models an earlier build
+    of some of them kept there, and keeps its own (:mod:`..geometry.kept`; images are named
+    by their file names)."""
+    from ..geometry.kept import KeptModels
+
     feats = [replace(extract_image_features(f),
                      tie=extract_tie_points(im.path.read_bytes()) if geometry else None)
              for im, f in zip(images, frames, strict=True)]
@@ -50,7 +57,9 @@ def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
                         lons=[im.lon for im in images], alts=[im.alt for im in images],
                         features=feats, captured_at=[_timestamp(im) for im in images],
                         map_id=map_id, focal_px=focal, report=report, geometry=geometry,
-                        seed=seed)
+                        seed=seed, timings=timings,
+                        kept=None if kept is None else KeptModels(
+                            Path(kept), tuple(im.name for im in images)))
 
 
 def truth_positions(images: list[DatasetImage], map_data: MapData) -> np.ndarray:

@@ -21,6 +21,7 @@ from threadpoolctl import threadpool_limits
 from ..flights import flight_spacing
 from ..image import WORK_SIZE
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
+from .kept import KeptModels
 from .mapgeometry import MapGeometry
 from .pairs import PairMatches, candidate_pairs, match_pair, match_pairs
 from .register import Registration, register_frame
@@ -70,7 +71,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
                    seed: int = 0,
                    known_pairs: dict[tuple[int, int], PairMatches | None] | None = None,
                    known_tiles: dict | None = None, times: np.ndarray | None = None,
-                   flights=None) -> tuple[MapGeometry, Structure] | None:
+                   flights=None,
+                   kept: KeptModels | None = None) -> tuple[MapGeometry, Structure] | None:
     """Reconstruct the map's cameras and 3-D points, or None where that fails.
 
     Parameters
@@ -96,6 +98,9 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
     known_tiles : dict, optional
         Tiles of a large map reconstructed elsewhere, by :func:`.tiling.tile_key`
         (:mod:`workers.core.tiles`); the rest are reconstructed here.
+    kept : KeptModels, optional
+        COLMAP's models kept from the map's last build (:mod:`.kept`): images added since
+        are registered into them; this build's are kept there in their place.
 
     Returns
     -------
@@ -112,7 +117,7 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
                             seed=seed,
                             known=known_pairs)
         structure = reconstruct(keypoints, pairs, positions, altitudes, focal_px, seed=seed,
-                                times=times, known_tiles=known_tiles)
+                                times=times, known_tiles=known_tiles, kept=kept)
     if structure is None:
         return None
     if (structure.placed.mean() < MIN_PLACED or structure.residual_px > MAX_RESIDUAL_PX
@@ -158,6 +163,6 @@ def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
                           base_sigma=geometry.base_sigma if base_sigma is None else base_sigma)
 
 
-__all__ = ["Intrinsics", "MapGeometry", "PairMatches", "Registration", "Structure",
+__all__ = ["Intrinsics", "KeptModels", "MapGeometry", "PairMatches", "Registration", "Structure",
            "build_geometry", "focal_from_exif", "focal_from_fov", "match_pair",
            "register_against", "tie_pairs", "tie_reach"]

@@ -32,6 +32,7 @@ small map whole, a large one in overlapping spatial tiles.
 from __future__ import annotations
 
 import math
+import shutil
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,6 +43,7 @@ import numpy as np
 from ..image import WORK_SIZE
 from .align import align_to_gps
 from .camera import DEFAULT_HFOV_DEG, Intrinsics, focal_from_fov
+from .kept import load_model, save_model
 from .pairs import PairMatches
 
 COLMAP_SCALE: float = 2.0
@@ -178,22 +180,74 @@ def tags(positions: np.ndarray, altitudes: np.ndarray,
 
 
 def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
-                       gps: np.ndarray, focal_px: float | None,
-                       seed: int) -> list[TileModel] | None:
+                       gps: np.ndarray, focal_px: float | None, seed: int, *,
+                       names: Sequence[str] | None = None, base: Path | None = None,
+                       keep: Path | None = None) -> list[TileModel] | None:
     """COLMAP's models of one set of images (indices of ``keypoints``), aligned to ``gps``
     (:func:`tags`); run again with the intrinsics held where refining them went astray.
-    A whole map goes through :func:`.tiling.reconstruct`, which calls this once per tile."""
+    A whole map goes through :func:`.tiling.reconstruct`, which calls this once per tile.
+
+    ``base`` is a model kept from an earlier build of images among these
+    (:mod:`.kept`, its images named by ``names``, one per image here): the other images are
+    registered into it, its cameras and intrinsics held (:func:`_extend`); where that
+    places none, or the base does not fit, the set is reconstructed whole. The largest
+    model found is kept in ``keep`` for the next build.
+    """
+    names = [str(k) for k in range(len(gps))] if names is None else list(names)
     with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
+        if base is not None:
+            extended = _extend(base, Path(tmp), keypoints, pairs, gps, focal_px, seed, names)
+            if extended is not None:
+                return _kept(extended, names, keep)
         database = Path(tmp) / "database.db"
-        _write_database(database, keypoints, pairs, focal_px)
-        refined = _run(database, Path(tmp), gps, refine=True, seed=seed)
-        if focal_px is None or _good(refined, focal_px, len(gps)):
-            return refined
-        held = _run(database, Path(tmp), gps, refine=False, seed=seed)
-    if _focal_strays(refined, focal_px):
+        order = _write_database(database, keypoints, pairs, focal_px)
+        refined = _run(database, Path(tmp), gps, refine=True, seed=seed, order=order)
+        if focal_px is None or _good(refined.models, focal_px, len(gps)):
+            return _kept(refined, names, keep)
+        held = _run(database, Path(tmp), gps, refine=False, seed=seed, order=order)
+    if _focal_strays(refined.models, focal_px):
         # a focal length it does not trust: the held run, unless it places far fewer
-        return held if _count(held) >= 0.8 * _count(refined) else refined
-    return held if _count(held) > _count(refined) else refined
+        chosen = held if _count(held.models) >= 0.8 * _count(refined.models) else refined
+    else:
+        chosen = held if _count(held.models) > _count(refined.models) else refined
+    return _kept(chosen, names, keep)
+
+
+@dataclass
+class _Run:
+    """One run of the mapper: its models aligned to GPS, the largest of COLMAP's own models
+    (None where it made none) and the database's images in database order (indices)."""
+
+    models: list[TileModel] | None
+    largest: object | None
+    order: list[int]
+
+
+def _kept(run: _Run, names: list[str], keep: Path | None) -> list[TileModel] | None:
+    """The run's models, its largest model kept in ``keep`` (:func:`.kept.save_model`)."""
+    if keep is not None:
+        if run.largest is not None and run.models:
+            save_model(run.largest, names, run.order, keep)
+        else:
+            shutil.rmtree(keep, ignore_errors=True)
+    return run.models
+
+
+def _extend(base: Path, folder: Path, keypoints: Sequence[np.ndarray],
+            pairs: list[PairMatches], gps: np.ndarray, focal_px: float | None, seed: int,
+            names: list[str]) -> _Run | None:
+    """The images of ``pairs`` registered into the model kept in ``base``, whose cameras
+    and intrinsics stay as they are (COLMAP's ``fix_existing_frames``): the database lists
+    the base's images first, as its model numbers them. None where the base holds an image
+    not among ``names``, or the run places no camera."""
+    order = load_model(base, {name: k for k, name in enumerate(names)}, folder / "base")
+    if order is None:
+        return None
+    database = folder / "extended.db"
+    order = _write_database(database, keypoints, pairs, focal_px, first=order)
+    run = _run(database, folder, gps, refine=False, seed=seed, order=order,
+               base=folder / "base")
+    return run if run.models else None
 
 
 @dataclass
@@ -212,9 +266,14 @@ class TileModel:
 
 
 def _write_database(path: Path, keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
-                    focal_px: float | None) -> None:
+                    focal_px: float | None, first: Sequence[int] = ()) -> list[int]:
+    """Write the images of ``pairs`` with their tie points and verified matches into a new
+    COLMAP database; returns its images (indices), in database order: ``first`` (images a
+    kept model numbers so), then the others ascending."""
     import pycolmap
 
+    listed = set(first)
+    order = [*first, *sorted(({p.a for p in pairs} | {p.b for p in pairs}) - listed)]
     db = pycolmap.Database.open(str(path))
     try:
         camera = colmap_camera(focal_px)
@@ -222,8 +281,7 @@ def _write_database(path: Path, keypoints: Sequence[np.ndarray], pairs: list[Pai
         rig = pycolmap.Rig()
         rig.add_ref_sensor(camera.sensor_id)
         rig_id = db.write_rig(rig)
-        used = sorted({p.a for p in pairs} | {p.b for p in pairs})
-        for i in used:
+        for i in order:
             image_id = db.write_image(pycolmap.Image(name=str(i), camera_id=camera.camera_id))
             frame = pycolmap.Frame()
             frame.rig_id = rig_id
@@ -231,7 +289,7 @@ def _write_database(path: Path, keypoints: Sequence[np.ndarray], pairs: list[Pai
             db.write_frame(frame)
             db.write_keypoints(image_id, to_colmap_pixels(np.asarray(keypoints[i]))
                                .astype(np.float32))
-        ids = {i: k + 1 for k, i in enumerate(used)}
+        ids = {i: k + 1 for k, i in enumerate(order)}
         for p in pairs:
             matches = np.ascontiguousarray(p.matches, np.uint32)
             geometry = pycolmap.TwoViewGeometry()
@@ -241,11 +299,13 @@ def _write_database(path: Path, keypoints: Sequence[np.ndarray], pairs: list[Pai
             db.write_two_view_geometry(ids[p.a], ids[p.b], geometry)
     finally:
         db.close()
+    return order
 
 
-def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool,
-         seed: int) -> list[TileModel] | None:
-    """COLMAP's incremental mapper over ``database``, each model aligned to ``gps``."""
+def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool, seed: int,
+         order: list[int], base: Path | None = None) -> _Run:
+    """COLMAP's incremental mapper over ``database`` (its images ``order``), each model
+    aligned to ``gps``; from the model in ``base`` with its cameras held, where given."""
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -265,16 +325,20 @@ def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool,
         for name, value in LARGE_BA.items():
             setattr(options, name, value)
         options.mapper.ba_global_ignore_redundant_points3D = True
-    out = folder / ("refined" if refine else "held")
+    if base is not None:
+        options.fix_existing_frames = True
+    out = folder / ("extended" if base is not None else "refined" if refine else "held")
     out.mkdir(exist_ok=True)
     pycolmap.set_random_seed(seed)
     # COLMAP logs every registration to the process's stderr: its errors only
     pycolmap.logging.minloglevel = pycolmap.logging.ERROR
-    models = pycolmap.incremental_mapping(str(database), str(folder), str(out), options)
+    models = pycolmap.incremental_mapping(str(database), str(folder), str(out), options,
+                                          input_path="" if base is None else str(base))
     rng = np.random.default_rng(seed)
     aligned = [m for m in (_aligned(rec, gps, rng) for _, rec in sorted(models.items()))
                if m is not None]
-    return aligned or None
+    largest = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+    return _Run(aligned or None, largest, order)
 
 
 def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> TileModel | None:

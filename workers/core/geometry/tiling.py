@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .kept import KeptModels
 from .pairs import PairMatches
 from .sfm import (
     Structure,
@@ -41,7 +42,7 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                 positions: np.ndarray, altitudes: np.ndarray, focal_px: float | None, *,
                 seed: int = 0, times: np.ndarray | None = None,
                 known_tiles: dict[str, list[TileModel] | None] | None = None,
-                ) -> Structure | None:
+                kept: KeptModels | None = None) -> Structure | None:
     """The map's cameras and 3-D points from its tie points and verified pairs.
 
     A map of more than :data:`MAX_TILE` images is reconstructed tile by tile
@@ -80,18 +81,25 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
         return None
     tiles = spatial_tiles(positions, MAX_TILE)
     found: list[tuple[np.ndarray, TileModel]] = []
+    keys = []
     for inside in tiles:
         key = tile_key(inside, pairs, gps, focal_px, seed)
+        keys.append(key)
         if known_tiles is not None and key in known_tiles:
             models = known_tiles[key]
         else:
-            models = tile_models(keypoints, pairs, gps, focal_px, inside, seed=seed)
+            models = tile_models(keypoints, pairs, gps, focal_px, inside, seed=seed, key=key,
+                                 kept=kept)
         found += [(inside, m) for m in models or []]
     if not found:
+        if kept is not None:
+            kept.keep_only(keys)
         return None
     placed = _by_centrality(found, positions) if len(tiles) > 1 else [m for _, m in found]
     placed += left_out_models(keypoints, pairs, gps, focal_px, placed, seed=seed,
-                              known_tiles=known_tiles)
+                              known_tiles=known_tiles, kept=kept, keys=keys)
+    if kept is not None:
+        kept.keep_only(keys)
     return structure_of(placed, len(positions), gps)
 
 
@@ -99,6 +107,7 @@ def left_out_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                     gps: np.ndarray, focal_px: float | None, models: list[TileModel], *,
                     seed: int = 0,
                     known_tiles: dict[str, list[TileModel] | None] | None = None,
+                    kept: KeptModels | None = None, keys: list[str] | None = None,
                     ) -> list[TileModel]:
     """Models of the tied images that none of ``models`` places, reconstructed again on
     their own, each aligned to its own GPS.
@@ -110,8 +119,8 @@ def left_out_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     the alignment). Reconstructed apart from the rest, the five that tie to one another make
     a model of their own that lies within 2.5 m of their GPS, and the frames over that turn
     register instead of falling back on a position between map images. ``keypoints``,
-    ``pairs`` and ``gps`` (:func:`tags`) are the whole map's; ``known_tiles`` as in
-    :func:`reconstruct`.
+    ``pairs`` and ``gps`` (:func:`tags`) are the whole map's; ``known_tiles`` and ``kept``
+    as in :func:`reconstruct`; the key of the models' inputs is added to ``keys``.
     """
     placed = np.zeros(len(gps), bool)
     tied = np.zeros(len(gps), bool)
@@ -123,9 +132,12 @@ def left_out_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     if len(left) < 3:
         return []
     key = tile_key(left, pairs, gps, focal_px, seed)
+    if keys is not None:
+        keys.append(key)
     if known_tiles is not None and key in known_tiles:
         return list(known_tiles[key] or [])
-    return tile_models(keypoints, pairs, gps, focal_px, left, seed=seed) or []
+    return tile_models(keypoints, pairs, gps, focal_px, left, seed=seed, key=key,
+                       kept=kept) or []
 
 
 def tile_pairs(pairs: list[PairMatches], inside: np.ndarray) -> list[PairMatches]:
@@ -154,11 +166,14 @@ def tile_key(inside: np.ndarray, pairs: list[PairMatches], gps: np.ndarray,
 
 
 def tile_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches], gps: np.ndarray,
-                focal_px: float | None, inside: np.ndarray, *,
-                seed: int = 0) -> list[TileModel] | None:
+                focal_px: float | None, inside: np.ndarray, *, seed: int = 0,
+                key: str | None = None,
+                kept: KeptModels | None = None) -> list[TileModel] | None:
     """COLMAP's models of the tile ``inside`` (map indices), aligned to their GPS; their
     images are map indices. ``keypoints`` and ``gps`` (:func:`tags`) are the whole map's,
-    read by index."""
+    read by index. With ``kept`` (and the tile's ``key``, :func:`tile_key`), the tile grows
+    from a model kept from an earlier build where one fits (:meth:`.KeptModels.base_for`)
+    and its model is kept for the next."""
     inside = np.asarray(inside, np.int64)
     index = np.full(len(gps), -1)
     index[inside] = np.arange(len(inside))
@@ -166,7 +181,13 @@ def tile_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches], gps: 
            for p in tile_pairs(pairs, inside)]
     if not sub:
         return None
-    models = reconstruct_images(_Subset(keypoints, inside), sub, gps[inside], focal_px, seed)
+    grow = {}
+    if kept is not None and key is not None:
+        tied = len({p.a for p in sub} | {p.b for p in sub})
+        grow = {"names": [kept.names[i] for i in inside.tolist()],
+                "base": kept.base_for(inside, tied), "keep": kept.entry(key)}
+    models = reconstruct_images(_Subset(keypoints, inside), sub, gps[inside], focal_px, seed,
+                                **grow)
     for m in models or []:
         m.images = inside[m.images]
     return models

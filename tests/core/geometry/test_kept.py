@@ -1,0 +1,129 @@
+"""COLMAP's models kept from build to build: images added to a map are registered into the
+cameras it has, which stay where they were; a model that no longer fits is not grown."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from tests.core.geometry.scene import (
+    F_TRUE,
+    Survey,
+    exact_pairs,
+    similarity_residual,
+    survey,
+)
+from vloc.workers.core.geometry.kept import (
+    EXTEND_MIN_SHARE,
+    ORDER_FILE,
+    KeptModels,
+    read_order,
+)
+from vloc.workers.core.geometry.tiling import reconstruct
+
+
+def _names(n: int) -> tuple[str, ...]:
+    return tuple(f"img{1000 + i}" for i in range(n))
+
+
+def _build(s: Survey, n: int, kept: KeptModels | None = None, *, drop: int | None = None):
+    """The structure of the survey's first ``n`` images (without image ``drop``)."""
+    use = [i for i in range(n) if i != drop]
+    index = {i: k for k, i in enumerate(use)}
+    pairs = [dataclasses.replace(p, a=index[p.a], b=index[p.b]) for p in exact_pairs(s)
+             if p.a in index and p.b in index]
+    return reconstruct([s.keypoints[i] for i in use], pairs, s.positions[use],
+                       s.altitudes[use], F_TRUE, kept=kept)
+
+
+@pytest.fixture
+def mapping_calls(monkeypatch):
+    """Every call of COLMAP's mapper: (its input model, whether it holds that model's
+    cameras)."""
+    import pycolmap
+
+    calls = []
+    real = pycolmap.incremental_mapping
+
+    def spy(database, images, out, options, input_path="", **kw):
+        calls.append((str(input_path), options.fix_existing_frames))
+        return real(database, images, out, options, input_path=input_path, **kw)
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", spy)
+    return calls
+
+
+def test_added_images_join_the_kept_cameras_which_stay_where_they_were(tmp_path,
+                                                                        mapping_calls):
+    s = survey(np.random.default_rng(21), rows=4, cols=4)
+    first = _build(s, 12, KeptModels(tmp_path, _names(12)))
+    assert first.placed.all()
+    entries = [p for p in tmp_path.iterdir()]
+    assert len(entries) == 1 and mapping_calls == [("", False)]
+    order = read_order(entries[0])
+    assert sorted(order) == sorted(_names(12))
+
+    grown = _build(s, 16, KeptModels(tmp_path, _names(16)))
+    # the second build started from the kept model, its cameras held
+    assert mapping_calls[1][0] != "" and mapping_calls[1][1] is True
+    assert len(mapping_calls) == 2
+    assert grown.placed.all() and grown.models == 1
+    # the kept cameras did not move relative to one another
+    assert similarity_residual(first.centres, grown.centres[:12]) < 1e-6
+    # the added ones are where they are (exact keypoints, exact tags)
+    np.testing.assert_allclose(grown.centres[12:], s.centres[12:], atol=0.05)
+    # the store holds this build's model alone, its database listing the kept images first
+    entries = [p for p in tmp_path.iterdir()]
+    assert len(entries) == 1
+    assert read_order(entries[0])[:len(order)] == order
+    assert sorted(read_order(entries[0])) == sorted(_names(16))
+
+
+def test_a_kept_model_that_lost_an_image_is_not_grown(tmp_path, mapping_calls):
+    s = survey(np.random.default_rng(22), rows=3, cols=4)
+    names = _names(12)
+    _build(s, 12, KeptModels(tmp_path, names))
+    # image 5 deleted: the map's other images keep their names
+    kept = KeptModels(tmp_path, names[:5] + names[6:])
+    again = _build(s, 12, kept, drop=5)
+    assert mapping_calls[-1] == ("", False)  # reconstructed whole
+    plain = _build(s, 12, None, drop=5)
+    np.testing.assert_array_equal(again.centres, plain.centres)
+    np.testing.assert_array_equal(again.points[4], plain.points[4])
+    assert sorted(read_order(next(tmp_path.iterdir()))) == sorted(kept.names)
+
+
+def _entry(folder, name: str, order: list[str]) -> None:
+    (folder / name).mkdir(parents=True)
+    (folder / name / ORDER_FILE).write_text("".join(f"{n}\n" for n in order))
+
+
+def test_base_for_takes_the_largest_kept_model_inside_the_tile(tmp_path):
+    names = tuple(f"n{i}" for i in range(10))
+    kept = KeptModels(tmp_path, names)
+    _entry(tmp_path, "small", ["n0", "n1", "n2"])
+    _entry(tmp_path, "large", ["n3", "n0", "n1", "n2", "n4"])
+    _entry(tmp_path, "outside", ["n0", "n1", "n2", "n3", "n4", "n5", "n6"])
+    _entry(tmp_path, ".writing", ["n0", "n1", "n2", "n3", "n4", "n5"])
+    assert kept.base_for(np.arange(6), tied=6) == tmp_path / "large"
+    # a tile of new images mostly: none fits
+    assert EXTEND_MIN_SHARE * 12 > 5
+    assert kept.base_for(np.arange(6), tied=12) is None
+    assert kept.base_for(np.arange(10), tied=10) == tmp_path / "outside"
+    assert kept.base_for(np.array([1, 2, 3, 4]), tied=4) is None
+    kept.keep_only(["small"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["small"]
+    KeptModels(tmp_path / "absent", names).keep_only([])  # nothing kept yet: nothing to do
+
+
+def test_similarity_residual_known_answers():
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(8, 3))
+    c, s_ = np.cos(0.4), np.sin(0.4)
+    R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    assert similarity_residual(a, 2.5 * a @ R.T + [3.0, -1.0, 7.0]) < 1e-9
+    moved = a.copy()
+    moved[0] += [1.0, 0.0, 0.0]
+    assert similarity_residual(a, moved) > 0.3
