@@ -4,6 +4,8 @@ reconstructing them again."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -12,6 +14,7 @@ from vloc.workers.core import tiepairs, tiles
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.geometry import TIE_NEIGHBOURS, build_geometry, sfm, tie_pairs, tiling
 from vloc.workers.core.geometry import pairs as pairs_module
+from vloc.workers.core.geometry.kept import KeptModels
 from vloc.workers.core.geometry.pairs import match_pairs
 from vloc.workers.core.mapbuild import local_frame, save_tie_points
 from vloc.workers.core.sift import SiftFeatures
@@ -172,3 +175,38 @@ def test_the_packing_takes_up_every_tile_the_build_reconstructed(tmp_path, monke
     built = build_geometry(s.keypoints, s.image_descriptors, xy, alt, F_TRUE,
                            known_pairs=known_pairs, known_tiles=tiles.load_results(tmp_path))
     assert built is not None and built[1].placed.mean() > 0.9
+
+
+def test_each_tile_keeps_its_model_and_grows_from_it_when_its_inputs_change(
+        surveyed, small_tiles, tmp_path, monkeypatch):
+    import pycolmap
+
+    s, stems, pairs = surveyed
+    n = tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems)
+    for k in range(n):
+        tiles.reconstruct(tmp_path, k)
+    models = tmp_path / tiles.MODELS
+    known = tiles.load_results(tmp_path)
+    assert {p.name for p in models.iterdir()} == {k for k, m in known.items() if m}
+    # the packing keeps the models of the map it packs, no other
+    (models / "stale").mkdir()
+    kept = KeptModels(models, tuple(Path(stem).name for stem in stems))
+    tiling.reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE,
+                       known_tiles=known, kept=kept)
+    assert "stale" not in {p.name for p in models.iterdir()}
+    assert {k for k, m in known.items() if m} <= {p.name for p in models.iterdir()}
+    # a pair of tile 0 lost (its inputs changed): the tile grows from its kept model
+    inside = tiling.spatial_tiles(s.positions, tiling.MAX_TILE)[0]
+    lost = tiling.tile_pairs(pairs, inside)[-1]
+    tiles.plan(tmp_path, [p for p in pairs if p is not lost], s.positions, s.altitudes,
+               F_TRUE, stems)
+    calls = []
+    real = pycolmap.incremental_mapping
+
+    def spy(*args, input_path="", **kw):
+        calls.append(str(input_path))
+        return real(*args, input_path=input_path, **kw)
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", spy)
+    assert tiles.reconstruct(tmp_path, 0) > 0
+    assert len(calls) == 1 and calls[0] != ""

@@ -16,6 +16,7 @@ from tests.core.geometry.scene import (
     survey,
 )
 from vloc.workers.core.geometry.kept import (
+    CONTEXT_FILE,
     EXTEND_MIN_SHARE,
     ORDER_FILE,
     KeptModels,
@@ -95,9 +96,10 @@ def test_a_kept_model_that_lost_an_image_is_not_grown(tmp_path, mapping_calls):
     assert sorted(read_order(next(tmp_path.iterdir()))) == sorted(kept.names)
 
 
-def _entry(folder, name: str, order: list[str]) -> None:
+def _entry(folder, name: str, order: list[str], context: str = "c") -> None:
     (folder / name).mkdir(parents=True)
     (folder / name / ORDER_FILE).write_text("".join(f"{n}\n" for n in order))
+    (folder / name / CONTEXT_FILE).write_text(context)
 
 
 def test_base_for_takes_the_largest_kept_model_inside_the_tile(tmp_path):
@@ -107,14 +109,17 @@ def test_base_for_takes_the_largest_kept_model_inside_the_tile(tmp_path):
     _entry(tmp_path, "large", ["n3", "n0", "n1", "n2", "n4"])
     _entry(tmp_path, "outside", ["n0", "n1", "n2", "n3", "n4", "n5", "n6"])
     _entry(tmp_path, ".writing", ["n0", "n1", "n2", "n3", "n4", "n5"])
-    assert kept.base_for(np.arange(6), tied=6) == tmp_path / "large"
+    _entry(tmp_path, "other settings", ["n0", "n1", "n2", "n3", "n4", "n5"], context="d")
+    assert kept.base_for(np.arange(6), tied=6, context="c") == tmp_path / "large"
+    assert kept.base_for(np.arange(6), tied=6, context="d") == tmp_path / "other settings"
     # a tile of new images mostly: none fits
     assert EXTEND_MIN_SHARE * 12 > 5
-    assert kept.base_for(np.arange(6), tied=12) is None
-    assert kept.base_for(np.arange(10), tied=10) == tmp_path / "outside"
-    assert kept.base_for(np.array([1, 2, 3, 4]), tied=4) is None
-    kept.keep_only(["small"])
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["small"]
+    assert kept.base_for(np.arange(6), tied=12, context="c") is None
+    assert kept.base_for(np.arange(10), tied=10, context="c") == tmp_path / "outside"
+    assert kept.base_for(np.array([1, 2, 3, 4]), tied=4, context="c") is None
+    assert kept.base_for(np.arange(10), tied=10, context="e") is None
+    kept.keep_only(["small", "large"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["large", "small"]
     KeptModels(tmp_path / "absent", names).keep_only([])  # nothing kept yet: nothing to do
 
 

@@ -3,9 +3,12 @@
 A map built once keeps, beside its tie points, the COLMAP model of each tile it reconstructed
 (:func:`.tiling.reconstruct`), named by the tile's inputs (:func:`.tiling.tile_key`) and
 holding, beside COLMAP's binary files, the names of the database's images in database order
-(``order.txt``; a name is what the caller calls an image for good: the service's image id).
+(``order.txt``; a name is what the caller calls an image for good: the service's image id)
+and what else the reconstruction depended on (``context.txt``: COLMAP's version, the mapper's
+settings, the focal length and the seed).
 When the map is built again after images were added, a tile whose inputs changed starts from
-the largest kept model whose images all still belong to it (:meth:`KeptModels.base_for`):
+the largest kept model of the same context whose images all still belong to it
+(:meth:`KeptModels.base_for`):
 COLMAP registers the new images into it with the kept cameras held (its
 ``fix_existing_frames``), the bundle adjustments moving only the new cameras and the 3-D
 points (:func:`.sfm.reconstruct_images`). A tile of 400 images of a synthetic survey with 40
@@ -24,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 ORDER_FILE = "order.txt"
+CONTEXT_FILE = "context.txt"
 
 EXTEND_MIN_SHARE: float = 0.5
 """A kept model is a base for a tile only where its images make at least this share of the
@@ -38,16 +42,19 @@ class KeptModels:
     folder: Path
     names: tuple[str, ...]
 
-    def base_for(self, inside: np.ndarray, tied: int) -> Path | None:
+    def base_for(self, inside: np.ndarray, tied: int, context: str) -> Path | None:
         """The kept model a tile of map images ``inside`` (with ``tied`` of them in pairs)
-        can grow from: the largest whose database images all belong to the tile and make at
-        least :data:`EXTEND_MIN_SHARE` of ``tied``; None where there is none."""
+        can grow from: the largest reconstructed in the same ``context`` whose database
+        images all belong to the tile and make at least :data:`EXTEND_MIN_SHARE` of
+        ``tied``; None where there is none."""
         member = {self.names[i] for i in np.asarray(inside).tolist()}
         best, size = None, 0
         for order_file in sorted(self.folder.glob("*/" + ORDER_FILE)):
-            if order_file.parent.name.startswith("."):
-                continue  # being written
-            order = read_order(order_file.parent)
+            entry = order_file.parent
+            if entry.name.startswith(".") or not (entry / CONTEXT_FILE).is_file() \
+                    or (entry / CONTEXT_FILE).read_text() != context:
+                continue  # being written, or made otherwise
+            order = read_order(entry)
             if len(order) > size and len(order) >= EXTEND_MIN_SHARE * tied \
                     and member.issuperset(order):
                 best, size = order_file.parent, len(order)
@@ -73,10 +80,12 @@ def read_order(folder: Path) -> list[str]:
     return (folder / ORDER_FILE).read_text().split()
 
 
-def save_model(rec, names: Sequence[str], order: Sequence[int], folder: Path) -> None:
+def save_model(rec, names: Sequence[str], order: Sequence[int], context: str,
+               folder: Path) -> None:
     """Keep COLMAP model ``rec`` (its images named by their index into ``names``) in
     ``folder``, its images renamed to ``names``; ``order`` is the database's images, in
-    database order (indices into ``names``). Written beside and moved into place whole."""
+    database order (indices into ``names``), ``context`` what else it depended on. Written
+    beside and moved into place whole."""
     import pycolmap
 
     copy = pycolmap.Reconstruction(rec)
@@ -87,6 +96,7 @@ def save_model(rec, names: Sequence[str], order: Sequence[int], folder: Path) ->
     tmp.mkdir(parents=True)
     copy.write(str(tmp))
     (tmp / ORDER_FILE).write_text("".join(f"{names[i]}\n" for i in order))
+    (tmp / CONTEXT_FILE).write_text(context)
     shutil.rmtree(folder, ignore_errors=True)
     tmp.rename(folder)
 

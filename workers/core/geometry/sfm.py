@@ -182,7 +182,7 @@ def tags(positions: np.ndarray, altitudes: np.ndarray,
 def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                        gps: np.ndarray, focal_px: float | None, seed: int, *,
                        names: Sequence[str] | None = None, base: Path | None = None,
-                       keep: Path | None = None) -> list[TileModel] | None:
+                       keep: Path | None = None, context: str = "") -> list[TileModel] | None:
     """COLMAP's models of one set of images (indices of ``keypoints``), aligned to ``gps``
     (:func:`tags`); run again with the intrinsics held where refining them went astray.
     A whole map goes through :func:`.tiling.reconstruct`, which calls this once per tile.
@@ -191,26 +191,27 @@ def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches]
     (:mod:`.kept`, its images named by ``names``, one per image here): the other images are
     registered into it, its cameras and intrinsics held (:func:`_extend`); where that
     places none, or the base does not fit, the set is reconstructed whole. The largest
-    model found is kept in ``keep`` for the next build.
+    model found is kept in ``keep`` for the next build, with ``context``
+    (:func:`.kept.save_model`).
     """
     names = [str(k) for k in range(len(gps))] if names is None else list(names)
     with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
         if base is not None:
             extended = _extend(base, Path(tmp), keypoints, pairs, gps, focal_px, seed, names)
             if extended is not None:
-                return _kept(extended, names, keep)
+                return _kept(extended, names, keep, context)
         database = Path(tmp) / "database.db"
         order = _write_database(database, keypoints, pairs, focal_px)
         refined = _run(database, Path(tmp), gps, refine=True, seed=seed, order=order)
         if focal_px is None or _good(refined.models, focal_px, len(gps)):
-            return _kept(refined, names, keep)
+            return _kept(refined, names, keep, context)
         held = _run(database, Path(tmp), gps, refine=False, seed=seed, order=order)
     if _focal_strays(refined.models, focal_px):
         # a focal length it does not trust: the held run, unless it places far fewer
         chosen = held if _count(held.models) >= 0.8 * _count(refined.models) else refined
     else:
         chosen = held if _count(held.models) > _count(refined.models) else refined
-    return _kept(chosen, names, keep)
+    return _kept(chosen, names, keep, context)
 
 
 @dataclass
@@ -223,11 +224,12 @@ class _Run:
     order: list[int]
 
 
-def _kept(run: _Run, names: list[str], keep: Path | None) -> list[TileModel] | None:
+def _kept(run: _Run, names: list[str], keep: Path | None,
+          context: str) -> list[TileModel] | None:
     """The run's models, its largest model kept in ``keep`` (:func:`.kept.save_model`)."""
     if keep is not None:
         if run.largest is not None and run.models:
-            save_model(run.largest, names, run.order, keep)
+            save_model(run.largest, names, run.order, context, keep)
         else:
             shutil.rmtree(keep, ignore_errors=True)
     return run.models

@@ -184,8 +184,10 @@ def tile_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches], gps: 
     grow = {}
     if kept is not None and key is not None:
         tied = len({p.a for p in sub} | {p.b for p in sub})
-        grow = {"names": [kept.names[i] for i in inside.tolist()],
-                "base": kept.base_for(inside, tied), "keep": kept.entry(key)}
+        context = repr((settings_key(), None if focal_px is None else float(focal_px),
+                        int(seed)))
+        grow = {"names": [kept.names[i] for i in inside.tolist()], "context": context,
+                "base": kept.base_for(inside, tied, context), "keep": kept.entry(key)}
     models = reconstruct_images(_Subset(keypoints, inside), sub, gps[inside], focal_px, seed,
                                 **grow)
     for m in models or []:
