@@ -179,13 +179,15 @@ def extract_pending(ctx, map_id: str) -> int:
     return len(todo)
 
 
-def build(client, map_id: str, headers: dict[str, str] = ADMIN,
+def build(client, map_id: str, headers: dict[str, str] = ADMIN, *, full: bool = False,
           ) -> tuple[dict, dict[str, float]]:
     """Start a build job over the API (``client``: a test client or an ``httpx.Client``)
     and wait for it; the job's record and the wall seconds spent in each of its stages
-    (polled every half second)."""
+    (polled every half second). ``full`` reconstructs the map's geometry whole."""
     # forced: a map built before (a rerun measuring the build again) is up to date
-    r = client.post(f"/v1/maps/{map_id}/build", params={"force": "true"}, headers=headers)
+    r = client.post(f"/v1/maps/{map_id}/build",
+                    params={"force": "true"} | ({"full": "true"} if full else {}),
+                    headers=headers)
     r.raise_for_status()
     job_id = r.json()["job_id"]
     stages: dict[str, float] = {}

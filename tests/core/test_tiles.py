@@ -210,3 +210,73 @@ def test_each_tile_keeps_its_model_and_grows_from_it_when_its_inputs_change(
     monkeypatch.setattr(pycolmap, "incremental_mapping", spy)
     assert tiles.reconstruct(tmp_path, 0) > 0
     assert len(calls) == 1 and calls[0] != ""
+
+
+def _grid(nx: int, ny: int, step: float = 10.0) -> np.ndarray:
+    return np.array([[x * step, y * step] for y in range(ny) for x in range(nx)])
+
+
+def test_a_map_built_again_is_cut_where_it_was():
+    xy = _grid(16, 16)
+    first = tiling.plan_tiles(xy, 32)
+    assert [t.members.tolist() for t in first] == [p.tolist() for p in
+                                                  tiling.spatial_tiles(xy, 32)]
+    assert sorted(np.concatenate([t.core for t in first]).tolist()) == list(range(len(xy)))
+    # planned again from itself: the same tiles
+    again = tiling.plan_tiles(xy, 32, previous=first)
+    assert [(t.core.tolist(), t.members.tolist()) for t in again] == \
+        [(t.core.tolist(), t.members.tolist()) for t in first]
+    # six images added in one corner (after the others, as a map orders added images):
+    # they join the core of their nearest image; tiles they do not reach are unchanged,
+    # those they reach keep every image they had
+    added = np.array([[1.0 + k, 2.0] for k in range(6)])
+    grown = tiling.plan_tiles(np.vstack([xy, added]), 32, previous=first)
+    assert len(grown) == len(first)
+    new = set(range(len(xy), len(xy) + 6))
+    changed = 0
+    for before, after in zip(first, grown, strict=True):
+        gained = set(after.members.tolist()) - set(before.members.tolist())
+        assert set(before.members.tolist()) <= set(after.members.tolist())
+        assert gained <= new
+        changed += bool(gained)
+        assert set(after.core.tolist()) - set(before.core.tolist()) <= new
+    assert 1 <= changed < len(first)
+    assert sorted(np.concatenate([t.core for t in grown]).tolist()) == \
+        list(range(len(xy) + 6))
+    # a fresh cut would have moved tiles these images are nowhere near
+    fresh = tiling.plan_tiles(np.vstack([xy, added]), 32)
+    assert [t.members.tolist() for t in fresh] != [t.members.tolist() for t in grown]
+
+
+def test_a_core_grown_past_the_limit_is_halved_and_the_others_stay():
+    xy = _grid(16, 16)
+    first = tiling.plan_tiles(xy, 32)
+    # forty images inside the first tile's core, whose 32 make it full: past the slack, it
+    # is cut again, the others stay
+    assert 32 + 40 > tiling.GROWTH_SLACK * 32 >= 32 + 6
+    lo, hi = xy[first[0].core].min(axis=0), xy[first[0].core].max(axis=0)
+    rng = np.random.default_rng(0)
+    added = lo + rng.random((40, 2)) * (hi - lo)
+    grown = tiling.plan_tiles(np.vstack([xy, added]), 32, previous=first)
+    assert len(grown) > len(first)
+    untouched = [t for t in first[1:]
+                 if not np.any(np.all((added >= xy[t.members].min(axis=0))
+                                      & (added <= xy[t.members].max(axis=0)), axis=1))]
+    kept = {tuple(t.members.tolist()) for t in grown}
+    assert untouched and all(tuple(t.members.tolist()) in kept for t in untouched)
+    assert all(len(t.core) <= 32 for t in grown)
+
+
+def test_kept_tiles_go_by_name_and_leave_deleted_images_out(tmp_path):
+    names = tuple(f"id{i}" for i in range(6))
+    kept = KeptModels(tmp_path, names)
+    assert kept.tiles() is None
+    kept.save_tiles([(np.array([0, 1, 2]), np.array([0, 1, 2, 3])),
+                     (np.array([3, 4, 5]), np.array([2, 3, 4, 5]))])
+    # image id2 deleted: the others move up a place in the map's order
+    later = KeptModels(tmp_path, names[:2] + names[3:])
+    (a_core, a_members), (b_core, b_members) = later.tiles()
+    assert (a_core.tolist(), a_members.tolist()) == ([0, 1], [0, 1, 2])
+    assert (b_core.tolist(), b_members.tolist()) == ([2, 3, 4], [2, 3, 4])
+    kept.keep_only([])  # the models go; the tiles stay
+    assert later.tiles() is not None

@@ -1,7 +1,7 @@
 """The tiles of a large map's reconstruction, reconstructed in parallel ahead of the packing.
 
 A map of more than :data:`~workers.core.geometry.tiling.MAX_TILE` images is reconstructed in
-overlapping spatial tiles (:func:`~workers.core.geometry.tiling.spatial_tiles`), each by COLMAP
+overlapping spatial tiles (:func:`~workers.core.geometry.tiling.plan_tiles`), each by COLMAP
 on its own and aligned to its own GPS. Once the tie points' pairs are matched
 (:mod:`.tiepairs`), a build writes each tile's pairs and what the tiles share to disk
 (:func:`plan`), lets the engine's workers reconstruct the tiles (:func:`reconstruct`, one
@@ -24,7 +24,7 @@ from .geometry import tiling
 from .geometry.kept import KeptModels
 from .geometry.pairs import PairMatches
 from .geometry.sfm import TileModel, tags
-from .geometry.tiling import spatial_tiles, tile_key, tile_models, tile_pairs
+from .geometry.tiling import tile_key, tile_models, tile_pairs
 from .mapbuild import load_tie_points
 from .tiepairs import read_results, save_results
 
@@ -47,8 +47,10 @@ def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
     ``i``'s tie points were written (:func:`~workers.core.mapbuild.save_tie_points`),
     ``times`` the capture times (s, NaN unknown)."""
     positions = np.asarray(positions, np.float64)
-    tiles = spatial_tiles(positions, tiling.MAX_TILE)
     folder = Path(folder)
+    # cut where the map's last build cut it, as the packing will (tiling.reconstruct)
+    kept = KeptModels(folder / MODELS, tuple(Path(s).name for s in stems))
+    tiles = [t.members for t in tiling.map_tiles(positions, kept)]
     _forget_tiles_from(folder, len(tiles) if len(tiles) > 1 else 0)
     if len(tiles) < 2:
         return 0

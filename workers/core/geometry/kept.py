@@ -15,10 +15,15 @@ points (:func:`.sfm.reconstruct_images`). A tile of 400 images of a synthetic su
 added took 19 CPU s so against 107 s reconstructed whole, its cameras as close to their GPS.
 A build that finds no such model (a new map, a tile that lost images, a full rebuild)
 reconstructs the tile whole, as before.
+
+A large map's tiles are kept too (``tiles.json``: each tile's core and members, by name), so
+that the next build cuts the map where this one did (:func:`.tiling.plan_tiles`): images
+added join the tiles around them instead of moving every tile's edges.
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -28,6 +33,7 @@ import numpy as np
 
 ORDER_FILE = "order.txt"
 CONTEXT_FILE = "context.txt"
+TILES_FILE = "tiles.json"
 
 EXTEND_MIN_SHARE: float = 0.5
 """A kept model is a base for a tile only where its images make at least this share of the
@@ -71,8 +77,32 @@ class KeptModels:
         if not self.folder.is_dir():
             return
         for path in self.folder.iterdir():
-            if path.name not in keys:
+            if path.name not in keys and path.name != TILES_FILE:
                 shutil.rmtree(path, ignore_errors=True)
+
+    def tiles(self) -> list[tuple[np.ndarray, np.ndarray]] | None:
+        """The tiles of the map's last build, (core, members) in today's map indices, its
+        images since deleted left out; None where none were kept."""
+        path = self.folder / TILES_FILE
+        if not path.is_file():
+            return None
+        index = {name: i for i, name in enumerate(self.names)}
+
+        def indices(names: list[str]) -> np.ndarray:
+            return np.array(sorted(index[n] for n in names if n in index), np.int64)
+
+        return [(indices(t["core"]), indices(t["members"]))
+                for t in json.loads(path.read_text())["tiles"]]
+
+    def save_tiles(self, tiles: Iterable[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Keep this build's tiles, (core, members) in map indices, for the next build."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        body = {"tiles": [{"core": [self.names[i] for i in core.tolist()],
+                           "members": [self.names[i] for i in members.tolist()]}
+                          for core, members in tiles]}
+        tmp = self.folder / ("." + TILES_FILE)
+        tmp.write_text(json.dumps(body))
+        tmp.replace(self.folder / TILES_FILE)
 
 
 def read_order(folder: Path) -> list[str]:
@@ -101,10 +131,12 @@ def save_model(rec, names: Sequence[str], order: Sequence[int], context: str,
     tmp.rename(folder)
 
 
-def load_model(folder: Path, index: dict[str, int], out: Path) -> list[int] | None:
+def load_model(folder: Path, index: dict[str, int],
+               out: Path) -> tuple[list[int], int] | None:
     """Write the model kept in ``folder`` to ``out`` with its images renamed by ``index``
     (name -> index of the set being reconstructed); returns the database order it needs
-    (indices), or None where one of its images is not in ``index``."""
+    (indices) and how many images it places, or None where one of its images is not in
+    ``index``."""
     import pycolmap
 
     order = read_order(folder)
@@ -115,4 +147,4 @@ def load_model(folder: Path, index: dict[str, int], out: Path) -> list[int] | No
         image.name = str(index[image.name])
     out.mkdir(parents=True, exist_ok=True)
     rec.write(str(out))
-    return [index[name] for name in order]
+    return [index[name] for name in order], rec.num_reg_images()

@@ -2,7 +2,8 @@
 
 A map of up to :data:`MAX_TILE` images is reconstructed whole. A larger one is halved along
 its longer side until each part is small enough, each part widened by :data:`TILE_MARGIN`
-image spacings so that neighbouring tiles share cameras (:func:`spatial_tiles`); each tile is
+image spacings so that neighbouring tiles share cameras (:func:`plan_tiles`: a map built
+again is cut where it was, the images added joining the tiles around them); each tile is
 reconstructed and aligned to its own GPS (:func:`tile_models`, COLMAP through
 :func:`.sfm.reconstruct_images`), and each image takes its pose from the tile whose centre it
 is nearest. Tiles are independent, so the service reconstructs them on the engine's workers
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -37,6 +39,11 @@ faster than its images."""
 TILE_MARGIN: float = 3.0
 """Tiles overlap by this many median image spacings on each side."""
 
+GROWTH_SLACK: float = 1.25
+"""A tile kept from the map's last build is cut again only once images added to it make its
+core more than this many times :data:`MAX_TILE` (:func:`plan_tiles`): a map cut into full
+tiles can grow without moving their edges."""
+
 
 def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                 positions: np.ndarray, altitudes: np.ndarray, focal_px: float | None, *,
@@ -46,7 +53,7 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     """The map's cameras and 3-D points from its tie points and verified pairs.
 
     A map of more than :data:`MAX_TILE` images is reconstructed tile by tile
-    (:func:`spatial_tiles`), each tile's models aligned to their own GPS, and each image
+    (:func:`plan_tiles`), each tile's models aligned to their own GPS, and each image
     takes its pose from the tile whose centre it is nearest.
 
     Parameters
@@ -69,6 +76,10 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     known_tiles : dict, optional
         Tiles reconstructed elsewhere (:func:`tile_models`), by :func:`tile_key`; the
         others are reconstructed here.
+    kept : KeptModels, optional
+        The models and tiles kept from the map's last build (:mod:`.kept`): the map is cut
+        where it was (:func:`plan_tiles`), and a tile whose inputs changed grows from a kept
+        model where it can; afterwards the store holds this build's.
 
     Returns
     -------
@@ -79,7 +90,10 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     gps = tags(positions, altitudes, times)
     if len(pairs) == 0 or len(positions) < 3:
         return None
-    tiles = spatial_tiles(positions, MAX_TILE)
+    plan = map_tiles(positions, kept)
+    tiles = [t.members for t in plan]
+    if kept is not None:
+        kept.save_tiles((t.core, t.members) for t in plan)
     found: list[tuple[np.ndarray, TileModel]] = []
     keys = []
     for inside in tiles:
@@ -199,8 +213,87 @@ def spatial_tiles(positions: np.ndarray, max_size: int) -> list[np.ndarray]:
     """Overlapping tiles of at most about ``max_size`` map images each (indices, ascending):
     the images halved along the longer side of their extent until each part is small
     enough, each part then widened by :data:`TILE_MARGIN` median spacings."""
+    return [t.members for t in plan_tiles(positions, max_size)]
+
+
+@dataclass(frozen=True)
+class Tile:
+    """A tile of the map's reconstruction: its ``core`` (the images it was cut for) and its
+    ``members`` (the core widened by :data:`TILE_MARGIN` spacings), map indices ascending."""
+
+    core: np.ndarray
+    members: np.ndarray
+
+
+def plan_tiles(positions: np.ndarray, max_size: int, *,
+               previous: list[Tile] | None = None) -> list[Tile]:
+    """The map's tiles: without ``previous``, its images halved along the longer side of
+    their extent until each part holds at most ``max_size``, each part then widened.
+
+    ``previous`` are the tiles of the map's last build, in today's map indices (images
+    since deleted left out): each keeps its core and members, an added image joins the core
+    of its nearest kept image (and the members of every tile whose widened core holds it),
+    and only a core grown past :data:`GROWTH_SLACK` times ``max_size`` is halved again (to
+    at most ``max_size``). So a tile that no added image
+    reached keeps its inputs, and one that some reached keeps every image it had: its kept
+    COLMAP model can take them in (:mod:`.kept`)."""
     positions = np.asarray(positions, np.float64)
-    parts, done = [np.arange(len(positions))], []
+    n = len(positions)
+    if n <= max_size:
+        return [Tile(np.arange(n), np.arange(n))]
+    spacing, _ = cKDTree(positions).query(positions, k=2)
+    margin = TILE_MARGIN * float(np.median(spacing[:, 1]))
+    cores: list[tuple[np.ndarray, np.ndarray | None]] = []  # (core, members kept)
+    old = [t for t in previous or [] if len(t.core)]
+    if old:
+        owner = np.full(n, -1)
+        for k, t in enumerate(old):
+            owner[t.core] = k
+        added = owner < 0
+        new = np.flatnonzero(added)
+        if len(new):
+            placed = np.flatnonzero(owner >= 0)
+            _, nearest = cKDTree(positions[placed]).query(positions[new])
+            owner[new] = owner[placed[nearest]]
+        for k, t in enumerate(old):
+            core = np.flatnonzero(owner == k)
+            if len(core) > GROWTH_SLACK * max_size:
+                cores += [(part, None) for part in _halve(positions, core, max_size)]
+            else:
+                cores.append((core, t.members))
+    else:
+        cores = [(part, None) for part in _halve(positions, np.arange(n), max_size)]
+    tiles = []
+    for core, kept in cores:
+        lo, hi = positions[core].min(axis=0) - margin, positions[core].max(axis=0) + margin
+        inside = np.all((positions >= lo) & (positions <= hi), axis=1)
+        if kept is not None:
+            # a kept tile takes in added images only: its edges stay where they were
+            inside &= added
+            inside[kept] = True
+        inside[core] = True
+        tiles.append(Tile(np.sort(core), np.flatnonzero(inside)))
+    if len(tiles) == 1:
+        return tiles
+    # a small map's widened tiles may hold one another: each is reconstructed once
+    sets = [set(t.members.tolist()) for t in tiles]
+    return [t for k, t in enumerate(tiles)
+            if not any(sets[k] < sets[j] or (sets[k] == sets[j] and j < k)
+                       for j in range(len(tiles)) if j != k)]
+
+
+def map_tiles(positions: np.ndarray, kept: KeptModels | None) -> list[Tile]:
+    """The map's tiles of at most :data:`MAX_TILE` images (:func:`plan_tiles`), cut where
+    the last build whose tiles ``kept`` holds cut them."""
+    previous = None if kept is None else kept.tiles()
+    return plan_tiles(positions, MAX_TILE,
+                      previous=None if previous is None else [Tile(*t) for t in previous])
+
+
+def _halve(positions: np.ndarray, part: np.ndarray, max_size: int) -> list[np.ndarray]:
+    """``part`` (map indices) halved along the longer side of its extent until each piece
+    holds at most ``max_size``."""
+    parts, done = [part], []
     while parts:
         part = parts.pop()
         if len(part) <= max_size:
@@ -210,20 +303,7 @@ def spatial_tiles(positions: np.ndarray, max_size: int) -> list[np.ndarray]:
         axis = int(np.argmax(np.ptp(xy, axis=0)))
         order = part[np.argsort(xy[:, axis], kind="stable")]
         parts += [order[:len(order) // 2], order[len(order) // 2:]]
-    if len(done) == 1:
-        return [np.sort(done[0])]
-    spacing, _ = cKDTree(positions).query(positions, k=2)
-    margin = TILE_MARGIN * float(np.median(spacing[:, 1]))
-    tiles = []
-    for part in done:
-        lo, hi = positions[part].min(axis=0) - margin, positions[part].max(axis=0) + margin
-        inside = np.all((positions >= lo) & (positions <= hi), axis=1)
-        tiles.append(np.flatnonzero(inside))
-    # a small map's widened tiles may hold one another: each is reconstructed once
-    sets = [set(t.tolist()) for t in tiles]
-    return [t for k, t in enumerate(tiles)
-            if not any(sets[k] < sets[j] or (sets[k] == sets[j] and j < k)
-                       for j in range(len(tiles)) if j != k)]
+    return done
 
 
 class _Subset(Sequence):
