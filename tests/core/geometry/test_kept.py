@@ -15,6 +15,7 @@ from tests.core.geometry.scene import (
     similarity_residual,
     survey,
 )
+from vloc.workers.core.geometry import sfm
 from vloc.workers.core.geometry.kept import (
     CONTEXT_FILE,
     EXTEND_MIN_SHARE,
@@ -133,3 +134,31 @@ def test_similarity_residual_known_answers():
     moved = a.copy()
     moved[0] += [1.0, 0.0, 0.0]
     assert similarity_residual(a, moved) > 0.3
+
+
+def _run_placing(order: int, held: int, registered: int, placed: int) -> sfm._Run:
+    model = sfm.TileModel(np.arange(placed), np.zeros((placed, 3, 3)), np.zeros((placed, 3)),
+                          [], [], np.zeros(4), 0.0)
+    return sfm._Run([model], None, list(range(order)), base=(held, registered))
+
+
+def test_a_model_grew_well_when_it_placed_its_share_of_the_new_images():
+    # lewis-uav's first two thirds: 14 of 18 placed; 10 added, of which 6 placed
+    assert not sfm._grew_well(_run_placing(28, 18, 14, 20))
+    assert sfm._grew_well(_run_placing(28, 18, 14, 22))  # 8 of 10: one short of 14/18
+    # seneca-uav: 63 of 70 in the kept model, 48 added, 114 placed in all
+    assert sfm._grew_well(_run_placing(118, 70, 63, 114))
+    assert sfm._grew_well(_run_placing(70, 70, 63, 60))  # nothing new: nothing to judge
+
+
+def test_a_model_that_grew_badly_is_reconstructed_whole_too_and_the_better_kept(
+        tmp_path, mapping_calls, monkeypatch):
+    s = survey(np.random.default_rng(23), rows=4, cols=4)
+    first = _build(s, 12, KeptModels(tmp_path, _names(12)))
+    monkeypatch.setattr(sfm, "_grew_well", lambda run: False)
+    grown = _build(s, 16, KeptModels(tmp_path, _names(16)))
+    # grown from the kept model, then reconstructed whole: both place every image, and
+    # the grown one wins the tie, its kept cameras where they were
+    assert [call[0] != "" for call in mapping_calls[1:]] == [True, False]
+    assert grown.placed.all()
+    assert similarity_residual(first.centres, grown.centres[:12]) < 1e-6
