@@ -162,3 +162,24 @@ def test_a_model_that_grew_badly_is_reconstructed_whole_too_and_the_better_kept(
     assert [call[0] != "" for call in mapping_calls[1:]] == [True, False]
     assert grown.placed.all()
     assert similarity_residual(first.centres, grown.centres[:12]) < 1e-6
+
+
+def test_a_tile_of_the_same_inputs_is_only_aligned_again(tmp_path, mapping_calls):
+    """A map's frame moves with its centroid when images are added elsewhere: a tile whose
+    images and matches did not change takes its kept models up, aligned to today's GPS,
+    without running COLMAP."""
+    s = survey(np.random.default_rng(24), rows=3, cols=4)
+    first = _build(s, 12, KeptModels(tmp_path, _names(12)))
+    shift = np.array([120.0, -40.0])
+    pairs = exact_pairs(s)
+    again = reconstruct(s.keypoints, pairs, s.positions + shift, s.altitudes, F_TRUE,
+                        kept=KeptModels(tmp_path, _names(12)))
+    assert len(mapping_calls) == 1
+    np.testing.assert_allclose(again.centres, first.centres + [*shift, 0.0], atol=1e-6)
+    np.testing.assert_allclose(again.points[3], first.points[3] + [*shift, 0.0], atol=1e-6)
+    (entry,) = [p for p in tmp_path.iterdir() if p.is_dir()]  # kept under its new key
+    # another match changes the inputs: COLMAP runs (from the kept model)
+    changed = pairs[:-1]
+    reconstruct(s.keypoints, changed, s.positions, s.altitudes, F_TRUE,
+                kept=KeptModels(tmp_path, _names(12)))
+    assert len(mapping_calls) == 2 and mapping_calls[1][0] != ""

@@ -1,8 +1,10 @@
 """COLMAP models kept from build to build: images added to a map join the cameras it has.
 
-A map built once keeps, beside its tie points, the COLMAP model of each tile it reconstructed
+A map built once keeps, beside its tie points, the COLMAP models of each tile it reconstructed
 (:func:`.tiling.reconstruct`), named by the tile's inputs (:func:`.tiling.tile_key`) and
-holding, beside COLMAP's binary files, the names of the database's images in database order
+holding, beside COLMAP's binary files, a hash of the mapper's inputs (``inputs.txt``: a tile
+whose images and matches are unchanged takes its models up again, aligned to today's GPS,
+without running COLMAP), the names of the database's images in database order
 (``order.txt``; a name is what the caller calls an image for good: the service's image id)
 and what else the reconstruction depended on (``context.txt``: COLMAP's version, the mapper's
 settings, the focal length and the seed).
@@ -33,7 +35,9 @@ import numpy as np
 
 ORDER_FILE = "order.txt"
 CONTEXT_FILE = "context.txt"
+INPUTS_FILE = "inputs.txt"
 TILES_FILE = "tiles.json"
+MODEL_DIR = "model-{:02d}"
 
 EXTEND_MIN_SHARE: float = 0.5
 """A kept model is a base for a tile only where its images make at least this share of the
@@ -110,41 +114,51 @@ def read_order(folder: Path) -> list[str]:
     return (folder / ORDER_FILE).read_text().split()
 
 
-def save_model(rec, names: Sequence[str], order: Sequence[int], context: str,
-               folder: Path) -> None:
-    """Keep COLMAP model ``rec`` (its images named by their index into ``names``) in
-    ``folder``, its images renamed to ``names``; ``order`` is the database's images, in
-    database order (indices into ``names``), ``context`` what else it depended on. Written
-    beside and moved into place whole."""
+def save_models(recs: Sequence, names: Sequence[str], order: Sequence[int], context: str,
+                inputs: str, folder: Path) -> None:
+    """Keep COLMAP models ``recs`` (one run's, their images named by their index into
+    ``names``) in ``folder``, their images renamed to ``names``; ``order`` is the database's
+    images, in database order (indices into ``names``), ``context`` what else the run
+    depended on, ``inputs`` its inputs hashed (:func:`read_inputs`). Written beside and
+    moved into place whole."""
     import pycolmap
 
-    copy = pycolmap.Reconstruction(rec)
-    for image in copy.images.values():
-        image.name = names[int(image.name)]
     tmp = folder.with_name("." + folder.name)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    copy.write(str(tmp))
+    for k, rec in enumerate(recs):
+        copy = pycolmap.Reconstruction(rec)
+        for image in copy.images.values():
+            image.name = names[int(image.name)]
+        (tmp / MODEL_DIR.format(k)).mkdir()
+        copy.write(str(tmp / MODEL_DIR.format(k)))
     (tmp / ORDER_FILE).write_text("".join(f"{names[i]}\n" for i in order))
     (tmp / CONTEXT_FILE).write_text(context)
+    (tmp / INPUTS_FILE).write_text(inputs)
     shutil.rmtree(folder, ignore_errors=True)
     tmp.rename(folder)
 
 
-def load_model(folder: Path, index: dict[str, int],
-               out: Path) -> tuple[list[int], int] | None:
-    """Write the model kept in ``folder`` to ``out`` with its images renamed by ``index``
-    (name -> index of the set being reconstructed); returns the database order it needs
-    (indices) and how many images it places, or None where one of its images is not in
-    ``index``."""
+def read_inputs(folder: Path) -> str | None:
+    """The hash of the inputs (images, tie points' matches, context) of the run whose models
+    ``folder`` keeps; a run of the same inputs gives the same models."""
+    path = folder / INPUTS_FILE
+    return path.read_text() if path.is_file() else None
+
+
+def load_models(folder: Path, index: dict[str, int]) -> tuple[list[int], list] | None:
+    """The models kept in ``folder``, their images renamed by ``index`` (name -> index of
+    the set being reconstructed), with the database order they need (indices); None where
+    one of their images is not in ``index``."""
     import pycolmap
 
     order = read_order(folder)
     if not all(name in index for name in order):
         return None
-    rec = pycolmap.Reconstruction(str(folder))
-    for image in rec.images.values():
-        image.name = str(index[image.name])
-    out.mkdir(parents=True, exist_ok=True)
-    rec.write(str(out))
-    return [index[name] for name in order], rec.num_reg_images()
+    recs = []
+    for path in sorted(folder.glob(MODEL_DIR.replace("{:02d}", "??"))):
+        rec = pycolmap.Reconstruction(str(path))
+        for image in rec.images.values():
+            image.name = str(index[image.name])
+        recs.append(rec)
+    return [index[name] for name in order], recs

@@ -31,6 +31,7 @@ small map whole, a large one in overlapping spatial tiles.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import shutil
 import tempfile
@@ -43,7 +44,7 @@ import numpy as np
 from ..image import WORK_SIZE
 from .align import align_to_gps
 from .camera import DEFAULT_HFOV_DEG, Intrinsics, focal_from_fov
-from .kept import load_model, save_model
+from .kept import load_models, read_inputs, save_models
 from .pairs import PairMatches
 
 COLMAP_SCALE: float = 2.0
@@ -187,25 +188,45 @@ def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches]
     (:func:`tags`); run again with the intrinsics held where refining them went astray.
     A whole map goes through :func:`.tiling.reconstruct`, which calls this once per tile.
 
-    ``base`` is a model kept from an earlier build of images among these
-    (:mod:`.kept`, its images named by ``names``, one per image here): the other images are
-    registered into it, its cameras and intrinsics held (:func:`_extend`). Where that
+    ``base`` holds the models kept from an earlier build of images among these
+    (:mod:`.kept`, its images named by ``names``, one per image here). Where they came
+    from the same inputs (images, matches, ``context``), they are only aligned to ``gps``
+    again; otherwise the other images are registered into the largest, its cameras and
+    intrinsics held (:func:`_extend`). Where that
     places a smaller share of the images new to it than the base placed of its own
     (:func:`_grew_well`), or the base does not fit, the set is reconstructed whole too, and
     the run that places more wins (the extension, where they tie). The largest model found
-    is kept in ``keep`` for the next build, with ``context`` (:func:`.kept.save_model`).
+    are kept in ``keep`` for the next build, with ``context`` (:func:`.kept.save_models`).
     """
     names = [str(k) for k in range(len(gps))] if names is None else list(names)
+    inputs = _inputs_key(names, pairs, context)
     extended = None
+    if base is not None and read_inputs(base) == inputs:
+        loaded = load_models(base, {name: k for k, name in enumerate(names)})
+        if loaded is not None:
+            order, recs = loaded
+            return _kept(_Run(_align_all(recs, gps, seed), recs, order), names, keep,
+                         context, inputs)
     with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
         if base is not None:
             extended = _extend(base, Path(tmp), keypoints, pairs, gps, focal_px, seed, names)
             if extended is not None and _grew_well(extended):
-                return _kept(extended, names, keep, context)
+                return _kept(extended, names, keep, context, inputs)
         chosen = _reconstruct_whole(Path(tmp), keypoints, pairs, gps, focal_px, seed)
     if extended is not None and _count(extended.models) >= _count(chosen.models):
         chosen = extended
-    return _kept(chosen, names, keep, context)
+    return _kept(chosen, names, keep, context, inputs)
+
+
+def _inputs_key(names: list[str], pairs: list[PairMatches], context: str) -> str:
+    """The mapper's inputs hashed: the images by name, their verified matches, the
+    context (:func:`.kept.read_inputs`)."""
+    h = hashlib.sha1(context.encode())
+    h.update("\n".join(names).encode())
+    for p in sorted(pairs, key=lambda p: (p.a, p.b)):
+        h.update(np.array([p.a, p.b, p.config], np.int64).tobytes())
+        h.update(np.ascontiguousarray(p.matches, np.int64).tobytes())
+    return h.hexdigest()
 
 
 def _reconstruct_whole(folder: Path, keypoints: Sequence[np.ndarray],
@@ -227,23 +248,23 @@ def _reconstruct_whole(folder: Path, keypoints: Sequence[np.ndarray],
 
 @dataclass
 class _Run:
-    """One run of the mapper: its models aligned to GPS, the largest of COLMAP's own models
-    (None where it made none) and the database's images in database order (indices); for
-    a run grown from a kept model (:func:`_extend`), how many images that model's database
-    held and how many it placed."""
+    """One run of the mapper: its models aligned to GPS, COLMAP's own models (by its model
+    index) and the database's images in database order (indices); for a run grown from a
+    kept model (:func:`_extend`), how many images that model's database held and how many
+    it placed."""
 
     models: list[TileModel] | None
-    largest: object | None
+    recs: list
     order: list[int]
     base: tuple[int, int] | None = None
 
 
-def _kept(run: _Run, names: list[str], keep: Path | None,
-          context: str) -> list[TileModel] | None:
-    """The run's models, its largest model kept in ``keep`` (:func:`.kept.save_model`)."""
+def _kept(run: _Run, names: list[str], keep: Path | None, context: str,
+          inputs: str) -> list[TileModel] | None:
+    """The run's models, COLMAP's kept in ``keep`` (:func:`.kept.save_models`)."""
     if keep is not None:
-        if run.largest is not None and run.models:
-            save_model(run.largest, names, run.order, context, keep)
+        if run.recs and run.models:
+            save_models(run.recs, names, run.order, context, inputs, keep)
         else:
             shutil.rmtree(keep, ignore_errors=True)
     return run.models
@@ -256,10 +277,14 @@ def _extend(base: Path, folder: Path, keypoints: Sequence[np.ndarray],
     and intrinsics stay as they are (COLMAP's ``fix_existing_frames``): the database lists
     the base's images first, as its model numbers them. None where the base holds an image
     not among ``names``, or the run places no camera."""
-    loaded = load_model(base, {name: k for k, name in enumerate(names)}, folder / "base")
-    if loaded is None:
+    loaded = load_models(base, {name: k for k, name in enumerate(names)})
+    if loaded is None or not loaded[1]:
         return None
-    first, registered = loaded
+    first, recs = loaded
+    largest = max(recs, key=lambda r: r.num_reg_images())
+    registered = largest.num_reg_images()
+    (folder / "base").mkdir()
+    largest.write(str(folder / "base"))
     database = folder / "extended.db"
     order = _write_database(database, keypoints, pairs, focal_px, first=first)
     run = _run(database, folder, gps, refine=False, seed=seed, order=order,
@@ -364,11 +389,16 @@ def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool, seed: i
     pycolmap.logging.minloglevel = pycolmap.logging.ERROR
     models = pycolmap.incremental_mapping(str(database), str(folder), str(out), options,
                                           input_path="" if base is None else str(base))
+    recs = [rec for _, rec in sorted(models.items())]
+    return _Run(_align_all(recs, gps, seed), recs, order)
+
+
+def _align_all(recs: list, gps: np.ndarray, seed: int) -> list[TileModel] | None:
+    """COLMAP's models, in order, each aligned to ``gps``; those the alignment refuses
+    left out."""
     rng = np.random.default_rng(seed)
-    aligned = [m for m in (_aligned(rec, gps, rng) for _, rec in sorted(models.items()))
-               if m is not None]
-    largest = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
-    return _Run(aligned or None, largest, order)
+    aligned = [m for m in (_aligned(rec, gps, rng) for rec in recs) if m is not None]
+    return aligned or None
 
 
 def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> TileModel | None:
