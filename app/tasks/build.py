@@ -153,9 +153,16 @@ def plan_tiles(database_url: str, map_id: str, tie_dir: str,
 
     images = _read_images(database_url, map_id)
     known = tiepairs.load_results(tie_dir, [img["id"] for img in images])
+    # the pairs this build planned, as the packing takes them: the store may also hold
+    # pairs an earlier build planned that this one does not (adding images moves the
+    # flights' spacing, and the pairs' reach with it)
+    planned = tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
+                            [img["alt"] for img in images],
+                            [np.nan if img["captured_at"] is None else img["captured_at"]
+                             for img in images], [img["flight"] for img in images])
     _, xy, alt = local_frame([img["lat"] for img in images], [img["lon"] for img in images],
                              [img["alt"] for img in images])
-    return tiles.plan(tie_dir, [p for _, p in sorted(known.items()) if p is not None], xy,
+    return tiles.plan(tie_dir, [known[p] for p in planned if known.get(p) is not None], xy,
                       alt, typical_focal_px(_readers(lens_files or [])),
                       [tie_stem(tie_dir, img["id"]) for img in images],
                       times=np.array([np.nan if img["captured_at"] is None

@@ -25,10 +25,12 @@ from tests.core.geometry.scene import similarity_residual
 from vloc.app.jobs.service import forget_reconstruction
 from vloc.app.maps.codecs import decode_vocabulary
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
-from vloc.workers.core import tiepairs, tiles
+from vloc.app.tasks import build as build_tasks
+from vloc.workers.core import geometry, tiepairs, tiles
 from vloc.workers.core.features import DESCRIPTOR_NAMES
 from vloc.workers.core.features.orb import extract_orb
 from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.geometry import tiling
 from vloc.workers.core.geometry.kept import read_order
 from vloc.workers.core.image import load_frame
 from vloc.workers.core.mapdata import MapData
@@ -622,3 +624,33 @@ def test_a_bad_flight_name_is_refused_and_nothing_stored(module_client, shots, f
                data={"flight": flight}, headers=ADMIN)
     assert r.status_code == status and r.json()["type"].endswith(kind), r.text
     assert snapshot(c) == before
+
+
+def test_the_tiles_take_only_the_pairs_the_build_planned(module_client, shots, monkeypatch):
+    """The map's store may hold verified pairs an earlier build planned and this one does
+    not (adding images moves the flights' spacing, and the pairs' reach with it): the tiles
+    leave them out, as the packing does, so that the packing finds the tiles the workers
+    reconstructed by their key."""
+    c = module_client
+    ctx = c.app.state.ctx
+    map_id = new_map(c)
+    c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(shots[0]), headers=ADMIN)
+    assert wait_job(c, c.post(f"/v1/maps/{map_id}/build", headers=ADMIN)
+                    .json()["job_id"])["status"] == "done"
+    url, store = ctx.settings.resolved_database_url, ctx.settings.tie_store_dir(map_id)
+    images = build_tasks._read_images(url, map_id)
+    stored = {pair for pair, p in tiepairs.load_results(store, [i["id"] for i in images])
+              .items() if p is not None}
+    # this build plans fewer pairs than the one that matched the store's
+    monkeypatch.setattr(geometry, "TIE_NEIGHBOURS", 2)
+    planned = set(tiepairs.plan([i["lat"] for i in images], [i["lon"] for i in images],
+                                [i["alt"] for i in images],
+                                [i["captured_at"] for i in images]))
+    assert stored - planned
+    monkeypatch.setattr(tiling, "MAX_TILE", 3)
+    monkeypatch.setattr(tiling, "TILE_MARGIN", 0.5)
+    n = build_tasks.plan_tiles(url, map_id, str(store))
+    assert n > 1
+    in_tiles = {(p.a, p.b) for k in range(n)
+                for _, _, p in tiepairs.read_results(store / tiles.INPUT.format(k))}
+    assert in_tiles and in_tiles <= planned & stored
