@@ -147,6 +147,13 @@ def test_build_progress_and_job(vloc, shots):
     assert (built.status, built.revision, built.pending_images) == ("ready", 1, 0)
     assert built.origin is not None and built.local_extent is not None
     assert built.last_job_id == job.id
+    # nothing new: up to date, unless the geometry is asked for whole (full implies force)
+    with pytest.raises(Conflict) as info:
+        vloc.build_map(m.id)
+    assert info.value.kind == "map-up-to-date"
+    again = vloc.wait_for_job(vloc.build_map(m.id, full=True).id, timeout=120,
+                              poll_interval=0.05)
+    assert (again.status, again.revision) == ("done", 2)
 
 
 def test_build_errors(vloc):
