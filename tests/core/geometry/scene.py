@@ -266,12 +266,17 @@ def exact_pairs(s: Survey, *, min_common: int = 15, max_per_pair: int | None = N
     return out
 
 
-def similarity_residual(a: np.ndarray, b: np.ndarray) -> float:
-    """Largest distance left between point sets ``a`` and ``b`` once the best similarity
-    takes one onto the other (Umeyama)."""
+def similarity_residuals(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Each point's distance left between point sets ``a`` and ``b`` once the best
+    similarity takes one onto the other (Umeyama)."""
     ma, mb = a.mean(axis=0), b.mean(axis=0)
     u, d, vt = np.linalg.svd((b - mb).T @ (a - ma))
     sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
     R = u @ sign @ vt
     scale = np.trace(np.diag(d) @ sign) / np.sum((a - ma) ** 2)
-    return float(np.abs(scale * (a - ma) @ R.T + mb - b).max())
+    return np.linalg.norm(scale * (a - ma) @ R.T + mb - b, axis=1)
+
+
+def similarity_residual(a: np.ndarray, b: np.ndarray) -> float:
+    """The largest of :func:`similarity_residuals`."""
+    return float(similarity_residuals(a, b).max())
