@@ -110,12 +110,20 @@ def plan_tie_pairs(database_url: str, map_id: str, tie_dir: str) -> dict:
     ids = [img["id"] for img in images]
     kept = tiepairs.keep_valid(tie_dir, ids)
     _forget_tie_points(Path(tie_dir), set(ids))
-    pairs = tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
-                          [img["alt"] for img in images],
-                          [np.nan if img["captured_at"] is None else img["captured_at"]
-                           for img in images], [img["flight"] for img in images])
+    pairs = _planned_pairs(images)
     return {"image_ids": ids, "pairs": [p for p in pairs if p not in kept],
             "planned": len(pairs)}
+
+
+def _planned_pairs(images: list[dict]) -> list[tuple[int, int]]:
+    """The pairs (map indices) whose tie points a build of ``images`` (:func:`_read_images`)
+    matches (:func:`vloc.workers.core.tiepairs.plan`)."""
+    from vloc.workers.core import tiepairs
+
+    return tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
+                         [img["alt"] for img in images],
+                         [np.nan if img["captured_at"] is None else img["captured_at"]
+                          for img in images], [img["flight"] for img in images])
 
 
 def _forget_tie_points(tie_dir: Path, image_ids: set[int]) -> None:
@@ -156,10 +164,7 @@ def plan_tiles(database_url: str, map_id: str, tie_dir: str,
     # the pairs this build planned, as the packing takes them: the store may also hold
     # pairs an earlier build planned that this one does not (adding images moves the
     # flights' spacing, and the pairs' reach with it)
-    planned = tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
-                            [img["alt"] for img in images],
-                            [np.nan if img["captured_at"] is None else img["captured_at"]
-                             for img in images], [img["flight"] for img in images])
+    planned = _planned_pairs(images)
     _, xy, alt = local_frame([img["lat"] for img in images], [img["lon"] for img in images],
                              [img["alt"] for img in images])
     return tiles.plan(tie_dir, [known[p] for p in planned if known.get(p) is not None], xy,
