@@ -236,27 +236,65 @@ def test_uav_world_frames_register_with_orb(uav_world):
     assert np.median(errors) < 1.0
 
 
-def test_refine_orb_registers_nothing_where_the_best_image_matches_thinly(uav_world,
-                                                                         monkeypatch):
-    """Fewer than ORB_FIRST_MATCHES ratio-test matches with the best-ranked image: no pose,
-    and the images ranked after it are not matched at all."""
+def test_refine_orb_passes_over_images_that_match_thinly(uav_world, monkeypatch):
+    """A map image giving fewer than ORB_FIRST_MATCHES ratio-test matches starts no pose:
+    the next ranked image is tried instead, and where every one is that thin, nothing is
+    registered."""
     from vloc.workers.core.localisers import refine as refine_module
 
     data = uav_world.map_data
     q, truth = uav_world.queries[3], uav_world.truth[3]
     near = np.argsort(np.linalg.norm(np.asarray(data.positions) - truth, axis=1))[:3]
     shape = q.frame.grey.shape
-    assert refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape) is not None
+    alone = refine_orb(q.orb()[0], data, near[1:], np.ones(2), frame_shape=shape)
+    assert alone is not None
     real, asked = refine_module.hamming_ratio_matches, []
+    thin = {int(near[0])}
 
     def thinned(a, b, ratio):
-        asked.append(len(b))
+        image = next(i for i in range(len(data)) if data.orb(i).descriptors is b
+                     or np.array_equal(data.orb(i).descriptors, b))
+        asked.append(image)
         m = real(a, b, ratio=ratio)
-        return m[:refine_module.ORB_FIRST_MATCHES - 1]
+        return m[:refine_module.ORB_FIRST_MATCHES - 1] if image in thin else m
 
     monkeypatch.setattr(refine_module, "hamming_ratio_matches", thinned)
-    assert refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape) is None
-    assert len(asked) == 1
+    # the nearest image thinned: the pose is the one the others give
+    got = refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape)
+    assert got is not None and int(near[0]) not in got.images
+    np.testing.assert_allclose(got.xy, alone.xy)
+    assert asked[0] == int(near[0])
+    # every image thinned: each tried once, none registered
+    thin.update(int(i) for i in near)
+    asked.clear()
+    assert refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape,
+                      max_images=3) is None
+    assert asked == [int(i) for i in near]
+
+
+def test_refine_orb_passes_over_images_the_reconstruction_left_out(uav_world):
+    """An image without a camera pose has no 3-D points: it is not matched, and does not
+    count against the images tried."""
+    data = uav_world.map_data
+    q, truth = uav_world.queries[3], uav_world.truth[3]
+    near = np.argsort(np.linalg.norm(np.asarray(data.positions) - truth, axis=1))[:3]
+    shape = q.frame.grey.shape
+    want = refine_orb(q.orb()[0], data, near[1:], np.ones(2), frame_shape=shape,
+                      max_images=1)
+    geo = data.geometry
+    saved = geo.centres
+    centres = np.array(saved, copy=True)
+    centres[near[0]] = np.nan
+    geo.centres = centres
+    try:
+        got = refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape,
+                         max_images=1)
+    finally:
+        geo.centres = saved
+    assert want is not None and got is not None
+    # the same matches; the view prior, worked out from the placed cameras, lost one
+    np.testing.assert_allclose(got.xy, want.xy, atol=0.01)
+    assert got.images == want.images
 
 
 def test_refine_orb_needs_geometry_and_matches(uav_world):

@@ -134,3 +134,21 @@ def test_hamming_ratio_matches_need_two_candidates():
     a = np.zeros((3, 32), np.uint8)
     assert hamming_ratio_matches(a, a[:1]).shape == (0, 2)
     assert hamming_ratio_matches(a[:0], a).shape == (0, 2)
+
+
+def test_hamming_ratio_matches_are_the_brute_force_matchers():
+    """The same neighbours as OpenCV's brute-force matcher, ties and their order included:
+    maps built before the matcher changed localise as they did."""
+    rng = np.random.default_rng(11)
+    b = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+    # coarse descriptors (four bytes vary) make equal distances common
+    a = np.repeat(b[:1], 200, axis=0)
+    a[:, :4] = rng.integers(0, 256, (200, 4), dtype=np.uint8)
+    b[:150, 4:] = b[0, 4:]
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    for ratio in (0.7, 0.83, 1.0):
+        want = [(m.queryIdx, m.trainIdx) for m, n in matcher.knnMatch(a, b, k=2)
+                if m.distance < ratio * n.distance]
+        got = hamming_ratio_matches(a, b, ratio=ratio)
+        assert got.tolist() == [list(p) for p in want]
+        assert 0 < len(want) < len(a)
