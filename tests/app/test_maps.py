@@ -352,6 +352,27 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
         np.testing.assert_array_equal(third.geometry.centres, fresh.geometry.centres)
         np.testing.assert_array_equal(third.geometry.points["sift"],
                                       fresh.geometry.points["sift"])
+    # An image deleted: the next build grows the kept model without it, the others'
+    # cameras where they were.
+    gone = images[4]["id"]
+    assert c.delete(f"/v1/maps/{map_id}/images/{gone}", headers=ADMIN).status_code == 204
+    job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"])
+    assert (job["status"], job["revision"]) == ("done", 4)
+    fourth = MapData.load(ctx.settings.packed_map_dir(map_id, 4))
+    assert len(fourth) == 9 and gone not in {i["id"] for i in
+                                             c.get(f"/v1/maps/{map_id}/images",
+                                                   headers=ADMIN).json()}
+    if third.geometry is not None:
+        assert fourth.geometry is not None
+        (kept,) = [p for p in models.iterdir() if p.is_dir()]
+        assert str(gone) not in read_order(kept) and len(read_order(kept)) == 9
+        rest = np.r_[0:4, 5:10]
+        both = np.isfinite(third.geometry.centres[rest, 0]) & \
+            np.isfinite(fourth.geometry.centres[:, 0])
+        assert both.sum() >= 3
+        # held, not reconstructed again: the same cameras to round-off
+        assert similarity_residual(third.geometry.centres[rest][both],
+                                    fourth.geometry.centres[both]) < 1e-6
 
 
 

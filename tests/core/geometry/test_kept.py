@@ -83,19 +83,71 @@ def test_added_images_join_the_kept_cameras_which_stay_where_they_were(tmp_path,
     assert sorted(read_order(entries[0])) == sorted(_names(16))
 
 
-def test_a_kept_model_that_lost_an_image_is_not_grown(tmp_path, mapping_calls):
+def test_a_kept_model_that_lost_an_image_grows_without_it(tmp_path, mapping_calls):
+    """An image deleted from the map leaves the kept model: the others' cameras are held
+    where they were, the 3-D points it alone saw go, and no camera is reconstructed
+    anew."""
     s = survey(np.random.default_rng(22), rows=3, cols=4)
     names = _names(12)
-    _build(s, 12, KeptModels(tmp_path, names))
+    first = _build(s, 12, KeptModels(tmp_path, names))
+    assert first.placed.all()
+    (entry,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    order = read_order(entry)
     # image 5 deleted: the map's other images keep their names
     kept = KeptModels(tmp_path, names[:5] + names[6:])
     again = _build(s, 12, kept, drop=5)
-    assert mapping_calls[-1] == ("", False)  # reconstructed whole
-    plain = _build(s, 12, None, drop=5)
-    np.testing.assert_array_equal(again.centres, plain.centres)
-    np.testing.assert_array_equal(again.points[4], plain.points[4])
+    assert mapping_calls[-1][0] != "" and mapping_calls[-1][1] is True  # grown, held
+    assert len(mapping_calls) == 2
+    assert again.placed.all() and len(again.centres) == 11
+    rest = np.r_[0:5, 6:12]
+    assert similarity_residual(first.centres[rest], again.centres) < 1e-6
+    # the store holds the grown model, its database the kept images in their old order
     (entry,) = [p for p in tmp_path.iterdir() if p.is_dir()]
-    assert sorted(read_order(entry)) == sorted(kept.names)
+    assert read_order(entry) == [n for n in order if n != names[5]]
+    # and the map built from it again, with nothing changed, is taken up as it is
+    twice = _build(s, 12, kept, drop=5)
+    assert len(mapping_calls) == 2
+    np.testing.assert_allclose(twice.centres, again.centres, atol=1e-9)
+
+
+def test_without_images_keeps_the_others_poses_and_their_shared_points(tmp_path):
+    """The model copied without some images: each kept image renumbered, with its pose and
+    keypoints; a 3-D point keeps the observations of the kept cameras, and goes where
+    fewer than two remain."""
+    import pycolmap
+
+    from vloc.workers.core.geometry.kept import MODEL_DIR, without_images
+
+    s = survey(np.random.default_rng(23), rows=3, cols=3)
+    _build(s, 9, KeptModels(tmp_path, _names(9)))
+    (entry,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    rec = pycolmap.Reconstruction(str(entry / MODEL_DIR.format(0)))
+    ids = sorted(rec.images)
+    gone = set(ids[2:7])
+    renumber = {old: k + 1 for k, old in enumerate(i for i in ids if i not in gone)}
+    out = without_images(rec, renumber)
+    assert sorted(out.images) == list(range(1, len(renumber) + 1))
+    for old, new in renumber.items():
+        a, b = rec.images[old], out.images[new]
+        assert a.name == b.name and a.has_pose == b.has_pose
+        np.testing.assert_array_equal(a.cam_from_world().matrix(), b.cam_from_world().matrix())
+        np.testing.assert_array_equal([p.xy for p in a.points2D], [p.xy for p in b.points2D])
+    # the slow obvious reference: every point's observations by the kept images
+    want = []
+    for point in rec.points3D.values():
+        track = sorted((renumber[e.image_id], e.point2D_idx) for e in point.track.elements
+                       if e.image_id not in gone)
+        if len(track) >= 2:
+            want.append((tuple(np.round(point.xyz, 9)), tuple(track)))
+    got = [(tuple(np.round(p.xyz, 9)), tuple(sorted((e.image_id, e.point2D_idx)
+                                                    for e in p.track.elements)))
+           for p in out.points3D.values()]
+    assert sorted(got) == sorted(want)
+    assert 0 < len(want) < len(rec.points3D)  # some seen by fewer than two kept cameras
+    # each kept observation is on its image's keypoint
+    for p3 in out.points3D.values():
+        for e in p3.track.elements:
+            assert out.images[e.image_id].points2D[e.point2D_idx].has_point3D()
 
 
 def _entry(folder, name: str, order: list[str], context: str = "c") -> None:

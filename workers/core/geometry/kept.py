@@ -15,7 +15,10 @@ COLMAP registers the new images into it with the kept cameras held (its
 ``fix_existing_frames``), the bundle adjustments moving only the new cameras and the 3-D
 points (:func:`.sfm.reconstruct_images`). A tile of 400 images of a synthetic survey with 40
 added took 19 CPU s so against 107 s reconstructed whole, its cameras as close to their GPS.
-A build that finds no such model (a new map, a tile that lost images, a full rebuild)
+Images deleted from the map since leave the kept model first (:func:`load_models`): their
+cameras and their observations go, the 3-D points the others still see twice or more stay,
+and the tile grows from what is left as from any kept model. A build that finds no such
+model (a new map, a tile whose kept images moved to another tile, a full rebuild)
 reconstructs the tile whole, as before.
 
 A large map's tiles are kept too (``tiles.json``: each tile's core and members, by name), so
@@ -55,16 +58,18 @@ class KeptModels:
     def base_for(self, inside: np.ndarray, tied: int, context: str) -> Path | None:
         """The kept model a tile of map images ``inside`` (with ``tied`` of them in pairs)
         can grow from: the largest reconstructed in the same ``context`` whose database
-        images all belong to the tile and make at least :data:`EXTEND_MIN_SHARE` of
-        ``tied``; None where there is none."""
+        images still in the map all belong to the tile and make at least
+        :data:`EXTEND_MIN_SHARE` of ``tied`` (images since deleted from the map leave it
+        when it is loaded); None where there is none."""
         member = {self.names[i] for i in np.asarray(inside).tolist()}
+        in_map = set(self.names)
         best, size = None, 0
         for order_file in sorted(self.folder.glob("*/" + ORDER_FILE)):
             entry = order_file.parent
             if entry.name.startswith(".") or not (entry / CONTEXT_FILE).is_file() \
                     or (entry / CONTEXT_FILE).read_text() != context:
                 continue  # being written, or made otherwise
-            order = read_order(entry)
+            order = [name for name in read_order(entry) if name in in_map]
             if len(order) > size and len(order) >= EXTEND_MIN_SHARE * tied \
                     and member.issuperset(order):
                 best, size = order_file.parent, len(order)
@@ -146,19 +151,61 @@ def read_inputs(folder: Path) -> str | None:
     return path.read_text() if path.is_file() else None
 
 
-def load_models(folder: Path, index: dict[str, int]) -> tuple[list[int], list] | None:
+def load_models(folder: Path, index: dict[str, int], *,
+                leave_out_missing: bool = False) -> tuple[list[int], list] | None:
     """The models kept in ``folder``, their images renamed by ``index`` (name -> index of
-    the set being reconstructed), with the database order they need (indices); None where
-    one of their images is not in ``index``."""
+    the set being reconstructed), with the database order they need (indices). None where
+    one of their images is not in ``index``; or, with ``leave_out_missing``, such images
+    (deleted from the map) are left out of the models (:func:`without_images`) and of the
+    order, the others numbered by their place in it."""
     import pycolmap
 
-    order = read_order(folder)
-    if not all(name in index for name in order):
+    names = read_order(folder)
+    missing = [name for name in names if name not in index]
+    if missing and not leave_out_missing:
         return None
+    kept = [name for name in names if name in index]
+    # the new database lists the kept images in the same order, numbered from 1 again
+    place = {name: k + 1 for k, name in enumerate(kept)}
     recs = []
     for path in sorted(folder.glob(MODEL_DIR.replace("{:02d}", "??"))):
         rec = pycolmap.Reconstruction(str(path))
+        if missing:
+            rec = without_images(rec, {image_id: place[image.name]
+                                       for image_id, image in rec.images.items()
+                                       if image.name in place})
         for image in rec.images.values():
             image.name = str(index[image.name])
         recs.append(rec)
-    return [index[name] for name in order], recs
+    return [index[name] for name in kept], recs
+
+
+def without_images(rec, renumber: dict[int, int]):
+    """A copy of COLMAP model ``rec`` (trivial rigs: a frame per image) holding only the
+    images ``renumber`` maps (image id -> new image id) and the 3-D points that two or
+    more of their placed cameras still see; poses, keypoints and points as they were."""
+    import pycolmap
+
+    out = pycolmap.Reconstruction()
+    for camera in rec.cameras.values():
+        out.add_camera_with_trivial_rig(camera)
+    for old, new in sorted(renumber.items(), key=lambda item: item[1]):
+        if not rec.exists_image(old):
+            continue
+        image = rec.images[old]
+        xy = np.array([p.xy for p in image.points2D], np.float64).reshape(-1, 2)
+        copy = pycolmap.Image(name=image.name, keypoints=xy, camera_id=image.camera_id,
+                              image_id=new)
+        if image.has_pose:
+            out.add_image_with_trivial_frame(copy, image.cam_from_world())
+        else:
+            out.add_image_with_trivial_frame(copy)
+    for point in rec.points3D.values():
+        track = pycolmap.Track()
+        for element in point.track.elements:
+            old = element.image_id
+            if old in renumber and rec.images[old].has_pose:
+                track.add_element(renumber[old], element.point2D_idx)
+        if track.length() >= 2:
+            out.add_point3D(point.xyz, track, point.color)
+    return out

@@ -275,14 +275,18 @@ def _extend(base: Path, folder: Path, keypoints: Sequence[np.ndarray],
             names: list[str]) -> _Run | None:
     """The images of ``pairs`` registered into the model kept in ``base``, whose cameras
     and intrinsics stay as they are (COLMAP's ``fix_existing_frames``): the database lists
-    the base's images first, as its model numbers them. None where the base holds an image
-    not among ``names``, or the run places no camera."""
-    loaded = load_models(base, {name: k for k, name in enumerate(names)})
+    the base's images first, as its model numbers them; images of the base not among
+    ``names`` (deleted from the map) leave it first. None where fewer than three of its
+    cameras are left, or the run places no camera."""
+    loaded = load_models(base, {name: k for k, name in enumerate(names)},
+                         leave_out_missing=True)
     if loaded is None or not loaded[1]:
         return None
     first, recs = loaded
     largest = max(recs, key=lambda r: r.num_reg_images())
     registered = largest.num_reg_images()
+    if registered < 3:
+        return None  # too little left to hold the others to (deletions)
     (folder / "base").mkdir()
     largest.write(str(folder / "base"))
     database = folder / "extended.db"
