@@ -4,15 +4,17 @@ Starts ``vloc serve`` (SQLite, ``--workers`` engine processes) and builds two ma
 set's first pass over HTTP: one of the first images, then the last ``--added`` uploaded and
 the map rebuilt (the rebuild takes up the tie points and matched pairs the map keeps from
 its first build, and registers the added images into the COLMAP models it kept, their
-cameras held), and one of every image built at once. Then the grown map is rebuilt with
+cameras held), and one of every image built at once. With ``--deleted N``, N of the first
+images (spread over them) are then deleted from the grown map and it is rebuilt again (the
+kept models lose their cameras, the others held). Then the grown map is rebuilt with
 ``full`` (its geometry reconstructed whole). Reports each build's wall time by stage (the
 job's ``stage``, polled), how far the rebuild moved the first build's cameras (once the
 best similarity is taken out: the map's frame moves with its centroid), how far its
 cameras lie from the whole build's, and checks that the full rebuild's cameras are the
 whole build's, bit for bit.
 
-    python bench/bench_rebuild.py [--dataset PATH] [--added 10] [--workers 2] [--no-whole]
-                                  [--out bench/results/rebuild.md]
+    python bench/bench_rebuild.py [--dataset PATH] [--added 10] [--deleted 0] [--workers 2]
+                                  [--no-whole] [--out bench/results/rebuild.md]
 """
 
 from __future__ import annotations
@@ -64,6 +66,8 @@ def main() -> None:
     p.add_argument("--dataset", type=Path,
                    default=REPO.parent / "shared" / "datasets" / "seneca-uav")
     p.add_argument("--added", type=int, default=10)
+    p.add_argument("--deleted", type=int, default=0,
+                   help="then delete this many of the first images and rebuild again")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "rebuild.md")
     p.add_argument("--no-whole", action="store_true",
@@ -82,6 +86,16 @@ def main() -> None:
             timed = {"first": build(http, grown)}
             upload(http, grown, added)
             timed["rebuild"] = build(http, grown)
+            gone: set[str] = set()
+            if args.deleted:
+                listed = http.get(f"/v1/maps/{grown}/images", headers=ADMIN).json()
+                firsts = listed[:len(first)]
+                picks = np.linspace(0, len(firsts) - 1, args.deleted + 2)[1:-1].round()
+                for k in sorted({int(k) for k in picks}):
+                    http.delete(f"/v1/maps/{grown}/images/{firsts[k]['id']}",
+                                headers=ADMIN).raise_for_status()
+                    gone.add(firsts[k]["filename"])
+                timed["delete"] = build(http, grown)
             if not args.no_whole:
                 upload(http, whole, images)
                 timed["whole"] = build(http, whole)
@@ -90,32 +104,46 @@ def main() -> None:
         proc.send_signal(signal.SIGTERM)
         proc.wait(60)
     maps = tmp / "data" / "maps"
-    cameras = {k: centres(maps / m / f"rev-{r:06d}") for k, (m, r) in {
-        "first": (grown, 1), "rebuild": (grown, 2), "whole": (whole, 1),
-        "full": (grown, 3)}.items() if k in timed}
-    same = args.no_whole or (
+    after = 3 if "delete" in timed else 2
+    revisions = {"first": (grown, 1), "rebuild": (grown, 2), "delete": (grown, 3),
+                 "whole": (whole, 1), "full": (grown, after + 1)}
+    cameras = {k: centres(maps / m / f"rev-{r:06d}") for k, (m, r) in revisions.items()
+               if k in timed}
+    # a map that lost images is not the whole build's: its full rebuild is not compared
+    same = args.no_whole or bool(gone) or (
         cameras["full"] is not None and cameras["whole"] is not None
         and np.array_equal(cameras["full"], cameras["whole"], equal_nan=True))
     stages = sorted({s for _, st in timed.values() for s in st})
     label = {"first": f"first build, {len(first)} images",
              "rebuild": f"rebuild after {len(added)} added ({len(images)} images)",
              "whole": f"all {len(images)} images built at once",
+             "delete": f"rebuild after {len(gone)} of the first deleted "
+                       f"({len(images) - len(gone)} images)",
              "full": "the grown map rebuilt with `full`"}
     rows = [f"| {label[k]} | {wall:.1f} | {placed(cameras[k])} | "
             + " | ".join(f"{st.get(s, 0.0):.1f}" for s in stages) + " |"
             for k, (wall, st) in timed.items()]
     moved, apart = compare(cameras, len(first))
+    if "delete" in timed:
+        moved += " " + compare_deleted(maps / grown, gone)
     if args.no_whole:
         summary = (f"Rebuild / first build: {timed['rebuild'][0] / timed['first'][0]:.3f}. "
                    f"{moved}")
     else:
+        deleted = (f"Rebuild after the deletions / whole build: "
+                   f"{timed['delete'][0] / timed['whole'][0]:.3f}. " if "delete" in timed
+                   else "")
+        check = ("The full rebuild's cameras are the whole build's, bit for bit: "
+                 f"{'yes' if same else 'NO'}." if not gone else
+                 "(The full rebuild, of a map that lost images, is not compared with the "
+                 "whole build.)")
         summary = (f"Rebuild / whole build: {timed['rebuild'][0] / timed['whole'][0]:.3f}. "
-                   f"{moved} {apart} The full rebuild's cameras are the whole build's, bit for "
-                   f"bit: {'yes' if same else 'NO'}.")
+                   f"{deleted}{moved} {apart} {check}")
     text = "\n".join([
         "# Rebuilding a map that grew", "",
         f"`python bench/bench_rebuild.py --dataset {args.dataset.name} --added {args.added} "
-        f"--workers {args.workers}{' --no-whole' if args.no_whole else ''}`", "",
+        + (f"--deleted {args.deleted} " if args.deleted else "")
+        + f"--workers {args.workers}{' --no-whole' if args.no_whole else ''}`", "",
         f"Machine: {platform.machine()}, {os.cpu_count()} logical CPUs; {args.workers} "
         f"worker process(es); SQLite; {args.dataset.name} pass 1. Wall seconds at the client, "
         "and by the build job's stage (polled every 0.5 s).", "",
@@ -134,6 +162,25 @@ def centres(folder: Path) -> np.ndarray | None:
     geometry."""
     data = MapData.load(folder)
     return None if data.geometry is None else np.asarray(data.geometry.centres)
+
+
+def compare_deleted(folder: Path, gone: set[str]) -> str:
+    """How far the rebuild after the deletions moved the other cameras relative to one
+    another, as a sentence."""
+    from tests.core.geometry.scene import similarity_residuals
+
+    before, after = MapData.load(folder / "rev-000002"), MapData.load(folder / "rev-000003")
+    if before.geometry is None or after.geometry is None:
+        return "After the deletions: a map without geometry, nothing to compare."
+    at = {name: k for k, name in enumerate(before.names)}
+    rows = np.array([at[name] for name in after.names])
+    a = np.asarray(before.geometry.centres)[rows]
+    b = np.asarray(after.geometry.centres)
+    both = np.isfinite(a[:, 0]) & np.isfinite(b[:, 0])
+    r = similarity_residuals(a[both], b[both])
+    return (f"After deleting {len(gone)} images, the {int(both.sum())} cameras placed before "
+            f"and after moved by {np.median(r):.3f} m (median; at most {r.max():.3f} m) "
+            "relative to one another.")
 
 
 def placed(c: np.ndarray | None) -> str:

@@ -83,6 +83,29 @@ def test_tiles_reconstructed_apart_are_the_map_of_one_process(surveyed, small_ti
     assert np.median(err) < 1.0
 
 
+def test_tile_workers_judge_a_tile_by_the_core_the_packing_judges_it_by(
+        surveyed, small_tiles, tmp_path, monkeypatch):
+    """A tile reconstructed by a worker is given its core, as the packing's own
+    reconstruction of it is: a grown tile is judged by the new images of its core
+    (:func:`~vloc.workers.core.geometry.sfm._grew_well`) wherever it is reconstructed."""
+    s, stems, pairs = surveyed
+    n = tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems)
+    plan = tiling.map_tiles(s.positions, None)
+    assert n == len(plan) >= 3
+    seen = []
+    real = tiles.tile_models
+
+    def spy(*args, **kwargs):
+        seen.append((np.asarray(args[4]).tolist(), np.asarray(kwargs["core"]).tolist()))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tiles, "tile_models", spy)
+    for k in range(n):
+        tiles.reconstruct(tmp_path, k)
+    assert seen == [(t.members.tolist(), t.core.tolist()) for t in plan]
+    assert all(len(core) < len(members) for members, core in seen)
+
+
 def test_a_tile_done_for_other_inputs_is_redone(surveyed, small_tiles, tmp_path):
     s, stems, pairs = surveyed
     n = tiles.plan(tmp_path, pairs, s.positions, s.altitudes, F_TRUE, stems)

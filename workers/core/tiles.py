@@ -50,7 +50,8 @@ def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
     folder = Path(folder)
     # cut where the map's last build cut it, as the packing will (tiling.reconstruct)
     kept = KeptModels(folder / MODELS, tuple(Path(s).name for s in stems))
-    tiles = [t.members for t in tiling.map_tiles(positions, kept)]
+    plan = tiling.map_tiles(positions, kept)
+    tiles = [t.members for t in plan]
     _forget_tiles_from(folder, len(tiles) if len(tiles) > 1 else 0)
     if len(tiles) < 2:
         return 0
@@ -58,7 +59,9 @@ def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
              focal=np.array(np.nan if focal_px is None else float(focal_px)),
              seed=np.array(int(seed)), stems=np.array(stems, dtype=str),
              tiles=np.concatenate(tiles),
-             offsets=np.concatenate([[0], np.cumsum([len(t) for t in tiles])]))
+             offsets=np.concatenate([[0], np.cumsum([len(t) for t in tiles])]),
+             cores=np.concatenate([t.core for t in plan]),
+             core_offsets=np.concatenate([[0], np.cumsum([len(t.core) for t in plan])]))
     for k, inside in enumerate(tiles):
         save_results([(p.a, p.b, p) for p in tile_pairs(verified, inside)],
                      folder / INPUT.format(k))
@@ -84,6 +87,7 @@ def reconstruct(folder: str | Path, tile: int) -> int:
         focal = float(z["focal"])
         seed, stems = int(z["seed"]), [str(s) for s in z["stems"]]
         inside = z["tiles"][z["offsets"][tile]:z["offsets"][tile + 1]]
+        core = z["cores"][z["core_offsets"][tile]:z["core_offsets"][tile + 1]]
     focal_px = None if not np.isfinite(focal) else focal
     pairs = [p for _, _, p in read_results(folder / INPUT.format(tile)) if p is not None]
     key = tile_key(inside, pairs, gps, focal_px, seed)
@@ -96,7 +100,7 @@ def reconstruct(folder: str | Path, tile: int) -> int:
     kept = KeptModels(folder / MODELS, tuple(Path(s).name for s in stems))
     with threadpool_limits(limits=1, user_api="blas"):
         models = tile_models(_TiePoints(stems), pairs, gps, focal_px, inside, seed=seed,
-                             key=key, kept=kept)
+                             key=key, kept=kept, core=core)
     _write(out, key, models)
     return sum(len(m.images) for m in models or [])
 

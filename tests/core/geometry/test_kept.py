@@ -189,7 +189,10 @@ def test_similarity_residual_known_answers():
 
 
 def _run_placing(order: int, held: int, registered: int, placed: int) -> sfm._Run:
-    model = sfm.TileModel(np.arange(placed), np.zeros((placed, 3, 3)), np.zeros((placed, 3)),
+    """A grown run: ``held`` images in the kept model, ``registered`` of them placed, and
+    ``order - held`` new ones, the first ``placed - registered`` of which are placed."""
+    images = np.r_[0:registered, held:held + placed - registered]
+    model = sfm.TileModel(images, np.zeros((len(images), 3, 3)), np.zeros((len(images), 3)),
                           [], [], np.zeros(4), 0.0)
     return sfm._Run([model], None, list(range(order)), base=(held, registered))
 
@@ -203,11 +206,30 @@ def test_a_model_grew_well_when_it_placed_its_share_of_the_new_images():
     assert sfm._grew_well(_run_placing(70, 70, 63, 60))  # nothing new: nothing to judge
 
 
+def test_a_tile_grew_well_when_it_placed_its_share_of_the_new_images_of_its_core():
+    """A tile of 400 kept images, all placed, gains 40 along its edge: 10 in its core, 9
+    of them placed, and 30 in its margin, 20 placed. Judged over all 40 (29 placed, 39
+    asked) it would be reconstructed whole; over its core's (9 of 10) it grew well."""
+    run = _run_placing(440, 400, 400, 429)
+    assert not sfm._grew_well(run)
+    core = np.ones(440, bool)
+    core[409:430] = False  # margin: 409..428 placed, 429 not,
+    core[431:440] = False  # and 431..439 not: the core's new images are 400..408 and 430
+    assert int(core[400:].sum()) == 10
+    assert sfm._grew_well(run, core)
+    core[:] = True
+    assert not sfm._grew_well(run, core)  # every image in the core: as without one
+    # the core's new images placed too thinly: reconstructed whole
+    core[:] = False
+    core[428:440] = True  # 428 placed, 429..439 not
+    assert not sfm._grew_well(run, core)
+
+
 def test_a_model_that_grew_badly_is_reconstructed_whole_too_and_the_better_kept(
         tmp_path, mapping_calls, monkeypatch):
     s = survey(np.random.default_rng(23), rows=4, cols=4)
     first = _build(s, 12, KeptModels(tmp_path, _names(12)))
-    monkeypatch.setattr(sfm, "_grew_well", lambda run: False)
+    monkeypatch.setattr(sfm, "_grew_well", lambda run, core=None: False)
     grown = _build(s, 16, KeptModels(tmp_path, _names(16)))
     # grown from the kept model, then reconstructed whole: both place every image, and
     # the grown one wins the tie, its kept cameras where they were

@@ -183,7 +183,8 @@ def tags(positions: np.ndarray, altitudes: np.ndarray,
 def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                        gps: np.ndarray, focal_px: float | None, seed: int, *,
                        names: Sequence[str] | None = None, base: Path | None = None,
-                       keep: Path | None = None, context: str = "") -> list[TileModel] | None:
+                       keep: Path | None = None, context: str = "",
+                       core: np.ndarray | None = None) -> list[TileModel] | None:
     """COLMAP's models of one set of images (indices of ``keypoints``), aligned to ``gps``
     (:func:`tags`); run again with the intrinsics held where refining them went astray.
     A whole map goes through :func:`.tiling.reconstruct`, which calls this once per tile.
@@ -194,7 +195,8 @@ def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches]
     again; otherwise the other images are registered into the largest, its cameras and
     intrinsics held (:func:`_extend`). Where that
     places a smaller share of the images new to it than the base placed of its own
-    (:func:`_grew_well`), or the base does not fit, the set is reconstructed whole too, and
+    (:func:`_grew_well`; of the new images in ``core``, a mask over the set's images, where
+    given), or the base does not fit, the set is reconstructed whole too, and
     the run that places more wins (the extension, where they tie). The largest model found
     are kept in ``keep`` for the next build, with ``context`` (:func:`.kept.save_models`).
     """
@@ -210,7 +212,7 @@ def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches]
     with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
         if base is not None:
             extended = _extend(base, Path(tmp), keypoints, pairs, gps, focal_px, seed, names)
-            if extended is not None and _grew_well(extended):
+            if extended is not None and _grew_well(extended, core):
                 return _kept(extended, names, keep, context, inputs)
         chosen = _reconstruct_whole(Path(tmp), keypoints, pairs, gps, focal_px, seed)
     if extended is not None and _count(extended.models) >= _count(chosen.models):
@@ -297,16 +299,24 @@ def _extend(base: Path, folder: Path, keypoints: Sequence[np.ndarray],
     return run if run.models else None
 
 
-def _grew_well(run: _Run) -> bool:
+def _grew_well(run: _Run, core: np.ndarray | None = None) -> bool:
     """Whether a run grown from a kept model placed about as large a share of the images
     new to it as that model placed of its own (one image short allowed): a base that
     blocks the way to a better model (lewis-uav's first two thirds, 14 of 18 images placed,
-    with the rest added: 6 of 10 placed, 8 of 10 from scratch) is reconstructed anew."""
+    with the rest added: 6 of 10 placed, 8 of 10 from scratch) is reconstructed anew.
+
+    Where ``core`` marks the images the set was cut for (a tile's core, by index into the
+    set; the rest is its margin, whose images take their poses from the neighbouring tile),
+    only the new images of the core are judged: a tile that gains images along its edge
+    places fewer of those, which no other run would place better where it counts."""
     held, registered = run.base
-    new = len(run.order) - held
-    if new == 0:
+    new = np.asarray(run.order[held:], np.int64)
+    if core is not None:
+        new = new[np.asarray(core, bool)[new]]
+    if len(new) == 0:
         return True
-    return _count(run.models) - registered >= registered / max(held, 1) * new - 1
+    placed = np.isin(new, np.concatenate([m.images for m in run.models or []] or [[]]))
+    return int(placed.sum()) >= registered / max(held, 1) * len(new) - 1
 
 
 @dataclass

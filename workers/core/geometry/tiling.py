@@ -96,14 +96,15 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
         kept.save_tiles((t.core, t.members) for t in plan)
     found: list[tuple[np.ndarray, TileModel]] = []
     keys = []
-    for inside in tiles:
+    for tile in plan:
+        inside = tile.members
         key = tile_key(inside, pairs, gps, focal_px, seed)
         keys.append(key)
         if known_tiles is not None and key in known_tiles:
             models = known_tiles[key]
         else:
             models = tile_models(keypoints, pairs, gps, focal_px, inside, seed=seed, key=key,
-                                 kept=kept)
+                                 kept=kept, core=tile.core)
         found += [(inside, m) for m in models or []]
     if not found:
         if kept is not None:
@@ -181,13 +182,14 @@ def tile_key(inside: np.ndarray, pairs: list[PairMatches], gps: np.ndarray,
 
 def tile_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches], gps: np.ndarray,
                 focal_px: float | None, inside: np.ndarray, *, seed: int = 0,
-                key: str | None = None,
-                kept: KeptModels | None = None) -> list[TileModel] | None:
+                key: str | None = None, kept: KeptModels | None = None,
+                core: np.ndarray | None = None) -> list[TileModel] | None:
     """COLMAP's models of the tile ``inside`` (map indices), aligned to their GPS; their
     images are map indices. ``keypoints`` and ``gps`` (:func:`tags`) are the whole map's,
     read by index. With ``kept`` (and the tile's ``key``, :func:`tile_key`), the tile grows
     from a model kept from an earlier build where one fits (:meth:`.KeptModels.base_for`)
-    and its model is kept for the next."""
+    and its model is kept for the next; ``core`` (map indices, the images the tile was cut
+    for) says which of its new images judge the growth (:func:`.sfm.reconstruct_images`)."""
     inside = np.asarray(inside, np.int64)
     index = np.full(len(gps), -1)
     index[inside] = np.arange(len(inside))
@@ -201,7 +203,8 @@ def tile_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches], gps: 
         context = repr((settings_key(), None if focal_px is None else float(focal_px),
                         int(seed)))
         grow = {"names": [kept.names[i] for i in inside.tolist()], "context": context,
-                "base": kept.base_for(inside, tied, context), "keep": kept.entry(key)}
+                "base": kept.base_for(inside, tied, context), "keep": kept.entry(key),
+                "core": None if core is None else np.isin(inside, core)}
     models = reconstruct_images(_Subset(keypoints, inside), sub, gps[inside], focal_px, seed,
                                 **grow)
     for m in models or []:
