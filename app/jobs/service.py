@@ -59,13 +59,17 @@ def _drop_revision_tie_folders(map_dir: Path) -> None:
 
 def forget_reconstruction(tie_dir: Path) -> None:
     """Delete what the map's store keeps of its reconstruction (COLMAP's models, a large
-    map's tiles), so that the next build reconstructs the map whole (``full``); the tie
-    points and matched pairs, which no earlier build shapes, stay."""
-    from vloc.workers.core import tiles
+    map's tiles), so that the next build reconstructs the map whole (``full``), and the
+    matched pairs that moved in the map's order since they were matched (images deleted
+    before them), so that it matches them where they are: the map of a fresh build. The tie
+    points and the other pairs, which no earlier build shapes, stay."""
+    from vloc.workers.core import tiepairs, tiles
 
     shutil.rmtree(tie_dir / tiles.MODELS, ignore_errors=True)
     for result in tie_dir.glob(tiles.RESULTS_GLOB):
         result.unlink(missing_ok=True)
+    if tie_dir.is_dir():
+        tiepairs.forget_moved(tie_dir)
 
 
 def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:

@@ -100,8 +100,8 @@ def plan_tie_pairs(database_url: str, map_id: str, tie_dir: str) -> dict:
     index.
 
     ``tie_dir`` is the map's store of tie points and matched pairs, kept from build to
-    build: the pairs matched there before whose images are at the same places in the map's
-    order are kept (:func:`vloc.workers.core.tiepairs.keep_valid`) and left out of the
+    build: the pairs matched there before whose images are both still in the map are kept
+    at their places now (:func:`vloc.workers.core.tiepairs.keep_valid`) and left out of the
     plan, and the tie points of images no longer in the map are deleted. ``planned`` is
     the number of pairs the map's geometry matches in all."""
     from vloc.workers.core import tiepairs

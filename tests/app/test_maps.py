@@ -373,6 +373,24 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
         # held, not reconstructed again: the same cameras to round-off
         assert similarity_residual(third.geometry.centres[rest][both],
                                     fourth.geometry.centres[both]) < 1e-6
+    # and a full rebuild now is the map a fresh build of those nine gives, bit for bit:
+    # the pairs that moved up the order are matched again where they are
+    job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", params={"full": "true"},
+                             headers=ADMIN).json()["job_id"])
+    assert (job["status"], job["revision"]) == ("done", 5)
+    fifth = MapData.load(ctx.settings.packed_map_dir(map_id, 5))
+    nine_id = new_map(c)
+    c.post(f"/v1/maps/{nine_id}/images", files=jpeg_files(maps[:4] + maps[5:]),
+           headers=ADMIN)
+    assert wait_job(c, c.post(f"/v1/maps/{nine_id}/build", headers=ADMIN)
+                    .json()["job_id"])["status"] == "done"
+    nine = MapData.load(ctx.settings.packed_map_dir(nine_id, 1))
+    assert list(nine.names) == list(fifth.names)
+    assert (fifth.geometry is None) == (nine.geometry is None)
+    if nine.geometry is not None:
+        np.testing.assert_array_equal(fifth.geometry.centres, nine.geometry.centres)
+        np.testing.assert_array_equal(fifth.geometry.points["sift"],
+                                      nine.geometry.points["sift"])
 
 
 
@@ -594,15 +612,23 @@ def test_a_rebuild_takes_up_what_an_earlier_build_left(module_client, shots, tmp
     assert [p.name for p in ties.glob(tiepairs.RESULTS_GLOB)] != [tiepairs.KEPT]
     assert tiepairs.keep_valid(ties, sorted(files)) == set(first)
     assert [p.name for p in ties.glob(tiepairs.RESULTS_GLOB)] == [tiepairs.KEPT]
-    # the map's first image deleted: the others move up the map's order, their pairs are
-    # matched again, and the deleted image's tie points go
+    # the map's first image deleted: the others move up the map's order and their pairs
+    # are taken up where they are now, only pairs new to the plan are matched, and the
+    # deleted image's tie points go
     gone = min(files)
     assert module_client.delete(f"/v1/maps/{map_id}/images/{gone}",
                                 headers=ADMIN).status_code == 204
     del files[gone]
-    _, again, rematched, _ = attempt()
-    assert rematched == again > 0 and calls["pair"] == planned + again
+    _, again, rematched, found = attempt()
+    assert again > rematched and again > 0 and calls["pair"] == planned + rematched
+    assert len(found) == again
     assert not list(ties.glob(f"{gone}.*"))
+    # a full rebuild forgets the pairs that moved: they are matched again, seeded where
+    # they are, as a fresh build of these images would match them
+    forget_reconstruction(ties)
+    _, again_full, rematched_full, found_full = attempt()
+    assert again_full == again and rematched_full == again - rematched > 0
+    assert found_full.keys() == found.keys()
     # every file was written under a temporary name and renamed: none is left half written
     assert not list(ties.glob(".*"))
 

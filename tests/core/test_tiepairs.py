@@ -106,23 +106,34 @@ def test_pairs_with_missing_tie_points_are_left_to_the_packing(surveyed, tmp_pat
     assert set(known) == {p for p in planned if 2 not in p}
 
 
-def test_results_hold_while_their_images_keep_their_places(surveyed, tmp_path):
-    """A pair's result names its two images: it holds for a map whose images at its two
-    indices are still those (images added after them change nothing), not for one whose
-    order moved them (an image deleted before them)."""
+def test_results_follow_their_images_in_the_map_order(surveyed, tmp_path):
+    """A pair's result names its two images: it holds for a map that still has both, at
+    their places in its order now (an image deleted before them moves them up; one added
+    after them changes nothing), with its matches unchanged; not for one without them."""
     s, lat, lon, xy = surveyed
     stems = _write_ties(s, tmp_path)
     planned = tiepairs.plan(lat, lon, list(s.altitudes))
     ids = [10 + i for i in range(len(xy))]
     tiepairs.match_batch(stems, planned, tmp_path / "pairs-000000.npz", image_ids=ids)
-    assert set(tiepairs.load_results(tmp_path, ids)) == set(planned)
+    first = tiepairs.load_results(tmp_path, ids)
+    assert set(first) == set(planned)
     assert set(tiepairs.load_results(tmp_path, ids + [99])) == set(planned)
     last = len(ids) - 1
     assert set(tiepairs.load_results(tmp_path, ids[:-1])) == \
         {p for p in planned if last not in p}
+    # the first image replaced by another: its pairs go, the others stay where they are
     assert set(tiepairs.load_results(tmp_path, [5] + ids[1:])) == \
         {p for p in planned if 0 not in p}
-    assert tiepairs.load_results(tmp_path, ids[1:]) == {}        # every index moved
+    # the first image deleted: every other pair one place up, its matches as they were
+    moved = tiepairs.load_results(tmp_path, ids[1:])
+    assert set(moved) == {(a - 1, b - 1) for a, b in planned if a > 0}
+    for (a, b), p in first.items():
+        if a > 0:
+            got = moved[(a - 1, b - 1)]
+            assert (got is None) == (p is None)
+            if p is not None:
+                assert (got.a, got.b, got.config) == (a - 1, b - 1, p.config)
+                np.testing.assert_array_equal(got.matches, p.matches)
     assert tiepairs.load_results(tmp_path / "nothing-here", ids) == {}
 
 
@@ -149,9 +160,46 @@ def test_keep_valid_gathers_what_holds_and_deletes_the_rest(surveyed, tmp_path):
     stamp = (tmp_path / tiepairs.KEPT).stat().st_mtime_ns
     assert tiepairs.keep_valid(tmp_path, ids) == set(planned)      # nothing to gather
     assert (tmp_path / tiepairs.KEPT).stat().st_mtime_ns == stamp
-    # the map's first image deleted: the pairs of the others moved and are matched again
+    # the map's first image deleted: the pairs of the others are kept a place up, and the
+    # places they were seeded at with them
+    up = {(a - 1, b - 1) for a, b in planned if a > 0}
+    assert tiepairs.keep_valid(tmp_path, ids[1:]) == up
+    assert [p.name for p in tmp_path.glob(tiepairs.RESULTS_GLOB)] == [tiepairs.KEPT]
+    assert set(tiepairs.load_results(tmp_path, ids[1:])) == up
+    # image 0's pairs left the store with it
+    assert set(tiepairs.load_results(tmp_path, ids)) == {p for p in planned if 0 not in p}
+    # a full rebuild forgets the pairs that moved: every one of them here, so that the
+    # map matches them seeded where they are now, as a fresh build would
+    assert tiepairs.forget_moved(tmp_path) == len(up)
     assert tiepairs.keep_valid(tmp_path, ids[1:]) == set()
-    assert tiepairs.load_results(tmp_path, ids) == {}
+    assert tiepairs.forget_moved(tmp_path) == 0
+
+
+def test_forget_moved_keeps_the_pairs_matched_where_they_are(surveyed, tmp_path):
+    """Of a store whose pairs moved (an image deleted) and were then joined by pairs
+    matched at their places (an image added after), a full rebuild forgets the moved ones
+    alone; the others stay as they were."""
+    s, lat, lon, xy = surveyed
+    stems = _write_ties(s, tmp_path)
+    planned = tiepairs.plan(lat, lon, list(s.altitudes))
+    ids = list(range(len(xy)))
+    tiepairs.match_batch(stems, [p for p in planned if 1 not in p],
+                         tmp_path / "pairs-000000.npz", image_ids=ids)
+    # image 1 deleted: the pairs after it move one place up; image 0's pairs with images
+    # before it stay (none), those with images after move too
+    rest = ids[:1] + ids[2:]
+    kept = tiepairs.keep_valid(tmp_path, rest)
+    stems_now = {k: stems[i] for k, i in enumerate(rest)}
+    fresh = [(0, 1), (1, 2)]  # matched where they are: the images now at 0, 1 and 2
+    fresh = [p for p in fresh if p not in kept]
+    tiepairs.match_batch(stems_now, fresh, tmp_path / "pairs-000001.npz", image_ids=rest)
+    before = tiepairs.load_results(tmp_path, rest)
+    went = tiepairs.forget_moved(tmp_path)
+    after = tiepairs.load_results(tmp_path, rest)
+    assert went == len(kept) > 0
+    assert set(after) == set(fresh)
+    for pair in fresh:
+        assert (after[pair] is None) == (before[pair] is None)
 
 
 def test_an_empty_batch_round_trips(tmp_path):
@@ -210,3 +258,18 @@ def test_results_of_another_format_are_ignored_and_matched_again(surveyed, tmp_p
     known = tiepairs.load_results(tmp_path, ids)
     assert sorted(known) == batch
     assert all(p is None or p.matches.shape[1] == 2 for p in known.values())
+
+
+def test_a_file_that_is_not_results_is_matched_again(surveyed, tmp_path):
+    """A results file cut short or overwritten (not a results file at all) holds nothing:
+    its pairs are matched again and the file goes, as one of another format."""
+    s, lat, lon, xy = surveyed
+    stems = _write_ties(s, tmp_path)
+    planned = tiepairs.plan(lat, lon, list(s.altitudes))
+    ids = list(range(len(xy)))
+    tiepairs.match_batch(stems, planned[:3], tmp_path / "pairs-000000.npz", image_ids=ids)
+    (tmp_path / "pairs-000001.npz").write_bytes(b"not an npz")
+    assert set(tiepairs.load_results(tmp_path, ids)) == set(planned[:3])
+    assert tiepairs.forget_moved(tmp_path) == 0
+    assert tiepairs.keep_valid(tmp_path, ids) == set(planned[:3])
+    assert [p.name for p in tmp_path.glob(tiepairs.RESULTS_GLOB)] == [tiepairs.KEPT]

@@ -9,14 +9,18 @@ the results to the packing (:func:`load_results`), which matches only what is mi
 map comes out the same as when one process matches every pair.
 
 Results name the images they matched, so they outlive the build: a map keeps its tie points
-and matched pairs, and a later build takes up every pair whose two images are still at the
-same places in the map's order (:func:`keep_valid`). Images added to a map come after the
-others, so rebuilding it matches only the pairs the new images take part in; deleting an
-image moves the images after it, and their pairs are matched again.
+and matched pairs, and a later build takes up every pair whose two images are both still in
+the map (:func:`keep_valid`), at their places in the map's order now. Images added to a map
+come after the others, so rebuilding it matches only the pairs the new images take part in;
+deleting an image moves the images after it up the order, and their pairs are taken up
+where they are now. Each result remembers the places its RANSAC was seeded at: a pair that
+moved holds the matches a fresh build's seeding might not give, and a full rebuild
+(:func:`forget_moved`) matches such pairs again, so that its map is a fresh build's.
 """
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -48,33 +52,66 @@ def keep_valid(folder: str | Path, image_ids: list[int]) -> set[tuple[int, int]]
     """Gather the results in ``folder`` that hold for a map whose images are ``image_ids``
     (in map order) into one file, delete the rest, and return the pairs they cover.
 
-    A stored pair holds when the images it matched are at the same indices now: its
-    matches, and its RANSAC's seed, are then what matching it again would give. Results
-    of another format, and pairs that now index other images, go."""
+    A stored pair holds while both images it matched are in the map: it is taken up at
+    their places now (a pair's matches index the images' own keypoints, which do not move),
+    remembering the places it was seeded at (:func:`forget_moved`). Results of another
+    format, and pairs of an image no longer in the map, go."""
     folder = Path(folder)
+    where = {image_id: k for k, image_id in enumerate(image_ids)}
     files = sorted(folder.glob(RESULTS_GLOB))
-    held: list[tuple[int, int, PairMatches | None]] = []
-    dropped = False
+    held: list[tuple[int, int, PairMatches | None, tuple[int, int]]] = []
+    changed = False
     for path in files:
         found = _read(path)
-        dropped |= found is None                    # a file of another format
-        for a, b, p, ids in found or []:
-            if _holds(a, b, ids, image_ids):
-                held.append((a, b, p))
-            else:
-                dropped = True
-    if dropped or len(files) > 1 or (files and files[0].name != KEPT):
+        changed |= found is None                    # a file of another format
+        for a, b, p, ids, seeded in found or []:
+            placed = _place(ids, where)
+            if placed is None:
+                changed = True
+                continue
+            changed |= placed != (a, b)
+            held.append((*placed, _at(p, placed), seeded))
+    if changed or len(files) > 1 or (files and files[0].name != KEPT):
         held.sort(key=lambda r: (r[0], r[1]))
-        save_results(held, folder / KEPT, image_ids=image_ids)
+        save_results([r[:3] for r in held], folder / KEPT, image_ids=image_ids,
+                     seeded=[r[3] for r in held])
         for path in files:
             if path.name != KEPT:
                 path.unlink()
-    return {(a, b) for a, b, _ in held}
+    return {(a, b) for a, b, _, _ in held}
 
 
-def _holds(a: int, b: int, ids: tuple[int, int] | None, image_ids: list[int]) -> bool:
-    return ids is not None and max(a, b) < len(image_ids) \
-        and (image_ids[a], image_ids[b]) == ids
+def forget_moved(folder: str | Path) -> int:
+    """Delete the results in ``folder`` of pairs that moved in the map's order since they
+    were matched (:func:`keep_valid`), so that the next build matches them again, seeded
+    where they are: a full rebuild's map is then a fresh build's. Returns how many went."""
+    gone = 0
+    for path in sorted(Path(folder).glob(RESULTS_GLOB)):
+        found = _read(path)
+        if found is None:
+            continue
+        stay = [r for r in found if (r[0], r[1]) == r[4]]
+        if len(stay) < len(found):
+            gone += len(found) - len(stay)
+            named = all(r[3] is not None for r in stay)
+            save_results([r[:3] for r in stay], path, seeded=[r[4] for r in stay],
+                         image_ids={**{r[0]: r[3][0] for r in stay},
+                                    **{r[1]: r[3][1] for r in stay}} if named else None)
+    return gone
+
+
+def _place(ids: tuple[int, int] | None, where: dict[int, int]) -> tuple[int, int] | None:
+    """Where a stored pair of images ``ids`` is in the map now (``where``: image id -> map
+    index); None where it named no images or one has left the map."""
+    if ids is None or ids[0] not in where or ids[1] not in where:
+        return None
+    a, b = where[ids[0]], where[ids[1]]
+    return (a, b) if a < b else None
+
+
+def _at(p: PairMatches | None, placed: tuple[int, int]) -> PairMatches | None:
+    """A stored pair's matches at the images' places now."""
+    return None if p is None else PairMatches(placed[0], placed[1], p.matches, p.config)
 
 
 def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | Path, *,
@@ -106,11 +143,13 @@ def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | 
 
 
 def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Path, *,
-                 image_ids: dict[int, int] | list[int] | None = None) -> None:
+                 image_ids: dict[int, int] | list[int] | None = None,
+                 seeded: list[tuple[int, int]] | None = None) -> None:
     """Matched pairs as one ``.npz``: each pair tried, whether it verified, and the matched
     keypoint indices and two-view configuration of those that did; with ``image_ids``
-    (index -> id), the ids of the images each pair matched. Written under a temporary name
-    and renamed, so a file under ``out`` is always whole."""
+    (index -> id), the ids of the images each pair matched; with ``seeded``, the places
+    each pair was matched (and its RANSAC seeded) at, where not the ones it has now. Written
+    under a temporary name and renamed, so a file under ``out`` is always whole."""
     ok = [p for _, _, p in done if p is not None]
     arrays = {
         "format": np.array(FORMAT),
@@ -125,6 +164,9 @@ def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Pat
     if image_ids is not None:
         arrays["id_a"] = np.array([image_ids[a] for a, _, _ in done], np.int64)
         arrays["id_b"] = np.array([image_ids[b] for _, b, _ in done], np.int64)
+    if seeded is not None:
+        arrays["seed_a"] = np.array([a for a, _ in seeded], np.int64).reshape(-1)
+        arrays["seed_b"] = np.array([b for _, b in seeded], np.int64).reshape(-1)
     out = Path(out)
     tmp = out.with_name("." + out.name)  # outside the results' glob until whole
     np.savez(tmp, **arrays)
@@ -136,39 +178,53 @@ def load_results(folder: str | Path, image_ids: list[int],
     """Every pair matched into ``folder`` (:func:`match_batch`) that holds for a map whose
     images are ``image_ids`` (:func:`keep_valid`): (a, b) -> its tie points, None where it
     did not verify."""
+    where = {image_id: k for k, image_id in enumerate(image_ids)}
     out: dict[tuple[int, int], PairMatches | None] = {}
     for path in sorted(Path(folder).glob(RESULTS_GLOB)):
-        for a, b, p, ids in _read(path) or []:
-            if _holds(a, b, ids, image_ids):
-                out[(a, b)] = p
+        for _, _, p, ids, _ in _read(path) or []:
+            placed = _place(ids, where)
+            if placed is not None:
+                out[placed] = _at(p, placed)
     return out
 
 
 def read_results(path: str | Path) -> list[tuple[int, int, PairMatches | None]]:
     """The pairs one file of :func:`save_results` holds, in its order; none from a file of
     another format."""
-    return [(a, b, p) for a, b, p, _ in _read(path) or []]
+    return [(a, b, p) for a, b, p, _, _ in _read(path) or []]
 
 
-def _read(path: str | Path,
-          ) -> list[tuple[int, int, PairMatches | None, tuple[int, int] | None]] | None:
-    """:func:`read_results` with each pair's image ids (None where the file names none);
-    None for a file of another format."""
-    with np.load(path) as z:
-        if "format" not in z.files or int(z["format"]) != FORMAT:
-            return None
-        a, b, verified, counts = z["a"], z["b"], z["verified"], z["counts"]
-        matches, configs = z["matches"].astype(np.int64), z["configs"]
-        ids = list(zip(z["id_a"].tolist(), z["id_b"].tolist(), strict=True)) \
-            if "id_a" in z.files else [None] * len(a)
+_Row = tuple[int, int, PairMatches | None, tuple[int, int] | None, tuple[int, int]]
+"""A stored pair: its places now, its matches (None: it did not verify), the ids of its
+images (None in files that name none) and the places it was seeded at."""
+
+
+def _read(path: str | Path) -> list[_Row] | None:
+    """:func:`read_results` with each pair's image ids (None where the file names none) and
+    the places it was seeded at; None for a file of another format, or one that is not a
+    results file at all (its pairs are then matched again)."""
+    try:
+        with np.load(path) as z:
+            if "format" not in z.files or int(z["format"]) != FORMAT:
+                return None
+            a, b, verified, counts = z["a"], z["b"], z["verified"], z["counts"]
+            matches, configs = z["matches"].astype(np.int64), z["configs"]
+            ids = list(zip(z["id_a"].tolist(), z["id_b"].tolist(), strict=True)) \
+                if "id_a" in z.files else [None] * len(a)
+            # results written before pairs moved with the map's order: seeded where they are
+            seeded = list(zip(z["seed_a"].tolist(), z["seed_b"].tolist(), strict=True)) \
+                if "seed_a" in z.files else list(zip(a.tolist(), b.tolist(), strict=True))
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
+        return None
     ends = np.concatenate([[0], np.cumsum(counts)])
-    out: list[tuple[int, int, PairMatches | None, tuple[int, int] | None]] = []
+    out: list[_Row] = []
     k = 0
-    for i, j, good, named in zip(a.tolist(), b.tolist(), verified.tolist(), ids, strict=True):
+    for i, j, good, named, at in zip(a.tolist(), b.tolist(), verified.tolist(), ids, seeded,
+                                     strict=True):
         if good:
             out.append((i, j, PairMatches(i, j, matches[ends[k]:ends[k + 1]],
-                                          int(configs[k])), named))
+                                          int(configs[k])), named, at))
             k += 1
         else:
-            out.append((i, j, None, named))
+            out.append((i, j, None, named, at))
     return out
