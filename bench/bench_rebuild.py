@@ -104,9 +104,8 @@ def main() -> None:
         proc.send_signal(signal.SIGTERM)
         proc.wait(60)
     maps = tmp / "data" / "maps"
-    after = 3 if "delete" in timed else 2
     revisions = {"first": (grown, 1), "rebuild": (grown, 2), "delete": (grown, 3),
-                 "whole": (whole, 1), "full": (grown, after + 1)}
+                 "whole": (whole, 1), "full": (grown, 4 if "delete" in timed else 3)}
     cameras = {k: centres(maps / m / f"rev-{r:06d}") for k, (m, r) in revisions.items()
                if k in timed}
     # a map that lost images is not the whole build's: its full rebuild is not compared

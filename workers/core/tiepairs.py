@@ -93,10 +93,11 @@ def forget_moved(folder: str | Path) -> int:
         stay = [r for r in found if (r[0], r[1]) == r[4]]
         if len(stay) < len(found):
             gone += len(found) - len(stay)
-            named = all(r[3] is not None for r in stay)
+            # the ids the kept rows name, by their places (every results file names them)
+            ids = {i: image_id for a, b, _, named, _ in stay if named is not None
+                   for i, image_id in zip((a, b), named, strict=True)}
             save_results([r[:3] for r in stay], path, seeded=[r[4] for r in stay],
-                         image_ids={**{r[0]: r[3][0] for r in stay},
-                                    **{r[1]: r[3][1] for r in stay}} if named else None)
+                         image_ids=ids if all(r[3] is not None for r in stay) else None)
     return gone
 
 

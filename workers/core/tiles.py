@@ -87,7 +87,9 @@ def reconstruct(folder: str | Path, tile: int) -> int:
         focal = float(z["focal"])
         seed, stems = int(z["seed"]), [str(s) for s in z["stems"]]
         inside = z["tiles"][z["offsets"][tile]:z["offsets"][tile + 1]]
-        core = z["cores"][z["core_offsets"][tile]:z["core_offsets"][tile + 1]]
+        # a plan written before tiles carried their cores: every image judges the growth
+        core = z["cores"][z["core_offsets"][tile]:z["core_offsets"][tile + 1]] \
+            if "cores" in z.files else None
     focal_px = None if not np.isfinite(focal) else focal
     pairs = [p for _, _, p in read_results(folder / INPUT.format(tile)) if p is not None]
     key = tile_key(inside, pairs, gps, focal_px, seed)

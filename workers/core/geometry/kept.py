@@ -200,12 +200,13 @@ def without_images(rec, renumber: dict[int, int]):
             out.add_image_with_trivial_frame(copy, image.cam_from_world())
         else:
             out.add_image_with_trivial_frame(copy)
+    posed = {old: new for old, new in renumber.items()
+             if rec.exists_image(old) and rec.images[old].has_pose}
     for point in rec.points3D.values():
         track = pycolmap.Track()
         for element in point.track.elements:
-            old = element.image_id
-            if old in renumber and rec.images[old].has_pose:
-                track.add_element(renumber[old], element.point2D_idx)
+            if element.image_id in posed:
+                track.add_element(posed[element.image_id], element.point2D_idx)
         if track.length() >= 2:
             out.add_point3D(point.xyz, track, point.color)
     return out

@@ -88,8 +88,13 @@ class MapGeometry:
 
     @property
     def reconstructed(self) -> np.ndarray:
-        """(N,) bool: which map images have a camera pose."""
-        return np.isfinite(np.asarray(self.centres)[:, 0])
+        """(N,) bool, read-only: which map images have a camera pose (worked out once: a
+        global step asks it of every frame)."""
+        if "placed" not in self._memo:
+            placed = np.isfinite(np.asarray(self.centres)[:, 0])
+            placed.setflags(write=False)
+            self._memo["placed"] = placed
+        return self._memo["placed"]
 
     @property
     def base_sigma(self) -> float:

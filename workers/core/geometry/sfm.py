@@ -315,7 +315,7 @@ def _grew_well(run: _Run, core: np.ndarray | None = None) -> bool:
         new = new[np.asarray(core, bool)[new]]
     if len(new) == 0:
         return True
-    placed = np.isin(new, np.concatenate([m.images for m in run.models or []] or [[]]))
+    placed = np.isin(new, _images(run.models))
     return int(placed.sum()) >= registered / max(held, 1) * len(new) - 1
 
 
@@ -455,11 +455,16 @@ def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> TileModel | None
                   camera, float(rec.compute_mean_reprojection_error()) / COLMAP_SCALE)
 
 
+def _images(models: list[TileModel] | None) -> np.ndarray:
+    """The distinct images the models place, ascending."""
+    if not models:
+        return np.zeros(0, np.int64)
+    return np.unique(np.concatenate([m.images for m in models]))
+
+
 def _count(models: list[TileModel] | None) -> int:
     """Distinct images the models place."""
-    if not models:
-        return 0
-    return len(set(np.concatenate([m.images for m in models]).tolist()))
+    return len(_images(models))
 
 
 def _good(models: list[TileModel] | None, focal_px: float, n: int) -> bool:
