@@ -5,7 +5,9 @@ For each survey three maps are built as ``vloc eval`` builds them:
 - **first**: the survey's first map images, its COLMAP model kept
   (:mod:`workers.core.geometry.kept`);
 - **updated**: the first map's images and the added ones, the added ones registered into the
-  kept model with its cameras held (what the service's build does once images are added);
+  kept model with its cameras held, and the first map's place vocabularies, descriptors and
+  SIFT masks kept where they still hold (:mod:`workers.core.carryover`): what the service's
+  build does once images are added;
 - **scratch**: the same images built at once, reconstructed whole (``vloc map build --full``).
 
 The updated and the scratch map localise the same query frames with ``hybrid`` and
@@ -100,14 +102,24 @@ class MapperClock:
         pycolmap.incremental_mapping = self._real
 
 
-def build(images, kept: Path | None) -> tuple[object, dict, float, float]:
+def build(images, kept: Path | None, previous=None,
+          revision: int = 1) -> tuple[object, dict, float, float]:
     """The map, its geometry report, the mapper's CPU s and the whole build's CPU s."""
     report: dict = {}
     t0 = time.process_time()
     with MapperClock() as clock:
         data = build_map(images, load_frames(images), map_id="update", report=report,
-                         kept=kept)
+                         kept=kept, previous=previous, revision=revision)
     return data, report, clock.seconds, time.process_time() - t0
+
+
+def vocabularies(data) -> str:
+    """Which revision trained the map's vocabularies, and how far its images' distortion
+    has risen since (the largest over its descriptors)."""
+    fits = data.vocabulary_fits.values()
+    trained = sorted({f.revision for f in fits})
+    rise = max((f.rise() for f in fits), default=0.0)
+    return f"revision {', '.join(map(str, trained))}, +{100 * rise:.1f} %"
 
 
 def localise(data, queries, options: dict) -> dict:
@@ -125,16 +137,17 @@ def run_survey(name: str) -> dict:
            "queries": len(queries), "options": options, "maps": {}}
     with tempfile.TemporaryDirectory(prefix="vloc-update-") as tmp:
         kept = Path(tmp)
-        _, report, mapper_s, build_s = build(first, kept)
+        before, report, mapper_s, build_s = build(first, kept)
         out["maps"]["first"] = {"geometry": report, "mapper_cpu_s": mapper_s,
                                 "build_cpu_s": build_s}
         print(f"{name} first: mapper {mapper_s:.1f} s, placed {report.get('placed')}",
               flush=True)
-        for label, store in (("updated", kept), ("scratch", None)):
-            data, report, mapper_s, build_s = build(first + added, store)
+        for label, store, previous in (("updated", kept, before), ("scratch", None, None)):
+            data, report, mapper_s, build_s = build(first + added, store, previous, 2)
             modes = localise(data, queries, options)
             out["maps"][label] = {"geometry": report, "mapper_cpu_s": mapper_s,
-                                  "build_cpu_s": build_s, "modes": modes}
+                                  "build_cpu_s": build_s, "modes": modes,
+                                  "vocabularies": vocabularies(data)}
             print(f"{name} {label}: mapper {mapper_s:.1f} s, placed {report.get('placed')}, "
                   f"hybrid {modes['hybrid']['mean_error_m']:.2f} m", flush=True)
     return out
@@ -142,8 +155,9 @@ def run_survey(name: str) -> dict:
 
 def table(rows: list[dict]) -> str:
     lines = ["| survey | map | images | placed | GPS RMS h / v m | mapper CPU s | "
+             "vocabularies trained by, distortion since | "
              "hybrid mean / median m | SIFT steps | sift mean / median m |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         for label, m in row["maps"].items():
             g = m["geometry"]
@@ -151,7 +165,7 @@ def table(rows: list[dict]) -> str:
             cells = [row["survey"], label, str(n), str(g.get("placed", "-")),
                      f"{g.get('gps_rms_m') or float('nan'):.1f} / "
                      f"{g.get('gps_rms_vertical_m') or float('nan'):.1f}",
-                     f"{m['mapper_cpu_s']:.1f}"]
+                     f"{m['mapper_cpu_s']:.1f}", m.get("vocabularies", "-")]
             if "modes" in m:
                 h, s = m["modes"]["hybrid"], m["modes"]["sift"]
                 cells += [f"{h['mean_error_m']:.2f} / {h['median_error_m']:.2f}",

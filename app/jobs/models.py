@@ -5,7 +5,7 @@ from __future__ import annotations
 import uuid
 from datetime import datetime
 
-from sqlalchemy import Float, ForeignKey, Integer, String, Text
+from sqlalchemy import Boolean, Float, ForeignKey, Integer, String, Text, false
 from sqlalchemy.orm import Mapped, mapped_column
 
 from vloc.app.db import Base, UTCDateTime, new_id, utcnow
@@ -49,6 +49,9 @@ class BuildJob(Base):
     """What the build is doing now (:class:`BuildStage`); NULL before it starts."""
     revision: Mapped[int | None] = mapped_column(Integer)
     """The map revision this job produced (set when done)."""
+    full: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    """Built whole: the geometry reconstructed and the vocabularies trained afresh, nothing
+    carried over from the revision before."""
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)

@@ -25,6 +25,9 @@ class JobRead(BaseModel):
     n_images: int = Field(description="Images whose features this job extracts")
     n_extracted: int
     revision: int | None = Field(description="The map revision the job produced")
+    full: bool = Field(False, description="Whether the job builds the map whole (``full``): "
+                                          "its geometry reconstructed and its place "
+                                          "vocabularies trained afresh")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None

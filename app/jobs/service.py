@@ -72,10 +72,13 @@ def forget_reconstruction(tie_dir: Path) -> None:
         tiepairs.forget_moved(tie_dir)
 
 
-def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
+def start_build(db: Session, *, map_: Map, force: bool = False, full: bool = False,
+                ) -> BuildJob:
     """Queue a build of a map; 409 while one runs, when the map has no image, or (unless
-    ``force``) when its current revision already holds every image with all its features:
-    the build would pack the same revision again."""
+    ``force`` or ``full``) when its current revision already holds every image with all
+    its features: the build would pack the same revision again. ``full`` builds it whole
+    (the caller forgets the reconstruction: :func:`forget_reconstruction`)."""
+    force = force or full
     if db.scalar(select(func.count(BuildJob.id)).where(
             BuildJob.map_id == map_.id, BuildJob.status.in_(JobStatus.ACTIVE))):
         raise Problem(409, "a build of this map is already running", kind=ProblemKind.MAP_BUSY)
@@ -92,7 +95,7 @@ def start_build(db: Session, *, map_: Map, force: bool = False) -> BuildJob:
                       "add or delete images first, or pass force=true to pack it again",
                       kind=ProblemKind.MAP_UP_TO_DATE,
                       revision=map_.revision)
-    job = BuildJob(map_id=map_.id, status=JobStatus.QUEUED, progress=0.0)
+    job = BuildJob(map_id=map_.id, status=JobStatus.QUEUED, progress=0.0, full=full)
     db.add(job)
     map_.status = MapStatus.BUILDING
     db.commit()
@@ -163,10 +166,11 @@ class BuildRunner(BackgroundRunner):
             for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
         await self._match_pairs(job_id, url, map_id, tie_dir)
         await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files)
+        previous = await asyncio.to_thread(self._previous_folder, job_id, map_id)
         packed = await run_task(
             self.engine, tasks.pack_map, url, str(map_id), revision, str(folder),
             lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir),
-            job_id=str(job_id))
+            job_id=str(job_id), previous=previous)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
         if self.on_revised is not None:
             self.on_revised(str(map_id), revision)
@@ -230,6 +234,17 @@ class BuildRunner(BackgroundRunner):
             job.n_images = len(images)
             db.commit()
             return job.map_id, [(img.id, str(image_path(self.settings, img))) for img in images]
+
+    def _previous_folder(self, job_id: uuid.UUID, map_id: uuid.UUID) -> str | None:
+        """The packed revision the build packs from (the map's current one, whose place
+        vocabularies and SIFT masks its images keep where they still hold); None for a
+        first or a ``full`` build, or where that revision is gone or has no image ids."""
+        with self.db_sessions() as db:
+            job, m = db.get(BuildJob, job_id), db.get(Map, map_id)
+            if job.full or m.revision == 0:
+                return None
+        folder = self.settings.packed_map_dir(str(map_id), m.revision)
+        return str(folder) if revision_images(str(folder)).ids else None
 
     def _files(self, map_id: uuid.UUID, lens_sample: int = 25,
                ) -> tuple[list[str], dict[int, str]]:

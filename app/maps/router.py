@@ -147,12 +147,13 @@ def build_map(map_: MapDep, db: DbSession, ctx: Ctx, response: Response,
                                                      "current one holds every image"),
               full: bool = Query(False, description="Reconstruct the map's camera geometry "
                                                     "whole instead of registering the images "
-                                                    "added since the last build into it "
+                                                    "added since the last build into it, and "
+                                                    "train its place vocabularies afresh "
                                                     "(implies force)")
               ) -> BuildAccepted:
     """Extract the new images' features and pack a new revision, in the background
     (409 ``map-up-to-date`` when there is nothing new, unless ``force`` or ``full``)."""
-    job = start_build(db, map_=map_, force=force or full)
+    job = start_build(db, map_=map_, force=force, full=full)
     if full:
         forget_reconstruction(ctx.settings.tie_store_dir(str(map_.id)))
     ctx.builds.launch(job.id)

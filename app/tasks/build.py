@@ -3,8 +3,9 @@
 Extraction is per image and writes its features straight into the database, so that big
 arrays never travel through the API process; packing reads every built image's features
 back, assembles the map (with the SIFT neighbour reduction, the place descriptors'
-vocabularies, trained anew for every revision and stored with it, and the map's camera
-geometry) and saves it as a memory-mappable folder. Both open their own database
+vocabularies, trained by a first or full build and kept by updates while they fit the map,
+stored with every revision, and the map's camera geometry) and saves it as a
+memory-mappable folder. Both open their own database
 connection, cached per URL. They run in a worker process, so imports of the core stay inside
 the functions that need them.
 """
@@ -29,7 +30,7 @@ from vloc.app.maps.codecs import (
     encode_vocabulary,
 )
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
-from vloc.app.maps.revisions import write_image_ids, write_timings
+from vloc.app.maps.revisions import revision_images, write_image_ids, write_timings
 from vloc.app.tasks.database import sessions
 
 log = logging.getLogger(__name__)
@@ -216,6 +217,26 @@ def _read_images(database_url: str, map_id: str) -> list[dict]:
             for i, f, lat, lon, alt, t, flight in rows]
 
 
+def _previous(folder: str | None, image_ids: list[int]):
+    """The packed revision in ``folder`` with where each of ``image_ids`` lies in it
+    (:class:`~vloc.workers.core.carryover.Previous`); None without one, or where it
+    cannot be read (packed before its image ids were recorded, or damaged)."""
+    from vloc.workers.core.carryover import Previous
+    from vloc.workers.core.mapdata import MapData
+
+    if folder is None:
+        return None
+    ids = revision_images(folder).ids
+    try:
+        data = MapData.load(folder, mmap=True)
+    except (OSError, ValueError, KeyError) as exc:
+        log.warning("revision %s cannot be packed from, packing afresh: %s", folder, exc)
+        return None
+    if ids is None or len(ids) != len(data):
+        return None
+    return Previous.of(data, ids, image_ids)
+
+
 def _read_features(database_url: str, map_id: str, images: list[dict], ties: list,
                    timings: dict) -> list:
     """The decoded features of ``images`` (from :func:`_read_images`), with their tie points.
@@ -257,7 +278,7 @@ def _read_features(database_url: str, map_id: str, images: list[dict], ties: lis
 def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
              lens_files: list[str] | None = None,
              image_files: dict[int, str] | None = None, tie_dir: str | None = None,
-             job_id: str | None = None) -> dict:
+             job_id: str | None = None, previous: str | None = None) -> dict:
     """Assemble every extracted image of a map into a MapData folder.
 
     ``lens_files`` are some of the map's image files, read for the camera's focal length
@@ -274,7 +295,11 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
 
     The place descriptors' vocabularies are trained here on the map's images and stored in
     ``map_vocabularies`` under ``revision`` (replacing rows a failed earlier attempt at the
-    same revision left); the descriptors over ORB need every image's ORB features.
+    same revision left); the descriptors over ORB need every image's ORB features. With
+    ``previous`` (the folder of the revision the map has now), its vocabularies are kept
+    while they still fit the map, with its images' descriptors and SIFT reduction masks
+    (:mod:`vloc.workers.core.carryover`); a revision that cannot be read is not packed
+    from.
 
     The (wall, CPU) seconds of each stage, reading the features included, are written
     beside the revision as ``build_timings.json``. With ``job_id``, the build job's stage and
@@ -334,6 +359,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                             known_tiles=reconstructed,
                             kept=None if own else KeptModels(
                                 ties_at / tiles.MODELS, tuple(str(img["id"]) for img in images)),
+                            previous=_previous(previous, [img["id"] for img in images]),
                             focal_px=typical_focal_px(_readers(lens_files or [])),
                             timings=timings, report=report,
                             on_stage=lambda name: on_stage(

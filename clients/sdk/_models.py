@@ -177,6 +177,8 @@ class Job(_Model):
     n_images: int = 0
     n_extracted: int = 0
     revision: int | None = None
+    full: bool = Field(False, description="whether the build is whole (nothing carried over "
+                                          "from the revision before)")
     created_at: datetime | None = None
     started_at: datetime | None = None
     finished_at: datetime | None = None

@@ -27,8 +27,11 @@ from vloc.app.maps.codecs import decode_vocabulary
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
 from vloc.app.tasks import build as build_tasks
 from vloc.workers.core import geometry, tiepairs, tiles
+from vloc.workers.core.carryover import MAX_DISTORTION_RISE
 from vloc.workers.core.features import DESCRIPTOR_NAMES
+from vloc.workers.core.features.descriptors import get_descriptor, local_vectors
 from vloc.workers.core.features.orb import extract_orb
+from vloc.workers.core.features.vocabulary import image_distortion
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.geometry import tiling
 from vloc.workers.core.geometry.kept import read_order
@@ -308,9 +311,13 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     second = MapData.load(ctx.settings.packed_map_dir(map_id, 2))
     assert not left.exists()
     assert len(second) == 10 and list(second.names) == [s.name for s in maps]
-    # The vocabularies are trained anew on all ten images, and revision 1 keeps its own.
+    # Four images of ten unlike the first six's scenes raise the vocabularies' distortion
+    # past the carry-over's bound: they are trained anew on all ten images (compared with a
+    # fresh build of the ten below), and revision 1 keeps its own.
     _assert_vocabularies_stored(ctx, map_id, 2, second)
     _assert_vocabularies_stored(ctx, map_id, 1, first)
+    assert {f.revision for f in second.vocabulary_fits.values()} == {2}
+    assert max(_rise(first, second, n) for n in DESCRIPTOR_NAMES) > MAX_DISTORTION_RISE
     assert not np.array_equal(first.vocabularies["bow_orb"].idf,
                               second.vocabularies["bow_orb"].idf)
     # Sessions on revision 1 keep their folder.
@@ -340,13 +347,18 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     # A full rebuild reconstructs it whole: the map a build of all ten at once gives.
     job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", params={"full": "true"},
                              headers=ADMIN).json()["job_id"])
-    assert (job["status"], job["n_images"], job["revision"]) == ("done", 0, 3)
+    assert (job["status"], job["n_images"], job["revision"], job["full"]) == \
+        ("done", 0, 3, True)
     third = MapData.load(ctx.settings.packed_map_dir(map_id, 3))
     fresh_id = new_map(c)
     c.post(f"/v1/maps/{fresh_id}/images", files=jpeg_files(maps), headers=ADMIN)
     assert wait_job(c, c.post(f"/v1/maps/{fresh_id}/build", headers=ADMIN)
-                    .json()["job_id"])["status"] == "done"
+                    .json()["job_id"])["full"] is False
     fresh = MapData.load(ctx.settings.packed_map_dir(fresh_id, 1))
+    # the vocabularies, descriptors and masks too (revision 2's, trained on the ten, also)
+    for packed in (second, third):
+        _assert_same_places(packed, fresh)
+    assert {f.revision for f in third.vocabulary_fits.values()} == {3}
     assert (third.geometry is None) == (fresh.geometry is None)
     if fresh.geometry is not None:
         np.testing.assert_array_equal(third.geometry.centres, fresh.geometry.centres)
@@ -362,11 +374,20 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     assert len(fourth) == 9 and gone not in {i["id"] for i in
                                              c.get(f"/v1/maps/{map_id}/images",
                                                    headers=ADMIN).json()}
+    # The deletion leaves the vocabularies fitting the map: revision 3's are kept, with
+    # the other nine images' descriptors and the masks of those whose neighbours stayed.
+    rest = np.r_[0:4, 5:10]
+    assert {f.revision for f in fourth.vocabulary_fits.values()} == {3}
+    for name in DESCRIPTOR_NAMES:
+        np.testing.assert_array_equal(fourth.vocabularies[name].centroids,
+                                      third.vocabularies[name].centroids)
+        np.testing.assert_array_equal(fourth.global_features[name],
+                                      third.global_features[name][rest])
+    _assert_vocabularies_stored(ctx, map_id, 4, fourth)
     if third.geometry is not None:
         assert fourth.geometry is not None
         (kept,) = [p for p in models.iterdir() if p.is_dir()]
         assert str(gone) not in read_order(kept) and len(read_order(kept)) == 9
-        rest = np.r_[0:4, 5:10]
         both = np.isfinite(third.geometry.centres[rest, 0]) & \
             np.isfinite(fourth.geometry.centres[:, 0])
         assert both.sum() >= 3
@@ -386,6 +407,7 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
                     .json()["job_id"])["status"] == "done"
     nine = MapData.load(ctx.settings.packed_map_dir(nine_id, 1))
     assert list(nine.names) == list(fifth.names)
+    _assert_same_places(fifth, nine)
     assert (fifth.geometry is None) == (nine.geometry is None)
     if nine.geometry is not None:
         np.testing.assert_array_equal(fifth.geometry.centres, nine.geometry.centres)
@@ -406,6 +428,29 @@ def test_forget_reconstruction_keeps_the_tie_points_and_pairs(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == \
         ["7.kp.npy", "pairs-000000.npz", tiles.PLAN_FILE]
     forget_reconstruction(tmp_path / "absent")  # a map never built: nothing to forget
+
+def _rise(before: MapData, after: MapData, name: str) -> float:
+    """How far ``before``'s vocabulary ``name`` would have risen in distortion over the
+    images of ``after`` (a map of ``before``'s images and more, in the same order)."""
+    vocab, fit = before.vocabularies[name], before.vocabulary_fits[name]
+    local = get_descriptor(name).local
+    added = [image_distortion(vocab, local_vectors(local, orb=after.orb(i), sift=after.sift(i)))
+             for i in range(len(before), len(after))]
+    return float(np.mean(np.r_[fit.images, added]) / fit.trained - 1.0)
+
+
+def _assert_same_places(packed: MapData, fresh: MapData) -> None:
+    """``packed`` holds the place vocabularies, descriptors and SIFT masks of ``fresh``, a
+    fresh build of the same images, bit for bit."""
+    np.testing.assert_array_equal(packed.sift_keep, fresh.sift_keep)
+    for name in DESCRIPTOR_NAMES:
+        np.testing.assert_array_equal(packed.vocabularies[name].centroids,
+                                      fresh.vocabularies[name].centroids)
+        np.testing.assert_array_equal(packed.global_features[name],
+                                      fresh.global_features[name])
+        np.testing.assert_array_equal(packed.vocabulary_fits[name].images,
+                                      fresh.vocabulary_fits[name].images)
+
 
 def _assert_vocabularies_stored(ctx, map_id: str, revision: int, packed: MapData) -> None:
     """The database holds the packed revision's vocabularies, bit for bit."""

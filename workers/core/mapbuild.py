@@ -3,7 +3,9 @@
 Extraction is per image and independent (run it in parallel); assembly needs all images at
 once, because the SIFT reduction matches each image with its two GPS-nearest neighbours
 (Weiss III) and the place descriptors' vocabularies are trained on the local features of
-every map image (:mod:`workers.core.features.descriptors`), so each build trains them anew.
+every map image (:mod:`workers.core.features.descriptors`). A first build trains them; an
+update keeps them, and what else of the revision before still holds, while they fit the
+map's images (:mod:`workers.core.carryover`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .carryover import (
+    CarriedDescriptor,
+    Previous,
+    carried_descriptors,
+    known_masks,
+    merge_rows,
+    still_fits,
+)
 from .features import DESCRIPTOR_NAMES, FEATURE_NAMES, extract_many
 from .features.descriptors import (
     describe,
@@ -25,7 +35,12 @@ from .features.descriptors import (
 )
 from .features.orb import OrbFeatures, extract_orb
 from .features.shortlist import CODES_FROM, PlaceCodes
-from .features.vocabulary import Vocabulary
+from .features.vocabulary import (
+    Vocabulary,
+    VocabularyFit,
+    image_distortion,
+    image_distortions,
+)
 from .geo import GeoOrigin
 from .geometry import build_geometry
 from .image import MAX_PIXELS, WORK_SIZE, Frame, load_frame
@@ -176,7 +191,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  focal_px: float | None = None,
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
                  known_pairs: dict | None = None, known_tiles: dict | None = None,
-                 kept=None, timings: dict[str, tuple[float, float]] | None = None,
+                 kept=None, previous: Previous | None = None,
+                 timings: dict[str, tuple[float, float]] | None = None,
                  report: dict | None = None,
                  on_stage: Callable[[str], None] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
@@ -217,6 +233,9 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     kept : KeptModels, optional
         COLMAP's models kept from the map's last build, which images added since are
         registered into (:mod:`workers.core.geometry.kept`).
+    previous : Previous, optional
+        The map's revision before, whose SIFT reduction masks and place descriptors the
+        images it holds keep where they still hold (:mod:`workers.core.carryover`).
     timings : dict, optional
         Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
         ``"vocabularies"`` (training and describing every image), ``"packing"``,
@@ -243,20 +262,23 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
             for name in sorted(names_in_all)}
     sift = [f.sift for f in features]
     with stage(timings, "sift reduction"):
-        keep = reduction_masks(sift, xy, ratio=ratio) if reduce_sift else None
+        keep = reduction_masks(sift, xy, ratio=ratio, known=None if previous is None
+                               else known_masks(previous)) if reduce_sift else None
     times = None
     if captured_at is not None:
         times = np.array([np.nan if t is None else t for t in captured_at], np.float64)
     with stage(timings, "vocabularies"):
-        trained = train_descriptors(features, descriptors, seed=seed)
-    glob.update({name: matrix for name, (_, matrix) in trained.items()})
+        trained = train_descriptors(features, descriptors, seed=seed, revision=revision,
+                                    previous=previous)
+    glob.update({name: t.matrix for name, t in trained.items()})
     have_orb = all(f.orb is not None for f in features)
     with stage(timings, "packing"):
         data = MapData.from_parts(origin=origin, names=names, positions=xy, altitudes=alt,
                                   global_features=glob, sift=sift, map_id=map_id,
                                   revision=revision, captured_at=times, flights=flights,
                                   sift_keep=keep,
-                                  vocabularies={n: v for n, (v, _) in trained.items()},
+                                  vocabularies={n: t.vocabulary for n, t in trained.items()},
+                                  vocabulary_fits={n: t.fit for n, t in trained.items()},
                                   orb=[f.orb for f in features] if have_orb else None)
     ties = [f.tie for f in features]
     # The map holds its own copies of the features now: let each image's decoded ones go
@@ -266,8 +288,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     if n > CODES_FROM:
         # a large map's place descriptors get compact codes for the global steps' scan
         with stage(timings, "shortlist codes"):
-            data.place_codes = {name: PlaceCodes.fit(matrix, seed=seed)
-                                for name, (_, matrix) in trained.items()}
+            data.place_codes = {name: _place_codes(t, previous, seed)
+                                for name, t in trained.items()}
     if geometry:
         if on_stage is not None:
             on_stage("geometry")
@@ -276,6 +298,18 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                                          known_pairs=known_pairs, known_tiles=known_tiles,
                                          kept=kept, report=report)
     return data
+
+
+def _place_codes(trained: TrainedDescriptor, previous: Previous | None,
+                 seed: int) -> PlaceCodes:
+    """A descriptor's shortlist codes: the kept images' from the revision before with the
+    added images' coded in its basis, where its vocabulary was carried over with codes;
+    fitted afresh otherwise."""
+    before = None if trained.carried is None else trained.carried.codes
+    if before is None or previous is None:
+        return PlaceCodes.fit(trained.matrix, seed=seed)
+    added = np.asarray(trained.matrix[previous.added], np.float32) @ before.basis
+    return PlaceCodes(before.basis, merge_rows(previous.kept, before.codes, added))
 
 
 @contextmanager
@@ -386,8 +420,21 @@ def typical_focal_px(files, width: int = WORK_SIZE[0], *, sample: int = 25) -> f
     return float(np.median(focals)) if focals else None
 
 
+@dataclass(frozen=True, slots=True)
+class TrainedDescriptor:
+    """One place descriptor of a map: its vocabulary, how well that fits the map's
+    images, their (N, dim) float32 descriptors, and the shortlist codes of the kept images
+    where the vocabulary was carried over from the revision before (else None)."""
+
+    vocabulary: Vocabulary
+    fit: VocabularyFit
+    matrix: np.ndarray
+    carried: CarriedDescriptor | None = None
+
+
 def train_descriptors(features: list[ImageFeatures], names: tuple[str, ...], *,
-                      seed: int = 0) -> dict[str, tuple[Vocabulary, np.ndarray]]:
+                      seed: int = 0, revision: int = 0,
+                      previous: Previous | None = None) -> dict[str, TrainedDescriptor]:
     """Train each place descriptor's vocabulary on the map images and describe them.
 
     Parameters
@@ -397,23 +444,60 @@ def train_descriptors(features: list[ImageFeatures], names: tuple[str, ...], *,
         Place descriptors; those over ORB are skipped when an image has no ORB features.
     seed : int
         Each descriptor's vocabulary is trained with ``numpy.random.default_rng(seed)``.
+    revision : int
+        The revision being packed (a trained vocabulary's fit records it).
+    previous : Previous, optional
+        The revision before: its vocabularies are kept, with the kept images' descriptors,
+        and only the added images described, while they still fit the map
+        (:mod:`workers.core.carryover`).
 
     Returns
     -------
-    dict name -> (Vocabulary, (N, dim) float32 ndarray of the map images' descriptors)
+    dict name -> TrainedDescriptor
     """
     have_orb = all(f.orb is not None for f in features)
+    wanted = tuple(n for n in names if have_orb or get_descriptor(n).local != "orb")
+    if previous is not None:
+        kept = _kept_descriptors(features, wanted, previous)
+        if kept is not None:
+            return kept
     vectors: dict[str, LocalVectors] = {}
     out = {}
-    for name in names:
+    for name in wanted:
         spec = get_descriptor(name)
-        if spec.local == "orb" and not have_orb:
-            continue
         if spec.local not in vectors:
             vectors[spec.local] = LocalVectors(features, spec.local)
         per_image = vectors[spec.local]
         vocab = train_descriptor_vocabulary(spec, per_image, rng=np.random.default_rng(seed))
-        out[name] = (vocab, np.stack([describe(spec, v, vocab) for v in per_image]))
+        distortions = image_distortions(vocab, per_image)
+        out[name] = TrainedDescriptor(
+            vocab, VocabularyFit(float(distortions.mean()), distortions, revision),
+            np.stack([describe(spec, v, vocab) for v in per_image]))
+    return out
+
+
+def _kept_descriptors(features: list[ImageFeatures], names: tuple[str, ...],
+                      previous: Previous) -> dict[str, TrainedDescriptor] | None:
+    """The revision before's descriptors with the added images described against its
+    vocabularies; None where one cannot be carried over or no longer fits the map."""
+    carried = carried_descriptors(previous, names)
+    if carried is None:
+        return None
+    added = [features[i] for i in previous.added]
+    out = {}
+    for name, c in carried.items():
+        spec = get_descriptor(name)
+        rows, distortions = [], []
+        for v in LocalVectors(added, spec.local):
+            rows.append(describe(spec, v, c.vocabulary))
+            distortions.append(image_distortion(c.vocabulary, v))
+        fit = VocabularyFit(c.fit.trained, merge_rows(
+            previous.kept, c.fit.images, np.array(distortions, np.float32)), c.fit.revision)
+        if not still_fits(fit):
+            return None
+        new = np.stack(rows) if rows else np.zeros((0, spec.dim), np.float32)
+        out[name] = TrainedDescriptor(c.vocabulary, fit,
+                                      merge_rows(previous.kept, c.rows, new), c)
     return out
 
 

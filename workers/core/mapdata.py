@@ -26,6 +26,11 @@ vocabularies[name] : Vocabulary
     ``vocab_{name}_idf.npy`` and, where it projects the local vectors,
     ``vocab_{name}_projection.npy``, with its tree shape in ``meta.json``. Maps packed before place
     descriptors existed have none and load unchanged.
+vocabulary_fits[name] : VocabularyFit
+    How well each vocabulary fits the map's images: each image's distortion,
+    ``vocab_{name}_fit.npy`` (N,) float32, the trained images' mean and the revision that
+    trained it in ``meta.json``; what an update reads to keep the vocabulary or train it
+    again (:mod:`workers.core.carryover`). None recorded for maps packed before.
 captured_at : (N,) float64
     Capture times of the map images in seconds since the epoch, NaN where unknown; the
     motion model derives the platform's typical speed from them.
@@ -53,7 +58,7 @@ from scipy.spatial import cKDTree
 
 from .features.orb import OrbFeatures
 from .features.shortlist import PlaceCodes
-from .features.vocabulary import Vocabulary
+from .features.vocabulary import Vocabulary, VocabularyFit
 from .geo import GeoOrigin
 from .geometry import MapGeometry
 from .sift import SiftFeatures
@@ -86,6 +91,7 @@ class MapData:
     orb_keypoints: np.ndarray | None = None
     orb_descriptors: np.ndarray | None = None
     place_codes: dict[str, PlaceCodes] = field(default_factory=dict)
+    vocabulary_fits: dict[str, VocabularyFit] = field(default_factory=dict)
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
     _spacing: float | None = field(default=None, repr=False, compare=False)
     _steps: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False,
@@ -103,6 +109,9 @@ class MapData:
         for name in self.vocabularies:
             if name not in self.global_features:
                 raise ValueError(f"vocabulary {name!r} comes without its descriptor matrix")
+        for name, fit in self.vocabulary_fits.items():
+            if name not in self.vocabularies or fit.images.shape != (n,):
+                raise ValueError(f"vocabulary fit {name!r} does not fit the map's images")
         for name, codes in self.place_codes.items():
             if name not in self.global_features or len(codes) != n \
                     or codes.basis.shape[0] != self.global_features[name].shape[1]:
@@ -253,6 +262,7 @@ class MapData:
                    captured_at=None, flights=None,
                    sift_keep: list[np.ndarray] | None = None,
                    vocabularies: dict[str, Vocabulary] | None = None,
+                   vocabulary_fits: dict[str, VocabularyFit] | None = None,
                    orb: list[OrbFeatures] | None = None) -> MapData:
         offsets, kps, desc = _concatenate(sift, 128)
         orb_parts = (None, None, None) if orb is None else _concatenate(orb, 32)
@@ -268,7 +278,8 @@ class MapData:
                    flights=flights,
                    sift_keep=None if sift_keep is None or not sift
                    else np.concatenate(sift_keep).astype(bool),
-                   vocabularies=dict(vocabularies or {}), orb_offsets=orb_parts[0],
+                   vocabularies=dict(vocabularies or {}),
+                   vocabulary_fits=dict(vocabulary_fits or {}), orb_offsets=orb_parts[0],
                    orb_keypoints=orb_parts[1], orb_descriptors=orb_parts[2])
 
     # -- persistence as a folder of .npy files (memory-mappable) ---------------------------
@@ -296,6 +307,8 @@ class MapData:
             np.save(tmp / f"vocab_{name}_idf.npy", vocab.idf)
             if vocab.projection is not None:
                 np.save(tmp / f"vocab_{name}_projection.npy", vocab.projection)
+        for name, fit in self.vocabulary_fits.items():
+            np.save(tmp / f"vocab_{name}_fit.npy", np.asarray(fit.images, np.float32))
         for name, codes in self.place_codes.items():
             np.save(tmp / f"codes_{name}_basis.npy", codes.basis)
             np.save(tmp / f"codes_{name}.npy", codes.codes)
@@ -305,7 +318,8 @@ class MapData:
                 "codes": sorted(self.place_codes),
                 "vocabularies": {name: {"branching": v.branching, "depth": v.depth,
                                         "binary": v.binary,
-                                        "projected": v.projection is not None}
+                                        "projected": v.projection is not None,
+                                        **self._fit_meta(name)}
                                  for name, v in sorted(self.vocabularies.items())}}
         if self.flights is not None:
             meta["flights"] = list(self.flights)
@@ -317,6 +331,11 @@ class MapData:
             shutil.rmtree(folder)
         tmp.rename(folder)
         return folder
+
+    def _fit_meta(self, name: str) -> dict:
+        fit = self.vocabulary_fits.get(name)
+        return {} if fit is None else {"trained_distortion": fit.trained,
+                                       "trained_revision": fit.revision}
 
     @classmethod
     def load(cls, folder: str | Path, *, mmap: bool = True) -> MapData:
@@ -334,6 +353,11 @@ class MapData:
                              ld(f"vocab_{name}_idf.npy"),
                              ld(f"vocab_{name}_projection.npy") if shape["projected"] else None)
             for name, shape in meta.get("vocabularies", {}).items()}
+        fits = {name: VocabularyFit(float(shape["trained_distortion"]),
+                                    ld(f"vocab_{name}_fit.npy"),
+                                    int(shape["trained_revision"]))
+                for name, shape in meta.get("vocabularies", {}).items()
+                if "trained_distortion" in shape}
         return cls(origin=GeoOrigin(*meta["origin"]), names=tuple(meta["names"]),
                    positions=ld("positions.npy"), altitudes=ld("altitudes.npy"),
                    global_features={n: ld(f"global_{n}.npy") for n in meta["features"]},
@@ -342,6 +366,7 @@ class MapData:
                    revision=int(meta["revision"]), captured_at=ld("captured_at.npy"),
                    flights=meta.get("flights"),
                    sift_keep=ld("sift_keep.npy"), vocabularies=vocabularies,
+                   vocabulary_fits=fits,
                    geometry=MapGeometry.load(folder, mmap=mmap),
                    orb_offsets=ld("orb_offsets.npy") if orb else None,
                    orb_keypoints=ld("orb_keypoints.npy") if orb else None,

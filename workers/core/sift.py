@@ -150,7 +150,9 @@ def _matched_any(a: SiftFeatures, others: list[SiftFeatures], ratio: float) -> n
 
 
 def reduction_masks(features: list[SiftFeatures], positions: np.ndarray, *,
-                    neighbours: int = 2, ratio: float = RATIO) -> list[np.ndarray]:
+                    neighbours: int = 2, ratio: float = RATIO,
+                    known: dict[int, tuple[frozenset[int], np.ndarray]] | None = None,
+                    ) -> list[np.ndarray]:
     """Which keypoints of each map image match one of its GPS-nearest map images.
 
     Weiss et al. 2008, section III, with ``neighbours = 2``.
@@ -160,18 +162,35 @@ def reduction_masks(features: list[SiftFeatures], positions: np.ndarray, *,
     features : list of SiftFeatures, one per map image
     positions : (N, 2) float ndarray
         East/north positions of the map images.
+    known : dict, optional
+        Masks worked out before (an earlier revision of the map): image ``i`` ->
+        (the images its mask was matched against, the mask). Taken as they are where those
+        are still the image's nearest, matched again where not.
 
     Returns
     -------
     list of (K_i,) bool ndarrays
     """
-    n = len(features)
-    if n < 2:
+    if len(features) < 2:
         return [np.ones(len(f), dtype=bool) for f in features]
-    k = min(neighbours, n - 1)
-    _, idx = cKDTree(positions).query(positions, k=k + 1)
-    return [_matched_any(feats, [features[j] for j in np.atleast_1d(idx[i])[1:]], ratio)
-            for i, feats in enumerate(features)]
+    known = known or {}
+    masks = []
+    for i, near in enumerate(reduction_neighbours(positions, neighbours=neighbours)):
+        before = known.get(i)
+        if before is not None and before[0] == near and len(before[1]) == len(features[i]):
+            masks.append(np.asarray(before[1], bool))
+        else:  # a keypoint is kept when it matches any of them: their order does not matter
+            masks.append(_matched_any(features[i], [features[j] for j in sorted(near)], ratio))
+    return masks
+
+
+def reduction_neighbours(positions: np.ndarray, *, neighbours: int = 2) -> list[frozenset[int]]:
+    """The images each map image's mask is matched against (:func:`reduction_masks`)."""
+    n = len(positions)
+    if n < 2:
+        return [frozenset() for _ in range(n)]
+    _, idx = cKDTree(positions).query(positions, k=min(neighbours, n - 1) + 1)
+    return [frozenset(int(j) for j in np.atleast_1d(row)[1:]) for row in idx]
 
 
 def reduce_map(features: list[SiftFeatures], positions: np.ndarray, *,

@@ -12,6 +12,7 @@ from vloc.workers.core.features.vocabulary import (
     Vocabulary,
     _sample,
     cluster_sums,
+    distortion,
     inverse_document_frequency,
     principal_axes,
     quantise,
@@ -226,3 +227,32 @@ def test_train_vocabulary_on_lazy_images_equals_lists():
     np.testing.assert_array_equal(lazy.projection, eager.projection)
     projected = Projected(per_image, eager.projection)
     np.testing.assert_allclose(projected[3], eager.project(per_image[3]), rtol=1e-6)
+
+
+def test_distortion_is_the_squared_distance_to_the_word_in_the_vectors_own_space():
+    rng = np.random.default_rng(11)
+    per_image = [rng.random((80, 8)).astype(np.float32) for _ in range(4)]
+    for components in (None, 3):
+        vocab = train_vocabulary(per_image, branching=3, depth=2, binary=False,
+                                 rng=np.random.default_rng(12), components=components)
+        x = rng.random((25, 8)).astype(np.float32)
+        words = _slow_quantise(vocab, vocab.project(x))
+        expected = []
+        for v, w in zip(x.tolist(), words, strict=True):
+            if vocab.projection is None:
+                back = vocab.words[w].tolist()
+            else:  # the word taken back to the vectors' space along the principal axes
+                back = (vocab.projection[0] + vocab.words[w] @ vocab.projection[1:]).tolist()
+            expected.append(sum((a - b) ** 2 for a, b in zip(v, back, strict=True)))
+        np.testing.assert_allclose(distortion(vocab, x), expected, rtol=1e-4, atol=1e-6)
+    assert distortion(vocab, np.zeros((0, 8), np.float32)).shape == (0,)
+
+
+def test_distortion_grows_for_vectors_unlike_the_training_ones():
+    rng = np.random.default_rng(13)
+    centres = rng.random((4, 6)) * 10
+    vocab = train_vocabulary([_blobs(rng, centres, 40, 0.2)], branching=4, depth=1,
+                             binary=False, rng=np.random.default_rng(14))
+    alike = distortion(vocab, _blobs(rng, centres, 10, 0.2)).mean()
+    unlike = distortion(vocab, _blobs(rng, centres + 3.0, 10, 0.2)).mean()
+    assert alike < 0.5 and unlike > 10 * alike

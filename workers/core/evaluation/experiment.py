@@ -39,14 +39,18 @@ def _timestamp(img: DatasetImage) -> float | None:
 
 def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
               report: dict | None = None, geometry: bool = True, seed: int = 0,
-              kept: str | Path | None = None,
+              kept: str | Path | None = None, previous: MapData | None = None,
+              revision: int = 0,
               timings: dict[str, tuple[float, float]] | None = None) -> MapData:
     """Extract every feature of the map images and pack the map (without camera geometry
     where ``geometry`` is false) with the build's ``seed``; ``report`` is filled with what
     became of its geometry, ``timings`` with its stages' (wall, CPU) seconds. With a
     folder ``kept``, the build registers the images into the COLMAP models an earlier build
     of some of them kept there, and keeps its own (:mod:`..geometry.kept`; images are named
-    by their file names)."""
+    by their file names); with ``previous``, the map an earlier build packed of some of
+    them, it carries over what still holds of it as the service's updates do
+    (:mod:`..carryover`; images named by their file names too)."""
+    from ..carryover import Previous
     from ..geometry.kept import KeptModels
 
     feats = [replace(extract_image_features(f),
@@ -56,10 +60,12 @@ def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
     return assemble_map(names=[im.name for im in images], lats=[im.lat for im in images],
                         lons=[im.lon for im in images], alts=[im.alt for im in images],
                         features=feats, captured_at=[_timestamp(im) for im in images],
-                        map_id=map_id, focal_px=focal, report=report, geometry=geometry,
-                        seed=seed, timings=timings,
+                        map_id=map_id, revision=revision, focal_px=focal, report=report,
+                        geometry=geometry, seed=seed, timings=timings,
                         kept=None if kept is None else KeptModels(
-                            Path(kept), tuple(im.name for im in images)))
+                            Path(kept), tuple(im.name for im in images)),
+                        previous=None if previous is None else Previous.of(
+                            previous, previous.names, [im.name for im in images]))
 
 
 def truth_positions(images: list[DatasetImage], map_data: MapData) -> np.ndarray:

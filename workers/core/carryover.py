@@ -1,0 +1,143 @@
+"""A revision packed from the one before it: what an update of a map carries over.
+
+A map that grows (images added, some deleted) is packed again as a new revision, its arrays
+laid out afresh for the localisers. Most of what the packing works out for an image does not
+change when images are added beside it or deleted elsewhere, and an update takes it from the
+revision before (:class:`Previous`) instead of working it out again for every image:
+
+* Its SIFT reduction mask (Weiss III: its keypoints that match one of its two GPS-nearest
+  map images), where those are still its nearest: the mask a fresh build computes.
+* The place descriptors' vocabularies, unless the images the map gained since they were
+  trained measurably change them, and with them every kept image's descriptor row and
+  shortlist code. How well a vocabulary fits the map is its distortion, the mean squared
+  distance of each image's local vectors to their words
+  (:func:`~.features.vocabulary.distortion`), kept per image with the vocabulary
+  (:class:`~.features.vocabulary.VocabularyFit`). A vocabulary is kept while the map's mean
+  distortion stays within :data:`MAX_DISTORTION_RISE` of the trained images' mean; past
+  that, or where the revision before has no fit recorded, every vocabulary is trained again
+  on every image, as a fresh build trains them.
+
+A kept vocabulary is the one an earlier revision trained, so a map updated this way is not
+the map a fresh build of the same images packs (its vocabularies, descriptors and codes
+differ); a full rebuild is one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .features.shortlist import PlaceCodes
+from .features.vocabulary import Vocabulary, VocabularyFit
+from .mapdata import MapData
+from .sift import reduction_neighbours
+
+MAX_DISTORTION_RISE: float = 0.05
+"""The most the map's mean distortion may rise (a fraction of the trained images') before
+its vocabularies are trained again."""
+
+
+@dataclass(frozen=True)
+class Previous:
+    """The revision an update packs from, and where each of the new revision's images lies
+    in it.
+
+    Attributes
+    ----------
+    data : MapData
+        The revision before (memory-mapped is enough: rows are copied out of it).
+    rows : (N,) int64 ndarray
+        Each image of the new revision's row in ``data``; -1 for an image new to the map.
+    """
+
+    data: MapData
+    rows: np.ndarray
+
+    @classmethod
+    def of(cls, data: MapData, before: Sequence, now: Sequence) -> Previous:
+        """``data`` with the row of each of ``now`` (image identities, in the new
+        revision's order) among ``before`` (``data``'s, in its order)."""
+        if len(before) != len(data):
+            raise ValueError(f"{len(before)} image identities for a revision of {len(data)}")
+        at = {key: k for k, key in enumerate(before)}
+        return cls(data, np.array([at.get(key, -1) for key in now], np.int64))
+
+    @property
+    def kept(self) -> np.ndarray:
+        """Indices (in the new revision) of the images the revision before holds."""
+        return np.flatnonzero(self.rows >= 0)
+
+    @property
+    def added(self) -> np.ndarray:
+        """Indices (in the new revision) of the images new to the map."""
+        return np.flatnonzero(self.rows < 0)
+
+
+def known_masks(previous: Previous) -> dict[int, tuple[frozenset[int], np.ndarray]]:
+    """The revision before's SIFT reduction masks by the new revision's image index, each
+    with the images (new indices) it was matched against, for
+    :func:`~.sift.reduction_masks`; an image whose neighbour there is not in the new
+    revision (deleted) has none."""
+    before = previous.data
+    if before.sift_keep is None:
+        return {}
+    now = np.full(len(before), -1, np.int64)
+    now[previous.rows[previous.kept]] = previous.kept
+    offsets, keep = np.asarray(before.sift_offsets), before.sift_keep
+    out = {}
+    for row, near in enumerate(reduction_neighbours(np.asarray(before.positions))):
+        i, mapped = int(now[row]), [int(now[j]) for j in near]
+        if i >= 0 and min(mapped, default=0) >= 0:
+            out[i] = frozenset(mapped), np.asarray(keep[offsets[row]:offsets[row + 1]])
+    return out
+
+
+@dataclass(frozen=True)
+class CarriedDescriptor:
+    """A place descriptor taken up from the revision before: its vocabulary, fit and
+    shortlist basis, and its rows for the kept images."""
+
+    vocabulary: Vocabulary
+    fit: VocabularyFit
+    rows: np.ndarray
+    """(N_kept, dim) float32, in the new revision's order of the kept images."""
+    codes: PlaceCodes | None
+
+
+def carried_descriptors(previous: Previous, names: Sequence[str],
+                        ) -> dict[str, CarriedDescriptor] | None:
+    """What the revision before holds of each place descriptor in ``names`` for the kept
+    images, or None where it cannot be carried over (a descriptor or its fit missing: the
+    revision was packed before fits were recorded, or without that descriptor)."""
+    before = previous.data
+    rows = previous.rows[previous.kept]
+    out = {}
+    for name in names:
+        vocab, fit = before.vocabularies.get(name), before.vocabulary_fits.get(name)
+        if vocab is None or fit is None or name not in before.global_features:
+            return None
+        codes = before.place_codes.get(name)
+        out[name] = CarriedDescriptor(
+            vocab, VocabularyFit(fit.trained, np.asarray(fit.images)[rows], fit.revision),
+            np.asarray(before.global_features[name])[rows],
+            None if codes is None else PlaceCodes(np.asarray(codes.basis),
+                                                  np.asarray(codes.codes)[rows]))
+    return out
+
+
+def still_fits(fit: VocabularyFit) -> bool:
+    """Whether a vocabulary with this fit (its images now the new revision's) is kept."""
+    return fit.rise() <= MAX_DISTORTION_RISE
+
+
+def merge_rows(kept: np.ndarray, kept_rows: np.ndarray, added_rows: np.ndarray) -> np.ndarray:
+    """The new revision's rows: ``kept_rows`` at the indices ``kept``, ``added_rows`` at
+    the others, in order."""
+    n = len(kept_rows) + len(added_rows)
+    out = np.empty((n, *kept_rows.shape[1:]), np.result_type(kept_rows, added_rows))
+    mask = np.zeros(n, bool)
+    mask[kept] = True
+    out[mask], out[~mask] = kept_rows, added_rows
+    return out
