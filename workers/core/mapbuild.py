@@ -18,34 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .carryover import (
-    CarriedDescriptor,
-    Previous,
-    carried_descriptors,
-    known_masks,
-    merge_rows,
-    still_fits,
-)
+from .carryover import Previous, known_masks
 from .features import DESCRIPTOR_NAMES, FEATURE_NAMES, extract_many
-from .features.descriptors import (
-    describe,
-    get_descriptor,
-    local_vectors,
-    train_descriptor_vocabulary,
-)
 from .features.orb import OrbFeatures, extract_orb
-from .features.shortlist import CODES_FROM, PlaceCodes
-from .features.vocabulary import (
-    Vocabulary,
-    VocabularyFit,
-    image_distortion,
-    image_distortions,
-)
+from .features.shortlist import CODES_FROM
 from .geo import GeoOrigin
 from .geometry import build_geometry
 from .image import MAX_PIXELS, WORK_SIZE, Frame, load_frame
 from .lens import read_focal_px
 from .mapdata import MapData
+from .mapdescriptors import place_codes, train_descriptors
 from .sift import RATIO, SiftFeatures, extract_sift, reduction_masks
 
 
@@ -288,7 +270,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     if n > CODES_FROM:
         # a large map's place descriptors get compact codes for the global steps' scan
         with stage(timings, "shortlist codes"):
-            data.place_codes = {name: _place_codes(t, previous, seed)
+            data.place_codes = {name: place_codes(t, previous, seed=seed)
                                 for name, t in trained.items()}
     if geometry:
         if on_stage is not None:
@@ -298,18 +280,6 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                                          known_pairs=known_pairs, known_tiles=known_tiles,
                                          kept=kept, report=report)
     return data
-
-
-def _place_codes(trained: TrainedDescriptor, previous: Previous | None,
-                 seed: int) -> PlaceCodes:
-    """A descriptor's shortlist codes: the kept images' from the revision before with the
-    added images' coded in its basis, where its vocabulary was carried over with codes;
-    fitted afresh otherwise."""
-    before = None if trained.carried is None else trained.carried.codes
-    if before is None or previous is None:
-        return PlaceCodes.fit(trained.matrix, seed=seed)
-    added = np.asarray(trained.matrix[previous.added], np.float32) @ before.basis
-    return PlaceCodes(before.basis, merge_rows(previous.kept, before.codes, added))
 
 
 @contextmanager
@@ -418,109 +388,3 @@ def typical_focal_px(files, width: int = WORK_SIZE[0], *, sample: int = 25) -> f
         if value is not None:
             focals.append(value)
     return float(np.median(focals)) if focals else None
-
-
-@dataclass(frozen=True, slots=True)
-class TrainedDescriptor:
-    """One place descriptor of a map: its vocabulary, how well that fits the map's
-    images, their (N, dim) float32 descriptors, and the shortlist codes of the kept images
-    where the vocabulary was carried over from the revision before (else None)."""
-
-    vocabulary: Vocabulary
-    fit: VocabularyFit
-    matrix: np.ndarray
-    carried: CarriedDescriptor | None = None
-
-
-def train_descriptors(features: list[ImageFeatures], names: tuple[str, ...], *,
-                      seed: int = 0, revision: int = 0,
-                      previous: Previous | None = None) -> dict[str, TrainedDescriptor]:
-    """Train each place descriptor's vocabulary on the map images and describe them.
-
-    Parameters
-    ----------
-    features : list of ImageFeatures, one per map image
-    names : tuple of str
-        Place descriptors; those over ORB are skipped when an image has no ORB features.
-    seed : int
-        Each descriptor's vocabulary is trained with ``numpy.random.default_rng(seed)``.
-    revision : int
-        The revision being packed (a trained vocabulary's fit records it).
-    previous : Previous, optional
-        The revision before: its vocabularies are kept, with the kept images' descriptors,
-        and only the added images described, while they still fit the map
-        (:mod:`workers.core.carryover`).
-
-    Returns
-    -------
-    dict name -> TrainedDescriptor
-    """
-    have_orb = all(f.orb is not None for f in features)
-    wanted = tuple(n for n in names if have_orb or get_descriptor(n).local != "orb")
-    if previous is not None:
-        kept = _kept_descriptors(features, wanted, previous)
-        if kept is not None:
-            return kept
-    vectors: dict[str, LocalVectors] = {}
-    out = {}
-    for name in wanted:
-        spec = get_descriptor(name)
-        if spec.local not in vectors:
-            vectors[spec.local] = LocalVectors(features, spec.local)
-        per_image = vectors[spec.local]
-        vocab = train_descriptor_vocabulary(spec, per_image, rng=np.random.default_rng(seed))
-        distortions = image_distortions(vocab, per_image)
-        out[name] = TrainedDescriptor(
-            vocab, VocabularyFit(float(distortions.mean()), distortions, revision),
-            np.stack([describe(spec, v, vocab) for v in per_image]))
-    return out
-
-
-def _kept_descriptors(features: list[ImageFeatures], names: tuple[str, ...],
-                      previous: Previous) -> dict[str, TrainedDescriptor] | None:
-    """The revision before's descriptors with the added images described against its
-    vocabularies; None where one cannot be carried over or no longer fits the map."""
-    carried = carried_descriptors(previous, names)
-    if carried is None:
-        return None
-    added = [features[i] for i in previous.added]
-    out = {}
-    for name, c in carried.items():
-        spec = get_descriptor(name)
-        rows, distortions = [], []
-        for v in LocalVectors(added, spec.local):
-            rows.append(describe(spec, v, c.vocabulary))
-            distortions.append(image_distortion(c.vocabulary, v))
-        fit = VocabularyFit(c.fit.trained, merge_rows(
-            previous.kept, c.fit.images, np.array(distortions, np.float32)), c.fit.revision)
-        if not still_fits(fit):
-            return None
-        new = np.stack(rows) if rows else np.zeros((0, spec.dim), np.float32)
-        out[name] = TrainedDescriptor(c.vocabulary, fit,
-                                      merge_rows(previous.kept, c.rows, new), c)
-    return out
-
-
-class LocalVectors(Sequence):
-    """The local vectors (:func:`~.features.descriptors.local_vectors`) of each map image,
-    computed when read.
-
-    Unpacked ORB bits are 256 float32 per keypoint, 400 kB an image: a large map's would
-    not fit in memory at once, so training and describing read them image by image.
-    """
-
-    def __init__(self, features: list[ImageFeatures], local: str) -> None:
-        self.features = features
-        self.local = local
-
-    def __len__(self) -> int:
-        return len(self.features)
-
-    def __getitem__(self, i: int) -> np.ndarray:
-        f = self.features[i]
-        return local_vectors(self.local, orb=f.orb, sift=f.sift)
-
-    def counts(self) -> np.ndarray:
-        """(N,) int: keypoints per image, without computing the vectors."""
-        return np.array([len(f.orb) if self.local == "orb" else len(f.sift)
-                         for f in self.features], np.int64)

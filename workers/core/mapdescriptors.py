@@ -1,0 +1,148 @@
+"""A map's place descriptors: their vocabularies trained on the map's images, or carried
+over from its revision before while they still fit it, and every image described.
+
+A descriptor's vocabulary needs every map image's local features at once
+(:mod:`workers.core.features.descriptors`); a first build (and a full one) trains it, and
+records how well it fits each image (:class:`~.features.vocabulary.VocabularyFit`), which
+an update reads to keep it (:mod:`workers.core.carryover`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .carryover import CarriedDescriptor, Previous, carried_descriptors, merge_rows, still_fits
+from .features.descriptors import (
+    describe,
+    get_descriptor,
+    local_vectors,
+    train_descriptor_vocabulary,
+)
+from .features.shortlist import PlaceCodes
+from .features.vocabulary import (
+    Vocabulary,
+    VocabularyFit,
+    image_distortion,
+    image_distortions,
+)
+
+
+@dataclass(frozen=True, slots=True)
+class TrainedDescriptor:
+    """One place descriptor of a map: its vocabulary, how well that fits the map's
+    images, their (N, dim) float32 descriptors, and what was carried over from the
+    revision before (None where the vocabulary was trained)."""
+
+    vocabulary: Vocabulary
+    fit: VocabularyFit
+    matrix: np.ndarray
+    carried: CarriedDescriptor | None = None
+
+
+def train_descriptors(features: list, names: tuple[str, ...], *,
+                      seed: int = 0, revision: int = 0,
+                      previous: Previous | None = None) -> dict[str, TrainedDescriptor]:
+    """Train each place descriptor's vocabulary on the map images and describe them.
+
+    Parameters
+    ----------
+    features : list of :class:`~.mapbuild.ImageFeatures`, one per map image
+    names : tuple of str
+        Place descriptors; those over ORB are skipped when an image has no ORB features.
+    seed : int
+        Each descriptor's vocabulary is trained with ``numpy.random.default_rng(seed)``.
+    revision : int
+        The revision being packed (a trained vocabulary's fit records it).
+    previous : Previous, optional
+        The revision before: its vocabularies are kept, with the kept images' descriptors,
+        and only the added images described, while they still fit the map
+        (:mod:`workers.core.carryover`).
+
+    Returns
+    -------
+    dict name -> TrainedDescriptor
+    """
+    have_orb = all(f.orb is not None for f in features)
+    wanted = tuple(n for n in names if have_orb or get_descriptor(n).local != "orb")
+    if previous is not None:
+        kept = _kept_descriptors(features, wanted, previous)
+        if kept is not None:
+            return kept
+    vectors: dict[str, LocalVectors] = {}
+    out = {}
+    for name in wanted:
+        spec = get_descriptor(name)
+        if spec.local not in vectors:
+            vectors[spec.local] = LocalVectors(features, spec.local)
+        per_image = vectors[spec.local]
+        vocab = train_descriptor_vocabulary(spec, per_image, rng=np.random.default_rng(seed))
+        distortions = image_distortions(vocab, per_image)
+        out[name] = TrainedDescriptor(
+            vocab, VocabularyFit(float(distortions.mean()), distortions, revision),
+            np.stack([describe(spec, v, vocab) for v in per_image]))
+    return out
+
+
+def _kept_descriptors(features: list, names: tuple[str, ...],
+                      previous: Previous) -> dict[str, TrainedDescriptor] | None:
+    """The revision before's descriptors with the added images described against its
+    vocabularies; None where one cannot be carried over or no longer fits the map."""
+    carried = carried_descriptors(previous, names)
+    if carried is None:
+        return None
+    added = [features[i] for i in previous.added]
+    out = {}
+    for name, c in carried.items():
+        spec = get_descriptor(name)
+        rows, distortions = [], []
+        for v in LocalVectors(added, spec.local):
+            rows.append(describe(spec, v, c.vocabulary))
+            distortions.append(image_distortion(c.vocabulary, v))
+        fit = VocabularyFit(c.fit.trained, merge_rows(
+            previous.kept, c.fit.images, np.array(distortions, np.float32)), c.fit.revision)
+        if not still_fits(fit):
+            return None
+        new = np.stack(rows) if rows else np.zeros((0, spec.dim), np.float32)
+        out[name] = TrainedDescriptor(c.vocabulary, fit,
+                                      merge_rows(previous.kept, c.rows, new), c)
+    return out
+
+
+class LocalVectors(Sequence):
+    """The local vectors (:func:`~.features.descriptors.local_vectors`) of each map image,
+    computed when read.
+
+    Unpacked ORB bits are 256 float32 per keypoint, 400 kB an image: a large map's would
+    not fit in memory at once, so training and describing read them image by image.
+    """
+
+    def __init__(self, features: list, local: str) -> None:
+        self.features = features
+        self.local = local
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        f = self.features[i]
+        return local_vectors(self.local, orb=f.orb, sift=f.sift)
+
+    def counts(self) -> np.ndarray:
+        """(N,) int: keypoints per image, without computing the vectors."""
+        return np.array([len(f.orb) if self.local == "orb" else len(f.sift)
+                         for f in self.features], np.int64)
+
+
+def place_codes(trained: TrainedDescriptor, previous: Previous | None, *,
+                seed: int = 0) -> PlaceCodes:
+    """A descriptor's shortlist codes: the kept images' from the revision before with the
+    added images' coded in its basis, where its vocabulary was carried over with codes;
+    fitted afresh otherwise."""
+    before = None if trained.carried is None else trained.carried.codes
+    if before is None or previous is None:
+        return PlaceCodes.fit(trained.matrix, seed=seed)
+    added = np.asarray(trained.matrix[previous.added], np.float32) @ before.basis
+    return PlaceCodes(before.basis, merge_rows(previous.kept, before.codes, added))
