@@ -148,12 +148,39 @@ def main() -> None:
         "and by the build job's stage (polled every 0.5 s).", "",
         "| build | wall s | cameras placed | " + " | ".join(stages) + " |",
         "|---|---|---|" + "---|" * len(stages), *rows, "",
-        summary, ""])
+        summary, "", *packing_table(maps, revisions, label, timed)])
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(text)
     if not same:
         raise SystemExit("the full rebuild differs from the whole build")
+
+
+def packing_table(maps: Path, revisions: dict, label: dict, timed: dict) -> list[str]:
+    """The packing's own stages for each build (wall seconds, from the revision's
+    ``build_timings.json``), and which revision trained its place vocabularies."""
+    import json
+
+    stages: dict[str, dict] = {}
+    trained: dict[str, str] = {}
+    for key, (map_id, revision) in revisions.items():
+        folder = maps / map_id / f"rev-{revision:06d}"
+        if key not in timed or not (folder / "build_timings.json").is_file():
+            continue
+        stages[key] = json.loads((folder / "build_timings.json").read_text())
+        vocabularies = json.loads((folder / "meta.json").read_text()).get("vocabularies", {})
+        trained[key] = ", ".join(sorted({str(v.get("trained_revision", "-"))
+                                         for v in vocabularies.values()})) or "-"
+    names = list(dict.fromkeys(name for st in stages.values() for name in st))
+    if not names:
+        return []
+    return ["The packing's stages (wall s, `build_timings.json`), and the revision that "
+            "trained the revision's place vocabularies:", "",
+            "| build | vocabularies trained by revision | " + " | ".join(names) + " |",
+            "|---|---|" + "---|" * len(names),
+            *(f"| {label[k]} | {trained[k]} | "
+              + " | ".join(f"{st[n]['wall_s']:.2f}" if n in st else "-" for n in names)
+              + " |" for k, st in stages.items()), ""]
 
 
 def centres(folder: Path) -> np.ndarray | None:

@@ -28,6 +28,7 @@ TABLES_AT["0009"] = TABLES_AT["0008"]
 TABLES_AT["0010"] = TABLES_AT["0009"] | {"map_revisions"}
 TABLES_AT["0011"] = TABLES_AT["0010"]
 TABLES_AT["0012"] = TABLES_AT["0011"]
+TABLES_AT["0013"] = TABLES_AT["0012"]
 
 
 def _tables(engine) -> set[str]:
@@ -38,8 +39,8 @@ def test_upgrade_to_head_matches_the_models(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        assert migrate.current_revision(engine) == migrate.head_revision() == "0012"
-        assert _tables(engine) == TABLES_AT["0012"]
+        assert migrate.current_revision(engine) == migrate.head_revision() == "0013"
+        assert _tables(engine) == TABLES_AT["0013"]
         with engine.connect() as conn:
             diff = compare_metadata(MigrationContext.configure(
                 conn, opts={"compare_type": True}), Base.metadata)
@@ -262,5 +263,37 @@ def test_0012_gives_map_images_a_flight_and_keeps_every_image(database_url):
         assert "flight" not in {c["name"] for c in inspect(engine).get_columns("map_images")}
         with engine.connect() as conn:
             assert conn.execute(text("SELECT filename FROM map_images")).all() == [("a.jpg",)]
+    finally:
+        engine.dispose()
+
+
+def test_0013_says_earlier_build_jobs_were_not_full_and_keeps_them(database_url):
+    """Jobs stored at 0012 survive 0013 both ways and read as builds that were not full."""
+    import uuid
+    from datetime import UTC, datetime
+
+    from sqlalchemy import text
+
+    engine = make_engine(database_url)
+    mid, jid = uuid.uuid4(), uuid.uuid4()
+    now = datetime.now(UTC)
+    sqlite = engine.dialect.name == "sqlite"
+    keys = {"id": mid.hex if sqlite else mid, "job": jid.hex if sqlite else jid, "now": now}
+    try:
+        migrate.upgrade(engine, "0012")
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                              "VALUES (:id, 'm', 'ready', 1, :now)"), keys)
+            conn.execute(text(
+                "INSERT INTO build_jobs (id, map_id, status, progress, n_images, n_extracted, "
+                "revision, created_at) VALUES (:job, :id, 'done', 1.0, 3, 3, 1, :now)"), keys)
+        migrate.upgrade(engine)
+        with engine.connect() as conn:
+            assert conn.execute(text('SELECT revision, "full" FROM build_jobs')).all() == \
+                [(1, False)]
+        migrate.downgrade(engine, "0012")
+        assert "full" not in {c["name"] for c in inspect(engine).get_columns("build_jobs")}
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT revision FROM build_jobs")).all() == [(1,)]
     finally:
         engine.dispose()
