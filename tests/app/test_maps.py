@@ -311,9 +311,10 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     second = MapData.load(ctx.settings.packed_map_dir(map_id, 2))
     assert not left.exists()
     assert len(second) == 10 and list(second.names) == [s.name for s in maps]
-    # Four images of ten unlike the first six's scenes raise the vocabularies' distortion
-    # past the carry-over's bound: they are trained anew on all ten images (compared with a
-    # fresh build of the ten below), and revision 1 keeps its own.
+    # Four images of ten: more than a fifth of the map was not trained on, and unlike the
+    # first six's scenes they raise the distortion past its bound too: the vocabularies are
+    # trained anew on all ten images (a fresh build's of the ten, compared below), and
+    # revision 1 keeps its own.
     _assert_vocabularies_stored(ctx, map_id, 2, second)
     _assert_vocabularies_stored(ctx, map_id, 1, first)
     assert {f.revision for f in second.vocabulary_fits.values()} == {2}

@@ -44,12 +44,12 @@ def _lines(seed: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def discs():
-    return [extract_image_features(prepare(_blobs(s))) for s in range(12)]
+    return [extract_image_features(prepare(_blobs(s))) for s in range(13)]
 
 
 @pytest.fixture(scope="module")
 def lines():
-    return [extract_image_features(prepare(_lines(s))) for s in range(3)]
+    return [extract_image_features(prepare(_lines(s))) for s in range(2)]
 
 
 def _pack(feats, east, names, *, previous=None, revision=1, **kw) -> MapData:
@@ -116,10 +116,35 @@ def test_images_like_the_map_keep_its_vocabularies_and_descriptors(first, discs,
     np.testing.assert_array_equal(updated.sift_keep, fresh.sift_keep)
 
 
+def test_a_map_grown_by_more_than_a_fifth_since_training_trains_again(first, discs,
+                                                                      alike, tmp_path):
+    # 2 of 12 images untrained: kept, and the fit says which; read back from the folder
+    _, updated, _ = alike
+    fit = updated.vocabulary_fits["bow_orb"]
+    assert fit.revision == 1 and fit.untrained_share() == pytest.approx(2 / 12)
+    np.testing.assert_array_equal(fit.trained_on, [True] * 10 + [False] * 2)
+    updated.save(tmp_path / "rev-000002")
+    second = MapData.load(tmp_path / "rev-000002")
+    np.testing.assert_array_equal(second.vocabulary_fits["bow_orb"].trained_on,
+                                  fit.trained_on)
+    # one more: 3 of 13 were not trained on, past a fifth however well they fit
+    names = [*second.names, "d12"]
+    east = np.r_[ALIKE_EAST, 110.0]
+    third = _pack(discs[:13], east, names,
+                  previous=Previous.of(second, second.names, names), revision=3)
+    fresh = _pack(discs[:13], east, names, revision=3)
+    for name in DESCRIPTOR_NAMES:
+        assert third.vocabulary_fits[name].revision == 3
+        assert third.vocabulary_fits[name].untrained_share() == 0.0
+        np.testing.assert_array_equal(third.global_features[name],
+                                      fresh.global_features[name])
+
+
 def test_images_unlike_the_map_train_its_vocabularies_again(first, discs, lines):
+    # two images of twelve, as few as the alike ones that keep the vocabularies
     feats = discs[:10] + lines
-    east = np.r_[10.0 * np.arange(10), 100.0, 110.0, 120.0]
-    names = [*first.names, "l0", "l1", "l2"]
+    east = np.r_[10.0 * np.arange(10), 100.0, 110.0]
+    names = [*first.names, "l0", "l1"]
     _, updated, fresh = _update(first, feats, east, names)
     for name in DESCRIPTOR_NAMES:
         assert updated.vocabulary_fits[name].revision == 2

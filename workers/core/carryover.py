@@ -13,9 +13,10 @@ revision before (:class:`Previous`) instead of working it out again for every im
   distance of each image's local vectors to their words
   (:func:`~.features.vocabulary.distortion`), kept per image with the vocabulary
   (:class:`~.features.vocabulary.VocabularyFit`). A vocabulary is kept while the map's mean
-  distortion stays within :data:`MAX_DISTORTION_RISE` of the trained images' mean; past
-  that, or where the revision before has no fit recorded, every vocabulary is trained again
-  on every image, as a fresh build trains them.
+  distortion stays within :data:`MAX_DISTORTION_RISE` of the trained images' mean and the
+  images it was not trained on are at most :data:`MAX_UNTRAINED_SHARE` of the map's; past
+  either, or where the revision before has no fit recorded, every vocabulary is trained
+  again on every image, as a fresh build trains them.
 
 A kept vocabulary is the one an earlier revision trained, so a map updated this way is not
 the map a fresh build of the same images packs (its vocabularies, descriptors and codes
@@ -37,6 +38,14 @@ from .sift import reduction_neighbours
 MAX_DISTORTION_RISE: float = 0.05
 """The most the map's mean distortion may rise (a fraction of the trained images') before
 its vocabularies are trained again."""
+
+MAX_UNTRAINED_SHARE: float = 0.2
+"""The largest share of the map's images a kept vocabulary was not trained on. Past it (a
+new flight of a fifth of the map, say) the vocabularies are trained again, however well
+they fit: their words and their idf weights (counted over the trained images alone) then
+miss too much of the map. On seneca-uav, pass 1 updated with the first half of pass 2 (41 %
+of the map, another day) localised the second half 5.35 m off with pass 1's vocabularies
+kept, 5.18 m with them trained again (the same cameras; `bench/results/update.md`)."""
 
 
 @dataclass(frozen=True)
@@ -109,8 +118,10 @@ class CarriedDescriptor:
 def carried_descriptors(previous: Previous, names: Sequence[str],
                         ) -> dict[str, CarriedDescriptor] | None:
     """What the revision before holds of each place descriptor in ``names`` for the kept
-    images, or None where it cannot be carried over (a descriptor or its fit missing: the
-    revision was packed before fits were recorded, or without that descriptor)."""
+    images, or None where it cannot be carried over: a descriptor or its fit missing (the
+    revision was packed before fits were recorded, or without that descriptor), or the
+    images its vocabulary was not trained on, the added ones with them, more than
+    :data:`MAX_UNTRAINED_SHARE` of the new revision's."""
     before = previous.data
     rows = previous.rows[previous.kept]
     out = {}
@@ -118,9 +129,15 @@ def carried_descriptors(previous: Previous, names: Sequence[str],
         vocab, fit = before.vocabularies.get(name), before.vocabulary_fits.get(name)
         if vocab is None or fit is None or name not in before.global_features:
             return None
+        trained_on = (np.ones(len(rows), bool) if fit.trained_on is None
+                      else np.asarray(fit.trained_on, bool)[rows])
+        untrained = len(rows) - int(trained_on.sum()) + len(previous.added)
+        if untrained > MAX_UNTRAINED_SHARE * len(previous.rows):
+            return None
         codes = before.place_codes.get(name)
         out[name] = CarriedDescriptor(
-            vocab, VocabularyFit(fit.trained, np.asarray(fit.images)[rows], fit.revision),
+            vocab, VocabularyFit(fit.trained, np.asarray(fit.images)[rows], fit.revision,
+                                 trained_on),
             np.asarray(before.global_features[name])[rows],
             None if codes is None else PlaceCodes(np.asarray(codes.basis),
                                                   np.asarray(codes.codes)[rows]))
@@ -129,7 +146,7 @@ def carried_descriptors(previous: Previous, names: Sequence[str],
 
 def still_fits(fit: VocabularyFit) -> bool:
     """Whether a vocabulary with this fit (its images now the new revision's) is kept."""
-    return fit.rise() <= MAX_DISTORTION_RISE
+    return fit.rise() <= MAX_DISTORTION_RISE and fit.untrained_share() <= MAX_UNTRAINED_SHARE
 
 
 def merge_rows(kept: np.ndarray, kept_rows: np.ndarray, added_rows: np.ndarray) -> np.ndarray:

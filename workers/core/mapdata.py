@@ -28,8 +28,9 @@ vocabularies[name] : Vocabulary
     descriptors existed have none and load unchanged.
 vocabulary_fits[name] : VocabularyFit
     How well each vocabulary fits the map's images: each image's distortion,
-    ``vocab_{name}_fit.npy`` (N,) float32, the trained images' mean and the revision that
-    trained it in ``meta.json``; what an update reads to keep the vocabulary or train it
+    ``vocab_{name}_fit.npy`` (N,) float32, whether it was trained on each,
+    ``vocab_{name}_trained_on.npy`` (N,) bool, the trained images' mean and the revision
+    that trained it in ``meta.json``; what an update reads to keep the vocabulary or train it
     again (:mod:`workers.core.carryover`). None recorded for maps packed before.
 captured_at : (N,) float64
     Capture times of the map images in seconds since the epoch, NaN where unknown; the
@@ -309,6 +310,9 @@ class MapData:
                 np.save(tmp / f"vocab_{name}_projection.npy", vocab.projection)
         for name, fit in self.vocabulary_fits.items():
             np.save(tmp / f"vocab_{name}_fit.npy", np.asarray(fit.images, np.float32))
+            trained_on = (np.ones(len(fit.images), bool) if fit.trained_on is None
+                          else np.asarray(fit.trained_on, bool))
+            np.save(tmp / f"vocab_{name}_trained_on.npy", trained_on)
         for name, codes in self.place_codes.items():
             np.save(tmp / f"codes_{name}_basis.npy", codes.basis)
             np.save(tmp / f"codes_{name}.npy", codes.codes)
@@ -355,7 +359,8 @@ class MapData:
             for name, shape in meta.get("vocabularies", {}).items()}
         fits = {name: VocabularyFit(float(shape["trained_distortion"]),
                                     ld(f"vocab_{name}_fit.npy"),
-                                    int(shape["trained_revision"]))
+                                    int(shape["trained_revision"]),
+                                    ld(f"vocab_{name}_trained_on.npy"))
                 for name, shape in meta.get("vocabularies", {}).items()
                 if "trained_distortion" in shape}
         return cls(origin=GeoOrigin(*meta["origin"]), names=tuple(meta["names"]),

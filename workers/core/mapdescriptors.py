@@ -81,7 +81,8 @@ def train_descriptors(features: list, names: tuple[str, ...], *,
         vocab = train_descriptor_vocabulary(spec, per_image, rng=np.random.default_rng(seed))
         distortions = image_distortions(vocab, per_image)
         out[name] = TrainedDescriptor(
-            vocab, VocabularyFit(float(distortions.mean()), distortions, revision),
+            vocab, VocabularyFit(float(distortions.mean()), distortions, revision,
+                                 np.ones(len(distortions), bool)),
             np.stack([describe(spec, v, vocab) for v in per_image]))
     return out
 
@@ -96,13 +97,15 @@ def _kept_descriptors(features: list, names: tuple[str, ...],
     added = [features[i] for i in previous.added]
     out = {}
     for name, c in carried.items():
+        trained_on = merge_rows(previous.kept, c.fit.trained_on, np.zeros(len(added), bool))
         spec = get_descriptor(name)
         rows, distortions = [], []
         for v in LocalVectors(added, spec.local):
             rows.append(describe(spec, v, c.vocabulary))
             distortions.append(image_distortion(c.vocabulary, v))
         fit = VocabularyFit(c.fit.trained, merge_rows(
-            previous.kept, c.fit.images, np.array(distortions, np.float32)), c.fit.revision)
+            previous.kept, c.fit.images, np.array(distortions, np.float32)), c.fit.revision,
+            trained_on)
         if not still_fits(fit):
             return None
         new = np.stack(rows) if rows else np.zeros((0, spec.dim), np.float32)

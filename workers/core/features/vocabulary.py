@@ -218,7 +218,8 @@ def fit_level(vocabulary: Vocabulary) -> int:
 
 @dataclass(frozen=True)
 class VocabularyFit:
-    """How well a vocabulary fits the images it describes (:func:`distortion`).
+    """How well a vocabulary fits the images it describes (:func:`distortion`), and which
+    of them it was trained on.
 
     Attributes
     ----------
@@ -226,12 +227,21 @@ class VocabularyFit:
         The mean of ``images`` over the images it was trained on, when it was trained.
     images : (N,) float32 ndarray
         Each image's mean distortion (0 for an image without local vectors).
+    revision : int
+        The map revision that trained the vocabulary.
+    trained_on : (N,) bool ndarray or None
+        Whether each image was among those it was trained on (and gave the idf); None:
+        all of them.
     """
 
     trained: float
     images: np.ndarray
     revision: int = 0
-    """The map revision that trained the vocabulary."""
+    trained_on: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.trained_on is not None and np.shape(self.trained_on) != np.shape(self.images):
+            raise ValueError("trained_on must have one entry per image")
 
     def rise(self) -> float:
         """How much the images' mean distortion has risen over the trained images' (a
@@ -239,6 +249,12 @@ class VocabularyFit:
         if len(self.images) == 0 or self.trained <= 0:
             return 0.0
         return float(np.mean(self.images, dtype=np.float64) / self.trained - 1.0)
+
+    def untrained_share(self) -> float:
+        """The share of the images the vocabulary was not trained on."""
+        if self.trained_on is None or len(self.images) == 0:
+            return 0.0
+        return float(1.0 - np.mean(self.trained_on))
 
 
 def image_distortion(vocabulary: Vocabulary, vectors: np.ndarray) -> float:
