@@ -194,7 +194,8 @@ def _flight_of(flight: str | None, per_pass: bool):
               help="Pack a new revision even when no image was added or deleted.")
 @click.option("--full", is_flag=True,
               help="Reconstruct the map's camera geometry whole instead of registering the "
-                   "images added since the last build into it (implies --force).")
+                   "images added since the last build into it, and train its place "
+                   "vocabularies afresh (implies --force).")
 @server_options
 @reports_errors
 def build_cmd(map_id: str, wait: bool, timeout: float, quiet: bool, force: bool, full: bool,

@@ -96,8 +96,9 @@ class Routes(ABC):
         """Start a build of the images added since the last one; returns the queued job.
         ``force`` packs a new revision even when there is nothing new (else 409
         ``map-up-to-date``). The images added are registered into the map's camera
-        geometry as it stands; ``full`` reconstructs it whole instead (and implies
-        ``force``)."""
+        geometry as it stands, and the map's place vocabularies kept while they fit it;
+        ``full`` reconstructs the geometry whole and trains the vocabularies afresh
+        instead (and implies ``force``)."""
         return self._call(rq.build_map(map_id, force=force, full=full))
 
     def list_revisions(self, map_id: str) -> list[MapRevision]:

@@ -137,8 +137,8 @@ def test_build_progress_and_job(vloc, shots):
     assert job.status in ("queued", "running") and job.map_id == m.id
     seen = []
     done = vloc.wait_for_job(job.id, timeout=120, poll_interval=0.05, on_progress=seen.append)
-    assert (done.status, done.progress, done.n_images, done.n_extracted, done.revision) == \
-        ("done", 1.0, 4, 4, 1)
+    assert (done.status, done.progress, done.n_images, done.n_extracted, done.revision,
+            done.full) == ("done", 1.0, 4, 4, 1, False)
     assert seen[-1] == done
     progress = [j.progress for j in seen]
     assert progress == sorted(progress)
@@ -153,7 +153,7 @@ def test_build_progress_and_job(vloc, shots):
     assert info.value.kind == "map-up-to-date"
     again = vloc.wait_for_job(vloc.build_map(m.id, full=True).id, timeout=120,
                               poll_interval=0.05)
-    assert (again.status, again.revision) == ("done", 2)
+    assert (again.status, again.revision, again.full) == ("done", 2, True)
 
 
 def test_build_errors(vloc):
