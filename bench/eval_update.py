@@ -119,7 +119,7 @@ def vocabularies(data) -> str:
     fits = data.vocabulary_fits.values()
     trained = sorted({f.revision for f in fits})
     rise = max((f.rise() for f in fits), default=0.0)
-    return f"revision {', '.join(map(str, trained))}, +{100 * rise:.1f} %"
+    return f"revision {', '.join(map(str, trained))}, {100 * rise:+.1f} %"
 
 
 def localise(data, queries, options: dict) -> dict:
