@@ -23,7 +23,7 @@ from sqlalchemy.orm import Session
 from vloc.app.config import Settings
 from vloc.app.db import utcnow
 from vloc.app.maps.models import Map, MapImage, MapRevision, MapStatus, MapVocabulary
-from vloc.app.maps.revisions import revision_images
+from vloc.app.maps.revisions import revision_images, vocabularies_from
 from vloc.app.maps.schemas import RevisionRead
 from vloc.app.maps.service import refuse_while_building
 from vloc.app.problems import Problem, ProblemKind, not_found
@@ -133,11 +133,12 @@ def _revision(db: Session, map_: Map, revision: int) -> MapRevision:
 
 def _read(row: MapRevision, *, current: bool, active_sessions: int,
           folder: Path) -> RevisionRead:
-    size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) \
-        if row.dropped_at is None and folder.is_dir() else None
+    present = row.dropped_at is None and folder.is_dir()
+    size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) if present else None
     return RevisionRead(
         revision=row.revision, current=current, built_at=row.built_at, job_id=row.job_id,
         base_revision=row.base_revision, image_count=row.image_count, added=row.added,
         removed=row.removed, active_sessions=active_sessions, disk_bytes=size,
+        vocabularies_from=vocabularies_from(str(folder)) if present else None,
         dropped_at=row.dropped_at, geometry=row.geometry)
 

@@ -1,6 +1,7 @@
 """The files the service keeps beside a packed map revision, whose folder the core writes
 (:meth:`~workers.core.mapdata.MapData.save`): the database ids of its images and the time
-each stage of its build took.
+each stage of its build took; and what the service reads of the folder's own
+``meta.json``.
 """
 
 from __future__ import annotations
@@ -58,3 +59,16 @@ def write_timings(folder: str | Path, timings: dict[str, tuple[float, float]]) -
     (Path(folder) / TIMINGS_FILE).write_text(json.dumps(
         {name: {"wall_s": wall, "cpu_s": cpu} for name, (wall, cpu) in timings.items()},
         indent=1))
+
+
+@lru_cache(maxsize=64)
+def vocabularies_from(folder: str) -> int | None:
+    """The revision that trained a packed revision's place vocabularies (its ``meta.json``
+    records it with each one's fit); None where it does not say or cannot be read."""
+    try:
+        meta = json.loads((Path(folder) / "meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    found = {int(v["trained_revision"]) for v in meta.get("vocabularies", {}).values()
+             if isinstance(v, dict) and "trained_revision" in v}
+    return min(found) if found else None

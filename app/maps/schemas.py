@@ -136,6 +136,11 @@ class RevisionRead(BaseModel):
     active_sessions: int = Field(description="Active sessions localising against it")
     disk_bytes: int | None = Field(description="Size of its packed files; null where they "
                                                "are missing or dropped")
+    vocabularies_from: int | None = Field(
+        None, description="The revision that trained its place vocabularies: itself where "
+                          "its build trained them, an earlier one where an update kept "
+                          "them; null where its files are missing or dropped, or it was "
+                          "packed before this was recorded")
     dropped_at: datetime | None = Field(description="When it was dropped with its files; "
                                                     "its number is never packed again")
     geometry: MapGeometryRead | None = Field(

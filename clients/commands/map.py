@@ -236,6 +236,8 @@ def _revision_line(r) -> str:
         for f in check.flights or []:
             median = "-" if f.median_m is None else f"{f.median_m:.1f} m"
             line += f"; {f.name or f'flight {f.flight}'} {median}"
+    if r.vocabularies_from is not None and r.vocabularies_from != r.revision:
+        line += f"  vocabularies of rev {r.vocabularies_from}"
     if r.dropped_at is not None:
         line += "  dropped"
     elif r.disk_bytes is not None:

@@ -62,6 +62,8 @@ def test_a_map_restored_to_an_earlier_revision_answers_as_it_did(module_client, 
              r["removed"]) for r in listed] == [(2, True, 1, 10, 3, 0), (1, False, 0, 7, 7, 0)]
     assert listed[1]["job_id"] == first_job["id"]
     assert all(r["disk_bytes"] > 0 and r["active_sessions"] == 0 for r in listed)
+    # three images of ten new to the vocabularies: revision 2 trained its own
+    assert [r["vocabularies_from"] for r in listed] == [2, 1]
     assert listed[0]["geometry"] == c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()[
         "geometry"]
 
