@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
+from tests.core import scenes
 from vloc.workers.core import carryover, mapbuild
 from vloc.workers.core.carryover import Previous, known_masks, merge_rows
 from vloc.workers.core.features import DESCRIPTOR_NAMES
@@ -20,36 +20,14 @@ from vloc.workers.core.sift import reduction_masks, reduction_neighbours
 ORIGIN = GeoOrigin(48.52, 9.05, 300.0)
 
 
-def _blobs(seed: int) -> np.ndarray:
-    """A scene of coloured discs over a smooth background."""
-    rng = np.random.default_rng(seed)
-    img = cv2.resize(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8), (320, 240),
-                     interpolation=cv2.INTER_CUBIC)
-    for _ in range(60):
-        c = (int(rng.integers(0, 320)), int(rng.integers(0, 240)))
-        cv2.circle(img, c, int(rng.integers(3, 12)),
-                   tuple(int(v) for v in rng.integers(0, 256, 3)), -1)
-    return img
-
-
-def _lines(seed: int) -> np.ndarray:
-    """A scene unlike the discs: straight strokes on black."""
-    rng = np.random.default_rng(seed)
-    img = np.zeros((240, 320, 3), np.uint8)
-    for _ in range(40):
-        cv2.line(img, (int(rng.integers(0, 320)), 0), (int(rng.integers(0, 320)), 239),
-                 tuple(int(v) for v in rng.integers(0, 256, 3)), int(rng.integers(1, 6)))
-    return img
-
-
 @pytest.fixture(scope="module")
 def discs():
-    return [extract_image_features(prepare(_blobs(s))) for s in range(13)]
+    return [extract_image_features(prepare(scenes.discs(s))) for s in range(13)]
 
 
 @pytest.fixture(scope="module")
 def lines():
-    return [extract_image_features(prepare(_lines(s))) for s in range(2)]
+    return [extract_image_features(prepare(scenes.strokes(s))) for s in range(2)]
 
 
 def _pack(feats, east, names, *, previous=None, revision=1, **kw) -> MapData:

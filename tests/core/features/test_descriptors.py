@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
+from tests.core.scenes import discs
 from vloc.workers.core.features import ALL_FEATURE_NAMES, DESCRIPTOR_NAMES, FEATURE_NAMES
 from vloc.workers.core.features.descriptors import (
     DESCRIPTORS,
@@ -22,19 +22,9 @@ from vloc.workers.core.query import QueryFrame
 ORIGIN = GeoOrigin(48.52, 9.05, 300.0)
 
 
-def _scene(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = cv2.resize(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8), (320, 240),
-                     interpolation=cv2.INTER_CUBIC)
-    for _ in range(60):
-        c = (int(rng.integers(0, 320)), int(rng.integers(0, 240)))
-        cv2.circle(img, c, int(rng.integers(3, 12)), tuple(int(v) for v in rng.integers(0, 256, 3)), -1)
-    return img
-
-
 @pytest.fixture(scope="module")
 def frames():
-    return [prepare(_scene(s)) for s in range(6)]
+    return [prepare(discs(s)) for s in range(6)]
 
 
 @pytest.fixture(scope="module")
