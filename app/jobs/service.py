@@ -8,10 +8,11 @@ the worker processes.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import shutil
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from vloc.app.background import BackgroundRunner
 from vloc.app.config import Settings
 from vloc.app.db import utcnow
-from vloc.app.engine import Engine, run_task
+from vloc.app.engine import Engine, WorkerDied, run_task
 from vloc.app.jobs.models import BuildJob, BuildStage, JobStatus
 from vloc.app.maps.models import ImageOrb, ImageSift, Map, MapImage, MapRevision, MapStatus
 from vloc.app.maps.revisions import revision_images
@@ -44,6 +45,10 @@ PAIR_SHARE = 0.1
 TILE_SHARE = 0.15
 """... and next while they reconstruct a large map tile by tile; packing the map (a small
 map's reconstruction included) is the rest."""
+
+MATCH_RETRIES = 5
+"""Times a batch of pairs that did not run (its worker died of another batch, or was being
+replaced) is sent again before the build fails."""
 
 PAIR_BATCH = 256
 """Pairs of map images matched per engine call: a few seconds of work, so that a call's
@@ -185,13 +190,52 @@ class BuildRunner(BackgroundRunner):
         plan = await run_task(self.engine, tasks.plan_tie_pairs, url, str(map_id),
                               str(tie_dir))
         ids, pairs = plan["image_ids"], plan["pairs"]
-        batches = []
-        for k in range(0, len(pairs), PAIR_BATCH):
-            batch = pairs[k:k + PAIR_BATCH]
+        batches = [pairs[k:k + PAIR_BATCH] for k in range(0, len(pairs), PAIR_BATCH)]
+        numbers = itertools.count(len(batches))  # files for the pairs a crash leaves out
+        await self._fan_out(job_id, [self._match_batch(tie_dir, ids, batch, k, numbers)
+                                     for k, batch in enumerate(batches)],
+                            EXTRACT_SHARE + TIE_SHARE, PAIR_SHARE)
+
+    async def _match_batch(self, tie_dir: Path, ids: list[int], batch: list, number: int,
+                           numbers: Iterator[int]) -> None:
+        """One batch of planned pairs matched by the engine's workers, whatever COLMAP does.
+
+        COLMAP can bring a worker down on a pair's matches (a segmentation fault in its
+        two-view solvers, seen on a pair of a synthetic survey whose ratio matches hit
+        fifty keypoints of one image twice over), and it would again on every retry: such
+        a pair (the batch's record of the pair it was matching says which,
+        :func:`~vloc.workers.core.tiepairs.crashed_pair`) is stored as matched without
+        verifying, so that no build matches it again, and the rest of the batch is matched
+        again. A batch that did not run (queued on the worker that died, or sent while it
+        was replaced) is sent again after a pause, :data:`MATCH_RETRIES` times at most."""
+        from vloc.workers.core import tiepairs
+
+        out = tasks.tie_pairs_file(tie_dir, number)
+        retries = 0
+        while True:
             names = {i: ids[i] for pair in batch for i in pair}
-            batches.append(run_task(self.engine, tasks.match_tie_pairs, str(tie_dir), names,
-                                    batch, len(batches)))
-        await self._fan_out(job_id, batches, EXTRACT_SHARE + TIE_SHARE, PAIR_SHARE)
+            try:
+                await run_task(self.engine, tasks.match_tie_pairs, str(tie_dir), names,
+                               batch, number)
+                return
+            except WorkerDied:
+                crashed = await asyncio.to_thread(tiepairs.crashed_pair, out)
+                if crashed is None:
+                    retries += 1
+                    if retries > MATCH_RETRIES:
+                        raise
+                    await asyncio.sleep(min(0.5 * 2 ** retries, 10.0))
+                    continue
+            where = {image_id: k for k, image_id in enumerate(ids)}
+            pair = (where[crashed[0]], where[crashed[1]])
+            log.warning("COLMAP ended a worker on the tie points of images %d and %d; the "
+                        "map is built without that pair", *crashed)
+            await asyncio.to_thread(tiepairs.save_results, [(*pair, None)],
+                                    tasks.tie_pairs_file(tie_dir, next(numbers)),
+                                    image_ids={pair[0]: crashed[0], pair[1]: crashed[1]})
+            batch = [p for p in batch if tuple(p) != pair]
+            if not batch:
+                return
 
     async def _reconstruct_tiles(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
                                  tie_dir: Path, lens_files: list[str]) -> None:

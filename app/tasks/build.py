@@ -149,7 +149,12 @@ def match_tie_pairs(tie_dir: str, image_ids: dict[int, int], pairs: list[tuple[i
 
     stems = {i: tie_stem(tie_dir, image_id) for i, image_id in image_ids.items()}
     return tiepairs.match_batch(stems, [tuple(p) for p in pairs],
-                                Path(tie_dir) / f"pairs-{batch:06d}.npz", image_ids=image_ids)
+                                tie_pairs_file(tie_dir, batch), image_ids=image_ids)
+
+
+def tie_pairs_file(tie_dir: str | Path, batch: int) -> Path:
+    """Where :func:`match_tie_pairs` writes batch ``batch``'s results."""
+    return Path(tie_dir) / f"pairs-{batch:06d}.npz"
 
 
 def plan_tiles(database_url: str, map_id: str, tie_dir: str,

@@ -273,3 +273,34 @@ def test_a_file_that_is_not_results_is_matched_again(surveyed, tmp_path):
     assert tiepairs.forget_moved(tmp_path) == 0
     assert tiepairs.keep_valid(tmp_path, ids) == set(planned[:3])
     assert [p.name for p in tmp_path.glob(tiepairs.RESULTS_GLOB)] == [tiepairs.KEPT]
+
+
+def test_a_batch_that_ends_mid_pair_says_which_pair(surveyed, tmp_path, monkeypatch):
+    s, lat, lon, xy = surveyed
+    stems = _write_ties(s, tmp_path)
+    planned = tiepairs.plan(lat, lon, list(s.altitudes))
+    ids = [100 + i for i in range(len(xy))]
+    out = tmp_path / "pairs-000000.npz"
+    # a batch that finishes leaves no record of a pair
+    tiepairs.match_batch(stems, planned[:2], out, image_ids=ids)
+    assert tiepairs.crashed_pair(out) is None
+    # one that ends in the third pair's matching (as a process COLMAP brings down does)
+    real = tiepairs.match_pair
+    calls = []
+
+    def ends_on_the_third(*args, **kwargs):
+        calls.append(args[:2])
+        if len(calls) == 3:
+            raise SystemExit("the process ends here")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tiepairs, "match_pair", ends_on_the_third)
+    out2 = tmp_path / "pairs-000001.npz"
+    with pytest.raises(SystemExit):
+        tiepairs.match_batch(stems, planned[:5], out2, image_ids=ids)
+    a, b = planned[2]
+    assert not out2.exists()
+    assert tiepairs.crashed_pair(out2) == (ids[a], ids[b])
+    assert tiepairs.crashed_pair(out2) is None  # read once
+    # the record is no results file: the pairs are matched again
+    assert set(tiepairs.load_results(tmp_path, ids)) == set(planned[:2])

@@ -124,6 +124,10 @@ def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | 
     (:func:`~workers.core.mapbuild.save_tie_points`) and ``image_ids[i]`` the image's id; a
     pair with an image whose tie points are missing is left out, for the packing to match
     from the image's stored SIFT. Returns the number of pairs that verified.
+
+    While a pair is being matched, a file beside ``out`` names it
+    (:func:`crashed_pair`): COLMAP can bring the whole process down on a pair's matches
+    (a segmentation fault in its two-view solvers), and the file then says which pair did.
     """
     cache: dict[int, object] = {}
 
@@ -132,15 +136,36 @@ def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | 
             cache[i] = load_tie_points(stems[i])
         return cache[i]
 
+    marker = _marker(out)
     done: list[tuple[int, int, PairMatches | None]] = []
     for a, b in pairs:
         ta, tb = ties(a), ties(b)
         if ta is None or tb is None:
             continue
+        marker.write_text(f"{image_ids[a]} {image_ids[b]}")
         done.append((a, b, match_pair(a, b, ta.keypoints, ta.descriptors, tb.keypoints,
                                       tb.descriptors, seed=seed)))
     save_results(done, out, image_ids=image_ids)
+    marker.unlink(missing_ok=True)
     return sum(p is not None for _, _, p in done)
+
+
+def crashed_pair(out: str | Path) -> tuple[int, int] | None:
+    """The image ids of the pair :func:`match_batch` was matching into ``out`` when its
+    process ended before finishing the batch (None where it finished, or never began one);
+    the record is removed as it is read."""
+    marker = _marker(out)
+    try:
+        a, b = (int(v) for v in marker.read_text().split())
+    except (OSError, ValueError):
+        return None
+    marker.unlink(missing_ok=True)
+    return a, b
+
+
+def _marker(out: str | Path) -> Path:
+    out = Path(out)
+    return out.with_name(out.name + ".matching")
 
 
 def save_results(done: list[tuple[int, int, PairMatches | None]], out: str | Path, *,
