@@ -10,8 +10,8 @@ revision before (:class:`Previous`) instead of working it out again for every im
 * The place descriptors' vocabularies, unless the images the map gained since they were
   trained measurably change them, and with them every kept image's descriptor row and
   shortlist code. How well a vocabulary fits the map is its distortion, the mean squared
-  distance of each image's local vectors to their words
-  (:func:`~.features.vocabulary.distortion`), kept per image with the vocabulary
+  distance of each image's local vectors to their nodes a few dozen deep in its tree
+  (:func:`~.features.vocabulary.image_distortion`), kept per image with the vocabulary
   (:class:`~.features.vocabulary.VocabularyFit`). A vocabulary is kept while the map's mean
   distortion stays within :data:`MAX_DISTORTION_RISE` of the trained images' mean and the
   images it was not trained on are at most :data:`MAX_UNTRAINED_SHARE` of the map's; past
