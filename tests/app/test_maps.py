@@ -30,8 +30,8 @@ from vloc.workers.core import geometry, tiepairs, tiles
 from vloc.workers.core.carryover import MAX_DISTORTION_RISE
 from vloc.workers.core.features import DESCRIPTOR_NAMES
 from vloc.workers.core.features.descriptors import get_descriptor, local_vectors
+from vloc.workers.core.features.distortion import image_distortion
 from vloc.workers.core.features.orb import extract_orb
-from vloc.workers.core.features.vocabulary import image_distortion
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.geometry import tiling
 from vloc.workers.core.geometry.kept import read_order

@@ -10,7 +10,7 @@ from vloc.workers.core import carryover, mapbuild
 from vloc.workers.core.carryover import Previous, known_masks, merge_rows
 from vloc.workers.core.features import DESCRIPTOR_NAMES
 from vloc.workers.core.features.descriptors import describe, get_descriptor, local_vectors
-from vloc.workers.core.features.vocabulary import image_distortion
+from vloc.workers.core.features.distortion import image_distortion
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.image import prepare
 from vloc.workers.core.mapbuild import assemble_map, extract_image_features

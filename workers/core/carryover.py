@@ -11,8 +11,8 @@ revision before (:class:`Previous`) instead of working it out again for every im
   trained measurably change them, and with them every kept image's descriptor row and
   shortlist code. How well a vocabulary fits the map is its distortion, the mean squared
   distance of each image's local vectors to their nodes a few dozen deep in its tree
-  (:func:`~.features.vocabulary.image_distortion`), kept per image with the vocabulary
-  (:class:`~.features.vocabulary.VocabularyFit`). A vocabulary is kept while the map's mean
+  (:func:`~.features.distortion.image_distortion`), kept per image with the vocabulary
+  (:class:`~.features.distortion.VocabularyFit`). A vocabulary is kept while the map's mean
   distortion stays within :data:`MAX_DISTORTION_RISE` of the trained images' mean and the
   images it was not trained on are at most :data:`MAX_UNTRAINED_SHARE` of the map's; past
   either, or where the revision before has no fit recorded, every vocabulary is trained
@@ -30,8 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .features.distortion import VocabularyFit
 from .features.shortlist import PlaceCodes
-from .features.vocabulary import Vocabulary, VocabularyFit
+from .features.vocabulary import Vocabulary
 from .mapdata import MapData
 from .sift import reduction_neighbours
 

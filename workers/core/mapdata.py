@@ -57,9 +57,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .features.distortion import VocabularyFit
 from .features.orb import OrbFeatures
 from .features.shortlist import PlaceCodes
-from .features.vocabulary import Vocabulary, VocabularyFit
+from .features.vocabulary import Vocabulary
 from .geo import GeoOrigin
 from .geometry import MapGeometry
 from .sift import SiftFeatures

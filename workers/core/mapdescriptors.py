@@ -3,7 +3,7 @@ over from its revision before while they still fit it, and every image described
 
 A descriptor's vocabulary needs every map image's local features at once
 (:mod:`workers.core.features.descriptors`); a first build (and a full one) trains it, and
-records how well it fits each image (:class:`~.features.vocabulary.VocabularyFit`), which
+records how well it fits each image (:class:`~.features.distortion.VocabularyFit`), which
 an update reads to keep it (:mod:`workers.core.carryover`).
 """
 
@@ -21,13 +21,9 @@ from .features.descriptors import (
     local_vectors,
     train_descriptor_vocabulary,
 )
+from .features.distortion import VocabularyFit, image_distortion, image_distortions
 from .features.shortlist import PlaceCodes
-from .features.vocabulary import (
-    Vocabulary,
-    VocabularyFit,
-    image_distortion,
-    image_distortions,
-)
+from .features.vocabulary import Vocabulary
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from vloc.workers.core.features.distortion import distortion
 from vloc.workers.core.features.vocabulary import (
     Projected,
     Vocabulary,
     _sample,
     cluster_sums,
-    distortion,
     inverse_document_frequency,
     principal_axes,
     quantise,
