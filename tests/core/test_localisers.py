@@ -395,7 +395,8 @@ def test_hybrid_with_a_place_descriptor_takes_global_steps(world, small_map):
 def test_place_descriptor_needs_a_map_that_has_it(small_map):
     from dataclasses import replace
 
-    old = replace(small_map, vocabularies={},
+    # a map packed before place descriptors: no vocabularies, nor their fits
+    old = replace(small_map, vocabularies={}, vocabulary_fits={},
                   global_features={k: v for k, v in small_map.global_features.items()
                                    if not k.startswith(("vlad_", "bow_"))})
     with pytest.raises(ValueError, match="vlad_orb"):
