@@ -22,6 +22,7 @@ from tests.app.conftest import (
 )
 from tests.app.imagery import plain_jpeg, png, png_bomb
 from tests.core.geometry.scene import similarity_residual
+from tests.core.packing import assert_same_places
 from vloc.app.jobs.service import forget_reconstruction
 from vloc.app.maps.codecs import decode_vocabulary
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
@@ -358,7 +359,7 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     fresh = MapData.load(ctx.settings.packed_map_dir(fresh_id, 1))
     # the vocabularies, descriptors and masks too (revision 2's, trained on the ten, also)
     for packed in (second, third):
-        _assert_same_places(packed, fresh)
+        assert_same_places(packed, fresh)
     assert {f.revision for f in third.vocabulary_fits.values()} == {3}
     assert (third.geometry is None) == (fresh.geometry is None)
     if fresh.geometry is not None:
@@ -408,7 +409,7 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
                     .json()["job_id"])["status"] == "done"
     nine = MapData.load(ctx.settings.packed_map_dir(nine_id, 1))
     assert list(nine.names) == list(fifth.names)
-    _assert_same_places(fifth, nine)
+    assert_same_places(fifth, nine)
     assert (fifth.geometry is None) == (nine.geometry is None)
     if nine.geometry is not None:
         np.testing.assert_array_equal(fifth.geometry.centres, nine.geometry.centres)
@@ -438,19 +439,6 @@ def _rise(before: MapData, after: MapData, name: str) -> float:
     added = [image_distortion(vocab, local_vectors(local, orb=after.orb(i), sift=after.sift(i)))
              for i in range(len(before), len(after))]
     return float(np.mean(np.r_[fit.images, added]) / fit.trained - 1.0)
-
-
-def _assert_same_places(packed: MapData, fresh: MapData) -> None:
-    """``packed`` holds the place vocabularies, descriptors and SIFT masks of ``fresh``, a
-    fresh build of the same images, bit for bit."""
-    np.testing.assert_array_equal(packed.sift_keep, fresh.sift_keep)
-    for name in DESCRIPTOR_NAMES:
-        np.testing.assert_array_equal(packed.vocabularies[name].centroids,
-                                      fresh.vocabularies[name].centroids)
-        np.testing.assert_array_equal(packed.global_features[name],
-                                      fresh.global_features[name])
-        np.testing.assert_array_equal(packed.vocabulary_fits[name].images,
-                                      fresh.vocabulary_fits[name].images)
 
 
 def _assert_vocabularies_stored(ctx, map_id: str, revision: int, packed: MapData) -> None:
