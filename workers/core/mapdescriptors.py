@@ -21,7 +21,7 @@ from .features.descriptors import (
     local_vectors,
     train_descriptor_vocabulary,
 )
-from .features.distortion import VocabularyFit, image_distortion, image_distortions
+from .features.distortion import VocabularyFit, image_distortion
 from .features.shortlist import PlaceCodes
 from .features.vocabulary import Vocabulary
 
@@ -75,12 +75,22 @@ def train_descriptors(features: list, names: tuple[str, ...], *,
             vectors[spec.local] = LocalVectors(features, spec.local)
         per_image = vectors[spec.local]
         vocab = train_descriptor_vocabulary(spec, per_image, rng=np.random.default_rng(seed))
-        distortions = image_distortions(vocab, per_image)
+        matrix, distortions = _describe(spec, vocab, per_image)
         out[name] = TrainedDescriptor(
             vocab, VocabularyFit(float(distortions.mean()), distortions, revision,
-                                 np.ones(len(distortions), bool)),
-            np.stack([describe(spec, v, vocab) for v in per_image]))
+                                 np.ones(len(distortions), bool)), matrix)
     return out
+
+
+def _describe(spec, vocabulary: Vocabulary, per_image) -> tuple[np.ndarray, np.ndarray]:
+    """Each image's descriptor, (K, dim) float32, and its :func:`image_distortion`, (K,)
+    float32, from one reading of its local vectors (ORB's are unpacked as they are read)."""
+    rows, distortions = [], []
+    for v in per_image:
+        rows.append(describe(spec, v, vocabulary))
+        distortions.append(image_distortion(vocabulary, v))
+    matrix = np.stack(rows) if rows else np.zeros((0, spec.dim), np.float32)
+    return matrix, np.array(distortions, np.float32)
 
 
 def _kept_descriptors(features: list, names: tuple[str, ...],
@@ -95,16 +105,11 @@ def _kept_descriptors(features: list, names: tuple[str, ...],
     for name, c in carried.items():
         trained_on = merge_rows(previous.kept, c.fit.trained_on, np.zeros(len(added), bool))
         spec = get_descriptor(name)
-        rows, distortions = [], []
-        for v in LocalVectors(added, spec.local):
-            rows.append(describe(spec, v, c.vocabulary))
-            distortions.append(image_distortion(c.vocabulary, v))
-        fit = VocabularyFit(c.fit.trained, merge_rows(
-            previous.kept, c.fit.images, np.array(distortions, np.float32)), c.fit.revision,
-            trained_on)
+        new, distortions = _describe(spec, c.vocabulary, LocalVectors(added, spec.local))
+        fit = VocabularyFit(c.fit.trained, merge_rows(previous.kept, c.fit.images, distortions),
+                            c.fit.revision, trained_on)
         if not still_fits(fit):
             return None
-        new = np.stack(rows) if rows else np.zeros((0, spec.dim), np.float32)
         out[name] = TrainedDescriptor(c.vocabulary, fit,
                                       merge_rows(previous.kept, c.rows, new), c)
     return out

@@ -114,8 +114,3 @@ def image_distortion(vocabulary: Vocabulary, vectors: np.ndarray) -> float:
     vectors)."""
     d = distortion(vocabulary, vectors, level=fit_level(vocabulary))
     return float(d.mean()) if len(d) else 0.0
-
-
-def image_distortions(vocabulary: Vocabulary, per_image) -> np.ndarray:
-    """(N,) float32: :func:`image_distortion` of each image's local vectors."""
-    return np.array([image_distortion(vocabulary, v) for v in per_image], np.float32)
