@@ -158,16 +158,20 @@ def main() -> None:
 
 def packing_table(maps: Path, revisions: dict, label: dict, timed: dict) -> list[str]:
     """The packing's own stages for each build (wall seconds, from the revision's
-    ``build_timings.json``), and which revision trained its place vocabularies."""
+    ``build_timings.json``), which revision trained its place vocabularies, and its size on
+    disk with the part of it in files linked from the revision before it."""
     import json
 
     stages: dict[str, dict] = {}
     trained: dict[str, str] = {}
+    disk: dict[str, str] = {}
     for key, (map_id, revision) in revisions.items():
         folder = maps / map_id / f"rev-{revision:06d}"
         if key not in timed or not (folder / "build_timings.json").is_file():
             continue
         stages[key] = json.loads((folder / "build_timings.json").read_text())
+        size, linked = revision_disk(folder, maps / map_id / f"rev-{revision - 1:06d}")
+        disk[key] = f"{size / 2**20:.1f} | {linked / 2**20:.1f}"
         vocabularies = json.loads((folder / "meta.json").read_text()).get("vocabularies", {})
         trained[key] = ", ".join(sorted({str(v.get("trained_revision", "-"))
                                          for v in vocabularies.values()})) or "-"
@@ -176,11 +180,24 @@ def packing_table(maps: Path, revisions: dict, label: dict, timed: dict) -> list
         return []
     return ["The packing's stages (wall s, `build_timings.json`), and the revision that "
             "trained the revision's place vocabularies:", "",
-            "| build | vocabularies trained by revision | " + " | ".join(names) + " |",
-            "|---|---|" + "---|" * len(names),
-            *(f"| {label[k]} | {trained[k]} | "
+            "| build | vocabularies trained by revision | MiB on disk | of which linked from "
+            "the revision before | " + " | ".join(names) + " |",
+            "|---|---|---|---|" + "---|" * len(names),
+            *(f"| {label[k]} | {trained[k]} | {disk[k]} | "
               + " | ".join(f"{st[n]['wall_s']:.2f}" if n in st else "-" for n in names)
               + " |" for k, st in stages.items()), ""]
+
+
+def revision_disk(folder: Path, before: Path) -> tuple[int, int]:
+    """Bytes of a revision's files, and of those that are files of the revision ``before``
+    (hard links: :mod:`vloc.workers.core.rowchunks`)."""
+    size = linked = 0
+    for path in folder.iterdir():
+        n = path.stat().st_size
+        size += n
+        other = before / path.name
+        linked += n if other.exists() and os.path.samefile(path, other) else 0
+    return size, linked
 
 
 def centres(folder: Path) -> np.ndarray | None:

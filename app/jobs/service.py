@@ -172,10 +172,12 @@ class BuildRunner(BackgroundRunner):
         await self._match_pairs(job_id, url, map_id, tie_dir)
         await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files)
         previous = await asyncio.to_thread(self._previous_folder, job_id, map_id)
+        current = await asyncio.to_thread(self._current_folder, map_id)
         packed = await run_task(
             self.engine, tasks.pack_map, url, str(map_id), revision, str(folder),
             lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir),
-            job_id=str(job_id), previous=previous)
+            job_id=str(job_id), previous=previous, share=current,
+            chunk_images=self.settings.map_chunk_images)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
         if self.on_revised is not None:
             self.on_revised(str(map_id), revision)
@@ -284,11 +286,21 @@ class BuildRunner(BackgroundRunner):
         vocabularies and SIFT masks its images keep where they still hold); None for a
         first or a ``full`` build, or where that revision is gone or has no image ids."""
         with self.db_sessions() as db:
-            job, m = db.get(BuildJob, job_id), db.get(Map, map_id)
-            if job.full or m.revision == 0:
+            if db.get(BuildJob, job_id).full:
                 return None
-        folder = self.settings.packed_map_dir(str(map_id), m.revision)
-        return str(folder) if revision_images(str(folder)).ids else None
+        folder = self._current_folder(map_id)
+        return folder if folder is not None and revision_images(folder).ids else None
+
+    def _current_folder(self, map_id: uuid.UUID) -> str | None:
+        """The folder of the map's current revision, whose files the new one shares where
+        they are the same (a full build's too); None for a map not built yet, or where
+        that revision's files are gone."""
+        with self.db_sessions() as db:
+            revision = db.get(Map, map_id).revision
+        if revision == 0:
+            return None
+        folder = self.settings.packed_map_dir(str(map_id), revision)
+        return str(folder) if folder.is_dir() else None
 
     def _files(self, map_id: uuid.UUID, lens_sample: int = 25,
                ) -> tuple[list[str], dict[int, str]]:

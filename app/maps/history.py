@@ -134,11 +134,23 @@ def _revision(db: Session, map_: Map, revision: int) -> MapRevision:
 def _read(row: MapRevision, *, current: bool, active_sessions: int,
           folder: Path) -> RevisionRead:
     present = row.dropped_at is None and folder.is_dir()
-    size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) if present else None
+    size, shared = _disk(folder) if present else (None, None)
     return RevisionRead(
         revision=row.revision, current=current, built_at=row.built_at, job_id=row.job_id,
         base_revision=row.base_revision, image_count=row.image_count, added=row.added,
         removed=row.removed, active_sessions=active_sessions, disk_bytes=size,
+        shared_bytes=shared,
         vocabularies_from=vocabularies_from(str(folder)) if present else None,
         dropped_at=row.dropped_at, geometry=row.geometry)
 
+
+def _disk(folder: Path) -> tuple[int, int]:
+    """Bytes of a revision's files, and of those it shares with other revisions (files
+    hard-linked into several revision folders: :mod:`vloc.workers.core.rowchunks`)."""
+    size = shared = 0
+    for path in folder.rglob("*"):
+        st = path.lstat()
+        if path.is_file():
+            size += st.st_size
+            shared += st.st_size if st.st_nlink > 1 else 0
+    return size, shared

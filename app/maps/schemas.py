@@ -136,6 +136,11 @@ class RevisionRead(BaseModel):
     active_sessions: int = Field(description="Active sessions localising against it")
     disk_bytes: int | None = Field(description="Size of its packed files; null where they "
                                                "are missing or dropped")
+    shared_bytes: int | None = Field(
+        None, description="Of disk_bytes, the files it shares with other revisions of the "
+                          "map (an update keeps the unchanged images' features in the same "
+                          "files): dropping it frees disk_bytes less these at most; null "
+                          "where its files are missing or dropped")
     vocabularies_from: int | None = Field(
         None, description="The revision that trained its place vocabularies: itself where "
                           "its build trained them, an earlier one where an update kept "

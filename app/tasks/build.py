@@ -283,7 +283,8 @@ def _read_features(database_url: str, map_id: str, images: list[dict], ties: lis
 def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
              lens_files: list[str] | None = None,
              image_files: dict[int, str] | None = None, tie_dir: str | None = None,
-             job_id: str | None = None, previous: str | None = None) -> dict:
+             job_id: str | None = None, previous: str | None = None,
+             share: str | None = None, chunk_images: int | None = None) -> dict:
     """Assemble every extracted image of a map into a MapData folder.
 
     ``lens_files`` are some of the map's image files, read for the camera's focal length
@@ -304,7 +305,10 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     ``previous`` (the folder of the revision the map has now), its vocabularies are kept
     while they still fit the map, with its images' descriptors and SIFT reduction masks
     (:mod:`vloc.workers.core.carryover`); a revision that cannot be read is not packed
-    from.
+    from. Every file of the revision in ``share`` (the map's current one, on a full build
+    too) that the new one would write byte for byte is hard-linked instead, its local
+    features saved in files of about ``chunk_images`` images each
+    (:mod:`vloc.workers.core.rowchunks`).
 
     The (wall, CPU) seconds of each stage, reading the features included, are written
     beside the revision as ``build_timings.json``. With ``job_id``, the build job's stage and
@@ -383,7 +387,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                                  idf=idf, projection=projection))
     on_stage(BuildStage.SAVING)
     with stage(timings, "saving"):
-        data.save(folder)
+        data.save(folder, share=share, chunk_images=chunk_images)
         write_image_ids(folder, [img["id"] for img in images])
     write_timings(folder, timings)
     o = data.origin

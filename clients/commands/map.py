@@ -242,6 +242,8 @@ def _revision_line(r) -> str:
         line += "  dropped"
     elif r.disk_bytes is not None:
         line += f"  {r.disk_bytes / 2**20:.1f} MiB"
+        if r.shared_bytes:
+            line += f" ({r.shared_bytes / 2**20:.1f} shared)"
     else:
         line += "  files missing"
     if r.active_sessions:

@@ -121,6 +121,7 @@ class MapRevision(_Model):
     removed: int = 0
     active_sessions: int = 0
     disk_bytes: int | None = None
+    shared_bytes: int | None = None
     vocabularies_from: int | None = Field(
         None, description="the revision that trained its place vocabularies (an earlier "
                           "one where an update kept them)")

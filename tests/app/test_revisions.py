@@ -3,15 +3,36 @@ they gave, dropped with their files, on SQLite and PostgreSQL."""
 
 from __future__ import annotations
 
+import json
+import os
+
 import numpy as np
 import pytest
 
-from tests.app.conftest import ADMIN, FAST, PROBLEM, UNKNOWN_ID, jpeg_files, snapshot, wait_job
+from tests.app.conftest import (
+    ADMIN,
+    FAST,
+    PROBLEM,
+    UNKNOWN_ID,
+    backend_client,
+    jpeg_files,
+    snapshot,
+    wait_job,
+)
+from vloc.workers.core.rowchunks import chunk_bounds
 
 JPEG = {**ADMIN, "Content-Type": "image/jpeg"}
 ANSWER = ("lat", "lon", "x", "y", "cov", "feature", "measurement", "image_filename",
           "map_revision", "horizontal_accuracy_m")
 """The fields of a single-image localisation that depend on the map, not on timing."""
+
+
+@pytest.fixture(scope="module",
+                params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
+def module_client(request, tmp_path_factory):
+    """The app with a revision's local features in files of about two images each, so that
+    a ten-image map's update leaves some of them as they were."""
+    yield from backend_client(request.param, tmp_path_factory, map_chunk_images=2)
 
 
 def _build(c, map_id: str) -> dict:
@@ -66,6 +87,7 @@ def test_a_map_restored_to_an_earlier_revision_answers_as_it_did(module_client, 
     assert [r["vocabularies_from"] for r in listed] == [2, 1]
     assert listed[0]["geometry"] == c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()[
         "geometry"]
+    _assert_shares_the_first_images_files(c, map_id, listed, first=7)
 
     # a session that does not follow the map keeps revision 2 through the restore
     r = c.post("/v1/sessions", json={"map_id": map_id, "mode": "hybrid", "params": FAST,
@@ -109,6 +131,9 @@ def test_a_map_restored_to_an_earlier_revision_answers_as_it_did(module_client, 
         == (2, True, None)
     assert listed[1]["dropped_at"] is None
     assert not c.app.state.ctx.settings.packed_map_dir(map_id, 2).exists()
+    # revision 1 lost none of the files it shared with revision 2
+    assert listed[1]["shared_bytes"] == 0
+    assert _answers(c, map_id, queries) == first
     # dropping it again changes nothing; restoring it cannot be
     assert c.delete(f"/v1/maps/{map_id}/revisions/2", headers=ADMIN).status_code == 204
     _problem(c.post(f"/v1/maps/{map_id}/revisions/2/restore", headers=ADMIN), 404,
@@ -125,6 +150,29 @@ def test_a_map_restored_to_an_earlier_revision_answers_as_it_did(module_client, 
     assert len(third) == len(second)
     for got, want in zip(third, second, strict=True):
         _assert_same_answer(got, want | {"map_revision": 3})
+
+
+def _assert_shares_the_first_images_files(c, map_id: str, listed: list[dict], *,
+                                          first: int) -> None:
+    """Revision 2, ``first`` images of revision 1 and more after them, holds the SIFT and ORB
+    features of each chunk of those images in revision 1's very files; each revision counts
+    them as shared."""
+    folders = [c.app.state.ctx.settings.packed_map_dir(map_id, r) for r in (1, 2)]
+    meta = [json.loads((f / "meta.json").read_text()) for f in folders]
+    bounds = chunk_bounds(meta[1]["names"], every=2)
+    assert meta[1]["names"][:first] == meta[0]["names"]
+    old = sum(stop <= first for stop in bounds[1:])
+    assert old >= 1
+    linked = 0
+    for stem in ("sift_keypoints", "sift_descriptors", "orb_keypoints", "orb_descriptors"):
+        chunks = [[name for name, _ in m["chunks"][stem]] for m in meta]
+        assert chunks[1][:old] == chunks[0][:old]
+        for name in chunks[1][:old]:
+            assert os.path.samefile(folders[0] / name, folders[1] / name)
+            linked += (folders[1] / name).stat().st_size
+        assert not set(chunks[1][old:]) & set(chunks[0])
+    for r in listed:
+        assert linked <= r["shared_bytes"] < r["disk_bytes"]
 
 
 def _assert_same_answer(got: dict, want: dict) -> None:

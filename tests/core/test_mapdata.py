@@ -49,7 +49,7 @@ def test_save_load_keeps_geometry(tmp_path, mmap):
     back = MapData.load(data.save(tmp_path / "map"), mmap=mmap)
     geo = back.geometry
     assert geo is not None
-    assert isinstance(geo.points["sift"], np.memmap) is mmap
+    assert all(isinstance(part, np.memmap) is mmap for part in geo.points["sift"].parts)
     np.testing.assert_array_equal(geo.rotations, data.geometry.rotations)
     np.testing.assert_array_equal(geo.centres, data.geometry.centres)
     assert geo.intrinsics == Intrinsics(250.0, 159.5, 119.5)

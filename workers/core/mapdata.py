@@ -1,7 +1,11 @@
 """A map packed into contiguous arrays, ready for the localisers.
 
 A map is read once, packed here and shared read-only between worker processes: saved as a
-folder of ``.npy`` files, it loads with ``mmap_mode="r"`` so every process maps the same pages.
+folder of ``.npy`` files (:mod:`.mapfiles`), it loads with ``mmap_mode="r"`` so every process
+maps the same pages. The per-keypoint arrays (SIFT's and ORB's keypoints and descriptors, the
+reduction mask, the geometry's points) are saved in chunks of whole images that later
+revisions share on disk, and load as :class:`~.rowchunks.ChunkedRows`, read like the arrays
+below.
 
 Arrays
 ------
@@ -47,7 +51,6 @@ geometry : MapGeometry or None
 
 from __future__ import annotations
 
-import json
 import threading
 import weakref
 from collections import OrderedDict
@@ -284,102 +287,23 @@ class MapData:
                    vocabulary_fits=dict(vocabulary_fits or {}), orb_offsets=orb_parts[0],
                    orb_keypoints=orb_parts[1], orb_descriptors=orb_parts[2])
 
-    # -- persistence as a folder of .npy files (memory-mappable) ---------------------------
+    # -- persistence as a folder of .npy files (memory-mappable): :mod:`.mapfiles` --------
 
-    def save(self, folder: str | Path) -> Path:
-        """Write the map to ``folder``; the write is atomic (temporary folder, rename)."""
-        folder = Path(folder)
-        tmp = folder.with_name(folder.name + ".tmp")
-        tmp.mkdir(parents=True, exist_ok=True)
-        np.save(tmp / "positions.npy", self.positions)
-        np.save(tmp / "altitudes.npy", self.altitudes)
-        np.save(tmp / "sift_offsets.npy", self.sift_offsets)
-        np.save(tmp / "sift_keypoints.npy", self.sift_keypoints)
-        np.save(tmp / "sift_descriptors.npy", self.sift_descriptors)
-        np.save(tmp / "captured_at.npy", self.captured_at)
-        np.save(tmp / "sift_keep.npy", self.sift_keep)
-        if self.has_orb:
-            np.save(tmp / "orb_offsets.npy", self.orb_offsets)
-            np.save(tmp / "orb_keypoints.npy", self.orb_keypoints)
-            np.save(tmp / "orb_descriptors.npy", self.orb_descriptors)
-        for name, mat in self.global_features.items():
-            np.save(tmp / f"global_{name}.npy", mat)
-        for name, vocab in self.vocabularies.items():
-            np.save(tmp / f"vocab_{name}_centroids.npy", vocab.centroids)
-            np.save(tmp / f"vocab_{name}_idf.npy", vocab.idf)
-            if vocab.projection is not None:
-                np.save(tmp / f"vocab_{name}_projection.npy", vocab.projection)
-        for name, fit in self.vocabulary_fits.items():
-            np.save(tmp / f"vocab_{name}_fit.npy", np.asarray(fit.images, np.float32))
-            trained_on = (np.ones(len(fit.images), bool) if fit.trained_on is None
-                          else np.asarray(fit.trained_on, bool))
-            np.save(tmp / f"vocab_{name}_trained_on.npy", trained_on)
-        for name, codes in self.place_codes.items():
-            np.save(tmp / f"codes_{name}_basis.npy", codes.basis)
-            np.save(tmp / f"codes_{name}.npy", codes.codes)
-        meta = {"origin": [self.origin.lat, self.origin.lon, self.origin.alt],
-                "names": list(self.names), "features": sorted(self.global_features),
-                "map_id": self.map_id, "revision": self.revision, "orb": self.has_orb,
-                "codes": sorted(self.place_codes),
-                "vocabularies": {name: {"branching": v.branching, "depth": v.depth,
-                                        "binary": v.binary,
-                                        "projected": v.projection is not None,
-                                        **self._fit_meta(name)}
-                                 for name, v in sorted(self.vocabularies.items())}}
-        if self.flights is not None:
-            meta["flights"] = list(self.flights)
-        (tmp / "meta.json").write_text(json.dumps(meta))
-        if self.geometry is not None:
-            self.geometry.save(tmp)
-        if folder.exists():
-            import shutil
-            shutil.rmtree(folder)
-        tmp.rename(folder)
-        return folder
+    def save(self, folder: str | Path, *, share: str | Path | None = None,
+             chunk_images: int | None = None) -> Path:
+        """Write the map to ``folder`` (:func:`.mapfiles.save_map`: atomic, its local
+        features in chunks that a revision packed from ``share`` links where unchanged)."""
+        from .mapfiles import save_map
 
-    def _fit_meta(self, name: str) -> dict:
-        fit = self.vocabulary_fits.get(name)
-        return {} if fit is None else {"trained_distortion": fit.trained,
-                                       "trained_revision": fit.revision}
+        return save_map(self, folder, share=share, chunk_images=chunk_images)
 
     @classmethod
     def load(cls, folder: str | Path, *, mmap: bool = True) -> MapData:
-        folder = Path(folder)
-        meta = json.loads((folder / "meta.json").read_text())
-        mode = "r" if mmap else None
-        orb = bool(meta.get("orb", False))
+        """The map saved in ``folder`` (:func:`.mapfiles.load_map`), memory-mapped by
+        default."""
+        from .mapfiles import load_map
 
-        def ld(name: str) -> np.ndarray:
-            return np.load(folder / name, mmap_mode=mode)
-
-        vocabularies = {
-            name: Vocabulary(ld(f"vocab_{name}_centroids.npy"), int(shape["branching"]),
-                             int(shape["depth"]), bool(shape["binary"]),
-                             ld(f"vocab_{name}_idf.npy"),
-                             ld(f"vocab_{name}_projection.npy") if shape["projected"] else None)
-            for name, shape in meta.get("vocabularies", {}).items()}
-        fits = {name: VocabularyFit(float(shape["trained_distortion"]),
-                                    ld(f"vocab_{name}_fit.npy"),
-                                    int(shape["trained_revision"]),
-                                    ld(f"vocab_{name}_trained_on.npy"))
-                for name, shape in meta.get("vocabularies", {}).items()
-                if "trained_distortion" in shape}
-        return cls(origin=GeoOrigin(*meta["origin"]), names=tuple(meta["names"]),
-                   positions=ld("positions.npy"), altitudes=ld("altitudes.npy"),
-                   global_features={n: ld(f"global_{n}.npy") for n in meta["features"]},
-                   sift_offsets=ld("sift_offsets.npy"), sift_keypoints=ld("sift_keypoints.npy"),
-                   sift_descriptors=ld("sift_descriptors.npy"), map_id=meta["map_id"],
-                   revision=int(meta["revision"]), captured_at=ld("captured_at.npy"),
-                   flights=meta.get("flights"),
-                   sift_keep=ld("sift_keep.npy"), vocabularies=vocabularies,
-                   vocabulary_fits=fits,
-                   geometry=MapGeometry.load(folder, mmap=mmap),
-                   orb_offsets=ld("orb_offsets.npy") if orb else None,
-                   orb_keypoints=ld("orb_keypoints.npy") if orb else None,
-                   orb_descriptors=ld("orb_descriptors.npy") if orb else None,
-                   place_codes={name: PlaceCodes(ld(f"codes_{name}_basis.npy"),
-                                                 ld(f"codes_{name}.npy"))
-                                for name in meta.get("codes", [])})
+        return load_map(folder, mmap=mmap)
 
 
 def _concatenate(parts, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

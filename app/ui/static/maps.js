@@ -72,7 +72,8 @@ function showRevisions(mapId, revisions) {
       `+${r.added} -${r.removed} on ${r.base_revision}`,
       check && check.median_m !== null ? `${check.median_m.toFixed(1)} m` : "-",
       r.dropped_at ? "dropped" : r.disk_bytes === null ? "missing"
-        : `${(r.disk_bytes / 2 ** 20).toFixed(1)} MiB`,
+        : `${(r.disk_bytes / 2 ** 20).toFixed(1)} MiB` + (r.shared_bytes
+          ? ` (${(r.shared_bytes / 2 ** 20).toFixed(1)} shared)` : ""),
     ];
     for (const text of cells) {
       const td = document.createElement("td");

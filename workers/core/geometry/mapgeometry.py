@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..rowchunks import load_chunked
 from .camera import Intrinsics
 
 DEPTH_RADIUS_PX: float = 20.0
@@ -199,16 +200,26 @@ class MapGeometry:
 
     # -- persistence ----------------------------------------------------------------------
 
-    def save(self, folder: Path) -> None:
+    def save(self, folder: Path, *, save_rows=None) -> None:
+        """Write the geometry to ``folder``; ``save_rows(kind, stem, points)``, where given,
+        saves each kind's points in chunks and returns their list
+        (:func:`workers.core.rowchunks.save_chunked`)."""
         np.save(folder / "geometry_rotations.npy", np.asarray(self.rotations, np.float64))
         np.save(folder / "geometry_centres.npy", np.asarray(self.centres, np.float64))
+        chunks = {}
         for kind, arr in self.points.items():
-            np.save(folder / f"geometry_points_{kind}.npy", np.asarray(arr, np.float32))
+            stem = f"geometry_points_{kind}"
+            if save_rows is None:
+                np.save(folder / f"{stem}.npy", np.asarray(arr, np.float32))
+            else:
+                chunks[kind] = save_rows(kind, stem, np.asarray(arr, np.float32))
         k = self.intrinsics
         meta = {"format": FORMAT, "f": k.f, "cx": k.cx, "cy": k.cy, "k1": self.k1,
                 "residual_px": _num(self.residual_px), "gps_rms": _num(self.gps_rms),
                 "gps_rms_v": _num(self.gps_rms_v), "models": self.models,
                 "points": sorted(self.points), "self_check": self.self_check}
+        if chunks:
+            meta["point_chunks"] = chunks
         (folder / "geometry.json").write_text(json.dumps(meta))
 
     @classmethod
@@ -224,7 +235,9 @@ class MapGeometry:
         K = Intrinsics(meta["f"], meta["cx"], meta["cy"])
         if meta.get("format", 1) < 2:
             return cls._from_plane(folder, meta, rotations, centres, K)
-        points = {kind: np.load(folder / f"geometry_points_{kind}.npy", mmap_mode=mode)
+        chunks = meta.get("point_chunks", {})
+        points = {kind: load_chunked(folder, chunks[kind], mmap=mmap) if kind in chunks
+                  else np.load(folder / f"geometry_points_{kind}.npy", mmap_mode=mode)
                   for kind in meta["points"]}
         return cls(rotations, centres, K, float(meta.get("k1", 0.0)),
                    _float(meta["residual_px"]), _float(meta["gps_rms"]),
