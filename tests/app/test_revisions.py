@@ -164,7 +164,8 @@ def _assert_shares_the_first_images_files(c, map_id: str, listed: list[dict], *,
     old = sum(stop <= first for stop in bounds[1:])
     assert old >= 1
     linked = 0
-    for stem in ("sift_keypoints", "sift_descriptors", "orb_keypoints", "orb_descriptors"):
+    for stem in ("sift_keypoints", "sift_descriptors", "orb_keypoints", "orb_descriptors",
+                 "global_wgoh"):
         chunks = [[name for name, _ in m["chunks"][stem]] for m in meta]
         assert chunks[1][:old] == chunks[0][:old]
         for name in chunks[1][:old]:

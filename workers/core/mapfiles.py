@@ -1,12 +1,12 @@
 """A packed map's folder: its ``.npy`` files and ``meta.json``, written and read back.
 
 Every array of :class:`~.mapdata.MapData` is a ``.npy`` file that loads memory-mapped, so
-every worker process maps the same pages. The per-keypoint arrays (SIFT's and ORB's
-keypoints and descriptors, the reduction mask, the geometry's 3-D points) are saved in
-chunks of whole images (:mod:`.rowchunks`) that a later revision of the map links instead of
-writing again where its images left them as they were; so is every other file it would write
-byte for byte (a kept vocabulary). A revision packed before chunks, one file per array, loads
-as it always did.
+every worker process maps the same pages. The arrays of rows per image (SIFT's and ORB's
+keypoints and descriptors, the reduction mask, the geometry's 3-D points, the global
+features) are saved in chunks of whole images (:mod:`.rowchunks`) that a later revision of
+the map links instead of writing again where its images left them as they were; so is every
+other file it would write byte for byte (a kept vocabulary). A revision packed before
+chunks, one file per array, loads as it always did.
 
 Chunks keep the ends they had: a revision packed from an earlier one also ends a chunk
 after each image that ended one there, so that images appended to a map (an update's usual
@@ -58,10 +58,10 @@ def save_map(data: MapData, folder: str | Path, *, share: str | Path | None = No
         np.save(tmp / "orb_offsets.npy", data.orb_offsets)
         rows += [("orb_keypoints", data.orb_keypoints, data.orb_offsets),
                  ("orb_descriptors", data.orb_descriptors, data.orb_offsets)]
+    each = np.arange(len(data) + 1)  # one row per image
+    rows += [(f"global_{name}", mat, each) for name, mat in data.global_features.items()]
     chunks = {stem: save_chunked(tmp, stem, arr, offsets, bounds, share=share)
               for stem, arr, offsets in rows}
-    for name, mat in data.global_features.items():
-        np.save(tmp / f"global_{name}.npy", mat)
     for name, vocab in data.vocabularies.items():
         np.save(tmp / f"vocab_{name}_centroids.npy", vocab.centroids)
         np.save(tmp / f"vocab_{name}_idf.npy", vocab.idf)
@@ -130,7 +130,7 @@ def load_map(folder: str | Path, *, mmap: bool = True) -> MapData:
         return np.load(folder / name, mmap_mode=mode)
 
     def rows(stem: str):
-        if "chunks" in meta:
+        if stem in meta.get("chunks", {}):
             return load_chunked(folder, meta["chunks"][stem], mmap=mmap)
         return ld(f"{stem}.npy")  # packed before chunks
 
@@ -147,7 +147,7 @@ def load_map(folder: str | Path, *, mmap: bool = True) -> MapData:
             if "trained_distortion" in shape}
     return MapData(origin=GeoOrigin(*meta["origin"]), names=tuple(meta["names"]),
                    positions=ld("positions.npy"), altitudes=ld("altitudes.npy"),
-                   global_features={n: ld(f"global_{n}.npy") for n in meta["features"]},
+                   global_features={n: rows(f"global_{n}") for n in meta["features"]},
                    sift_offsets=ld("sift_offsets.npy"), sift_keypoints=rows("sift_keypoints"),
                    sift_descriptors=rows("sift_descriptors"), map_id=meta["map_id"],
                    revision=int(meta["revision"]), captured_at=ld("captured_at.npy"),

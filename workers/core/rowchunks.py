@@ -1,11 +1,13 @@
 """Per-keypoint arrays stored in chunks that revisions of a map share on disk.
 
-A packed map's local features (its SIFT and ORB keypoints, descriptors and reduction mask,
-and the 3-D points of its keypoints) are half of a revision's disk: 68 of the 133 MiB of the
-1,000-image benchmark map's. An update that adds a hundred images leaves the rows of every
-other image as they were, so those arrays are saved in chunks of whole images, each file
-named by a digest of its bytes, and a revision packed from an earlier one hard-links every
-chunk the earlier one already holds instead of writing it again. Each revision's folder
+A packed map's rows of images (its SIFT and ORB keypoints, descriptors and reduction mask,
+the 3-D points of its keypoints, and each image's global features and place descriptors) are
+nearly all of a revision's disk: 132 of the 133 MiB of the 1,000-image benchmark map's. An
+update that adds a hundred images leaves the rows of every other image as they were (the
+place descriptors too, while it keeps the map's vocabularies), so those arrays are saved in
+chunks of whole images, each file named by a digest of its bytes, and a revision packed from
+an earlier one hard-links every chunk the earlier one already holds instead of writing it
+again. Each revision's folder
 stays whole on its own (moving or deleting one never touches another; the file system frees
 a chunk with its last link).
 
@@ -16,7 +18,9 @@ after every image that ended a chunk in the revision it was packed from
 (:mod:`.mapfiles`), so that appended images start chunks of their own.
 
 On load each chunk is memory-mapped on its own and :class:`ChunkedRows` serves an image's
-rows as a view of its chunk, as one contiguous file would.
+rows as a view of its chunk, as one contiguous file would, gathers rows by index from the
+chunks that hold them, and multiplies the rows by a vector chunk by chunk (a frame's place
+descriptor against every map image's); anything else reads a gathered copy.
 """
 
 from __future__ import annotations
@@ -151,6 +155,14 @@ class ChunkedRows:
             sel = which == k
             out[sel] = self.parts[k][rows[sel] - self.starts[k]]
         return out
+
+    def __matmul__(self, other):
+        """The rows times ``other`` (a vector or a matrix), chunk by chunk: a map's place
+        descriptors scored against a frame's without gathering them first."""
+        other = np.asarray(other)
+        if len(self.parts) == 1:
+            return self.parts[0] @ other
+        return np.concatenate([part @ other for part in self.parts])
 
     def __array__(self, dtype=None, copy=None):
         whole = np.concatenate(self.parts) if len(self.parts) > 1 else np.array(self.parts[0])
