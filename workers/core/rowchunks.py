@@ -1,15 +1,15 @@
-"""Per-keypoint arrays stored in chunks that revisions of a map share on disk.
+"""A packed map's rows per image stored in chunks that revisions of a map share on disk.
 
 A packed map's rows of images (its SIFT and ORB keypoints, descriptors and reduction mask,
 the 3-D points of its keypoints, and each image's global features and place descriptors) are
-nearly all of a revision's disk: 132 of the 133 MiB of the 1,000-image benchmark map's. An
+nearly all of a revision's disk: 126 of the 133 MiB of the 1,000-image benchmark map's. An
 update that adds a hundred images leaves the rows of every other image as they were (the
 place descriptors too, while it keeps the map's vocabularies), so those arrays are saved in
 chunks of whole images, each file named by a digest of its bytes, and a revision packed from
 an earlier one hard-links every chunk the earlier one already holds instead of writing it
-again. Each revision's folder
-stays whole on its own (moving or deleting one never touches another; the file system frees
-a chunk with its last link).
+again. Each revision's folder stays whole on its own (moving or deleting one never touches
+another; the file system frees a chunk with its last link). A packed revision's files are
+never written again, so a file shared by several revisions never changes under one of them.
 
 Chunks end where the image names say, not at fixed counts: a chunk ends after an image
 whose name hashes to a multiple of :data:`CHUNK_IMAGES` (and after four times as many
