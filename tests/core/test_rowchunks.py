@@ -66,6 +66,8 @@ def test_chunked_rows_read_as_the_one_array_they_were_cut_from(sizes):
     picks = rng.integers(0, n, 20)
     np.testing.assert_array_equal(chunked[picks], whole[picks])
     np.testing.assert_array_equal(chunked[picks - n], whole[picks - n])
+    for i in (0, n - 1, -1, np.int64(n // 2)):
+        np.testing.assert_array_equal(chunked[i], whole[i])
     np.testing.assert_array_equal(chunked[np.zeros(0, np.int64)], whole[:0])
     np.testing.assert_array_equal(chunked[::2], whole[::2])
     np.testing.assert_array_equal(chunked[whole[:, 0] > 0], whole[whole[:, 0] > 0])

@@ -137,6 +137,8 @@ class ChunkedRows:
             rows = np.asarray(key)
             if rows.dtype.kind in "iu" and rows.ndim == 1:
                 return self._take(rows)
+            if rows.dtype.kind in "iu" and rows.ndim == 0:
+                return self._take(rows[None])[0]
         return np.asarray(self)[key]
 
     def _take(self, rows: np.ndarray) -> np.ndarray:
