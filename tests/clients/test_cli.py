@@ -89,11 +89,14 @@ def test_map_revision_commands(vloc, sdk, dataset_dir):
     assert listed[0].startswith("* rev 2") and "10 images (+0 -0 on rev 1)" in listed[0]
     assert listed[1].startswith("  rev 1") and "(+10 -0 on rev 0)" in listed[1]
     assert "MiB" in listed[1]
-    # packed again with the same images: revision 1's vocabularies kept
+    # packed again with the same images: revision 1's vocabularies kept, and the files
+    # that came out the same shared by the two revisions
     assert "vocabularies of rev 1" in listed[0] and "vocabularies of" not in listed[1]
+    assert all(" shared)" in line for line in listed)
     as_json = json.loads(vloc("map", "revisions", map_id, "--json").stdout)
     assert [(r["revision"], r["current"], r["vocabularies_from"]) for r in as_json] == [
         (2, True, 1), (1, False, 1)]
+    assert all(0 < r["shared_bytes"] < r["disk_bytes"] for r in as_json)
     # the current revision cannot go: the CLI says how to choose another
     refused = vloc("map", "drop-revision", map_id, "2", code=1)
     assert "409" in refused.stderr and f"vloc map restore {map_id} REVISION" in refused.stderr

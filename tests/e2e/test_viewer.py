@@ -13,6 +13,7 @@ import json
 import math
 import os
 import platform
+import re
 import time
 from pathlib import Path
 
@@ -244,6 +245,9 @@ def test_an_admin_creates_uploads_and_builds_a_map(browser, live, world, tmp_pat
     assert rows.nth(0).locator("td").nth(0).inner_text() == "2 (current)"
     assert rows.nth(0).locator("button").count() == 0  # the current one stays
     assert rows.nth(1).locator("td").nth(3).inner_text() == f"+{N_MAP} -0 on 0"
+    # built again from the same images: the files that came out the same are shared
+    assert re.fullmatch(r"[\d.]+ MiB \([\d.]+ shared\)",
+                        rows.nth(0).locator("td").nth(5).inner_text())
     page.click("#revisions-table tr[data-revision='1'] button.revision-restore")
     page.wait_for_function("document.querySelector('#map-summary').textContent"
                            ".startsWith('ready, revision 1')")
