@@ -60,9 +60,10 @@ class Settings(BaseSettings):
     max_json_bytes: int = Field(2**20, gt=0, description="Largest JSON (or empty) body.")
     max_pixels: int = Field(50_000_000, gt=0, description="Decompression-bomb guard.")
     map_chunk_images: int = Field(
-        256, ge=1, description="Images per file of a packed revision's local features, on "
-                               "average: revisions share the files an update leaves as they "
-                               "were (fewer, larger files with more; finer sharing with less).")
+        256, ge=1, description="Images per file of a packed revision's rows per image "
+                               "(features, descriptors, 3-D points), on average: revisions "
+                               "share the files an update leaves as they were (fewer, larger "
+                               "files with more; finer sharing with less).")
     max_pending_frames: int = Field(
         64, gt=0, description="Frames a session may have queued before 429.")
     max_queued_bytes: int = Field(

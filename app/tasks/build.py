@@ -306,8 +306,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     while they still fit the map, with its images' descriptors and SIFT reduction masks
     (:mod:`vloc.workers.core.carryover`); a revision that cannot be read is not packed
     from. Every file of the revision in ``share`` (the map's current one, on a full build
-    too) that the new one would write byte for byte is hard-linked instead, its local
-    features saved in files of about ``chunk_images`` images each
+    too) that the new one would write byte for byte is hard-linked instead, its rows per
+    image saved in files of about ``chunk_images`` images each
     (:mod:`vloc.workers.core.rowchunks`).
 
     The (wall, CPU) seconds of each stage, reading the features included, are written
