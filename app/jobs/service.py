@@ -171,8 +171,8 @@ class BuildRunner(BackgroundRunner):
             for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
         await self._match_pairs(job_id, url, map_id, tie_dir)
         await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files)
-        previous = await asyncio.to_thread(self._previous_folder, job_id, map_id)
         current = await asyncio.to_thread(self._current_folder, map_id)
+        previous = await asyncio.to_thread(self._previous_folder, job_id, current)
         packed = await run_task(
             self.engine, tasks.pack_map, url, str(map_id), revision, str(folder),
             lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir),
@@ -281,15 +281,15 @@ class BuildRunner(BackgroundRunner):
             db.commit()
             return job.map_id, [(img.id, str(image_path(self.settings, img))) for img in images]
 
-    def _previous_folder(self, job_id: uuid.UUID, map_id: uuid.UUID) -> str | None:
-        """The packed revision the build packs from (the map's current one, whose place
-        vocabularies and SIFT masks its images keep where they still hold); None for a
-        first or a ``full`` build, or where that revision is gone or has no image ids."""
+    def _previous_folder(self, job_id: uuid.UUID, current: str | None) -> str | None:
+        """The packed revision the build packs from: ``current``, the map's current one
+        (:meth:`_current_folder`), whose place vocabularies and SIFT masks its images keep
+        where they still hold; None for a first or a ``full`` build, or where that revision
+        is gone or has no image ids."""
+        if current is None or not revision_images(current).ids:
+            return None
         with self.db_sessions() as db:
-            if db.get(BuildJob, job_id).full:
-                return None
-        folder = self._current_folder(map_id)
-        return folder if folder is not None and revision_images(folder).ids else None
+            return None if db.get(BuildJob, job_id).full else current
 
     def _current_folder(self, map_id: uuid.UUID) -> str | None:
         """The folder of the map's current revision, whose files the new one shares where

@@ -14,6 +14,7 @@ current one and no active session localises against it; its files go, its record
 from __future__ import annotations
 
 import shutil
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -150,7 +151,7 @@ def _disk(folder: Path) -> tuple[int, int]:
     size = shared = 0
     for path in folder.rglob("*"):
         st = path.lstat()
-        if path.is_file():
+        if stat.S_ISREG(st.st_mode):
             size += st.st_size
             shared += st.st_size if st.st_nlink > 1 else 0
     return size, shared

@@ -25,7 +25,6 @@ descriptor against every map image's); anything else reads a gathered copy.
 
 from __future__ import annotations
 
-import bisect
 import filecmp
 import hashlib
 import os
@@ -116,10 +115,9 @@ class ChunkedRows:
         if len(tails) != 1:
             raise ValueError(f"chunks disagree on their rows: {sorted(map(str, tails))}")
         self.parts = list(parts)
-        self._starts = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
-        self.starts = self._starts.tolist()
+        self.starts = np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.int64)
         self.dtype = parts[0].dtype
-        self.shape = (self.starts[-1], *parts[0].shape[1:])
+        self.shape = (int(self.starts[-1]), *parts[0].shape[1:])
         self.ndim = len(self.shape)
 
     def __len__(self) -> int:
@@ -130,7 +128,7 @@ class ChunkedRows:
             start, stop, _ = key.indices(len(self))
             if start >= stop:
                 return self.parts[0][:0]
-            k = bisect.bisect_right(self.starts, start) - 1
+            k = int(np.searchsorted(self.starts, start, side="right")) - 1
             if stop <= self.starts[k + 1]:
                 return self.parts[k][start - self.starts[k]:stop - self.starts[k]]
         elif not isinstance(key, tuple | slice):
@@ -148,7 +146,7 @@ class ChunkedRows:
         if len(rows) and (rows.min() < -n or rows.max() >= n):
             raise IndexError(f"row index out of range for {n} rows")
         rows = np.where(rows < 0, rows + n, rows)
-        which = np.searchsorted(self._starts, rows, side="right") - 1
+        which = np.searchsorted(self.starts, rows, side="right") - 1
         if len(rows) == 0 or which.min() == which.max():
             k = int(which[0]) if len(rows) else 0
             return np.asarray(self.parts[k][rows - self.starts[k]])
