@@ -13,6 +13,7 @@ from vloc.workers.core.features.vocabulary import (
     Vocabulary,
     _sample,
     cluster_sums,
+    distinct_rows,
     inverse_document_frequency,
     principal_axes,
     quantise,
@@ -114,6 +115,29 @@ def test_fewer_vectors_than_branching_keeps_the_tree_complete():
     empty = train_vocabulary([np.zeros((0, 2), np.float32)], branching=3, depth=1,
                              binary=False, rng=np.random.default_rng(0))
     assert empty.n_words == 3 and quantise(empty, np.zeros((0, 2), np.float32)).shape == (0,)
+
+
+@pytest.mark.parametrize("kind", ["sift", "binary", "real", "one row", "all equal"])
+def test_distinct_rows_are_numpys_unique_rows(kind):
+    rng = np.random.default_rng(3)
+    if kind == "sift":       # whole numbers, rows repeated, columns tied in places
+        x = rng.integers(0, 4, (12, 128)).astype(np.float32)
+        x = np.concatenate([x, x[[0, 5, 5]]])
+    elif kind == "binary":
+        x = rng.integers(0, 2, (40, 16)).astype(np.float32)
+    elif kind == "real":
+        x = rng.normal(size=(9, 32)).astype(np.float32)
+        x[4] = x[2]
+    elif kind == "one row":
+        x = rng.normal(size=(1, 8)).astype(np.float32)
+    else:
+        x = np.ones((6, 64), np.float32)
+    got = distinct_rows(x)
+    want = np.unique(x, axis=0)
+    assert got.dtype == want.dtype
+    np.testing.assert_array_equal(got, want)
+    known = {"sift": 12, "real": 8, "one row": 1, "all equal": 1}
+    assert len(got) == known.get(kind, len(want))
 
 
 def test_idf_known_answer():

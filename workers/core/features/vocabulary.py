@@ -341,6 +341,21 @@ def _nearest(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return d.argmin(axis=1)
 
 
+def distinct_rows(x: np.ndarray) -> np.ndarray:
+    """The distinct rows of ``x``, in lexicographic order: ``np.unique(x, axis=0)`` for
+    finite values. NumPy's version sorts the rows as records of one field per column, and
+    building that record type costs about a millisecond per call for descriptors of 128 to
+    256 columns, however few the rows: a tree's small leaves took a tenth of a ten-image
+    map's build in it."""
+    x = np.asarray(x)
+    if len(x) < 2:
+        return x.copy()
+    ordered = x[np.lexsort(x.T[::-1])]
+    keep = np.ones(len(ordered), dtype=bool)
+    keep[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
+    return ordered[keep]
+
+
 def _kmeans(x: np.ndarray, k: int, *, binary: bool, rng: np.random.Generator,
             iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """k centres of ``x`` (k-majority when ``binary``) and each row's cluster."""
@@ -349,7 +364,7 @@ def _kmeans(x: np.ndarray, k: int, *, binary: bool, rng: np.random.Generator,
         return np.zeros((k, dim), np.float32), np.zeros(0, np.intp)
     if len(x) <= k:
         # one centre per distinct vector; the rest repeat the last and stay empty
-        distinct = np.unique(x, axis=0)
+        distinct = distinct_rows(x)
         centres = distinct[np.minimum(np.arange(k), len(distinct) - 1)].astype(np.float32)
         return centres, _nearest(x, centres)
     centres = _kmeans_pp(x, k, rng)
