@@ -42,6 +42,13 @@ def pid() -> int:
     return os.getpid()
 
 
+def loaded(modules: list[str]) -> list[bool]:
+    """Whether each of ``modules`` is imported in the worker that runs this."""
+    import sys
+
+    return [name in sys.modules for name in modules]
+
+
 def wait_for_file(path: str, timeout: float = 30.0) -> bool:
     """Hold the worker until ``path`` exists (lets a test queue work behind it)."""
     deadline = time.monotonic() + timeout

@@ -25,7 +25,7 @@ import logging
 import multiprocessing as mp
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 
 from .messages import (
@@ -68,11 +68,17 @@ class LocalEngine:
     stall_s : float
         A worker whose heartbeat (stamped every ``HEARTBEAT_S`` while it can run) is older
         than this does not count as alive.
+    preload : sequence of str
+        Modules the workers should start with, besides the core library: those of the
+        tasks the caller will run (:meth:`call`). Under ``forkserver`` they are imported
+        once, in the server the workers are forked from, by the first engine of the
+        process to start one (Python keeps one forkserver a process).
     """
 
     def __init__(self, n_workers: int, *, on_outcome: Callable[[Outcome], None] | None = None,
                  checkpoint_every: int = 1, max_pixels: int = 50_000_000,
-                 start_method: str | None = None, stall_s: float = STALL_S) -> None:
+                 start_method: str | None = None, stall_s: float = STALL_S,
+                 preload: Sequence[str] = ()) -> None:
         if start_method is None:
             start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         if start_method == "fork":
@@ -84,7 +90,7 @@ class LocalEngine:
         self.supervisor = WorkerSupervisor(
             n_workers, lock=self._lock, on_message=self._on_message, on_lost=self._on_lost,
             reopen=self._reopen_tasks, start_method=start_method, max_pixels=max_pixels,
-            stall_s=stall_s)
+            stall_s=stall_s, preload=preload)
         self._specs: dict[str, SessionSpec] = {}
         self._moves: dict[int, SessionSpec] = {}
         """Sessions' specs on the revision a ``move`` control (by call id) takes them to:

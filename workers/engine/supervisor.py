@@ -24,7 +24,7 @@ import logging
 import multiprocessing as mp
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from multiprocessing.connection import wait
 
 from .messages import OpenSession, Ready, Stop
@@ -40,7 +40,10 @@ STALL_S = 5.0
 """A worker whose heartbeat is older than this is not counted as alive."""
 
 PRELOAD = ["vloc.workers.engine.worker", "vloc.workers.core.localisers",
-           "vloc.workers.core.mapbuild"]
+           "vloc.workers.core.mapbuild", "pycolmap"]
+"""What the forkserver imports once, so that every worker forked from it starts with it:
+the core library, and COLMAP, which the core imports where a map's geometry needs it (0.2 s
+of a worker's first build otherwise)."""
 
 
 class WorkerSupervisor:
@@ -59,7 +62,7 @@ class WorkerSupervisor:
     reopen : callable(session ids) -> list of OpenSession
         The tasks that reopen the sessions of a dead worker in its replacement, from their
         last checkpoints.
-    start_method, max_pixels, stall_s
+    start_method, max_pixels, stall_s, preload
         As :class:`~workers.engine.pool.LocalEngine`'s.
     """
 
@@ -67,7 +70,8 @@ class WorkerSupervisor:
                  on_message: Callable[[Slot, object], None],
                  on_lost: Callable[[Slot, str], None],
                  reopen: Callable[[list[str]], list[OpenSession]],
-                 start_method: str, max_pixels: int, stall_s: float = STALL_S) -> None:
+                 start_method: str, max_pixels: int, stall_s: float = STALL_S,
+                 preload: Sequence[str] = ()) -> None:
         if n_workers < 1:
             raise ValueError("n_workers must be at least 1")
         if stall_s <= HEARTBEAT_S:
@@ -83,8 +87,9 @@ class WorkerSupervisor:
         self.running = False
         self._lock = lock
         self._ctx = mp.get_context(start_method)
+        self.preload = [*PRELOAD, *preload]
         if start_method == "forkserver":
-            self._ctx.set_forkserver_preload(PRELOAD)
+            self._ctx.set_forkserver_preload(self.preload)
         self._reader: threading.Thread | None = None
         self._wakeup_r, self._wakeup_w = self._ctx.Pipe(duplex=False)
         self._lifeline_r, self._lifeline_w = None, None
