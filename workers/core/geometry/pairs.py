@@ -131,6 +131,11 @@ def verify_matches(a: int, b: int, keypoints_a: np.ndarray, keypoints_b: np.ndar
     if capped:
         options.ransac.min_inlier_ratio = ransac_floor(len(matches), min_inliers)
     options.ransac.random_seed = (seed * 1_000_003 + a * 100_003 + b) % 2 ** 31
+    # COLMAP's Sampson refinement polishes the pair's fundamental matrix, which nothing here
+    # reads (the build keeps the inlier matches and the configuration): with it off they
+    # came out the same, every pair, for seneca-uav's 474, lewis-uav's 163 and the service
+    # tests' 45, and a pair took 6-9 % less time
+    options.use_sampson_refinement = False
     camera = colmap_camera(None)
     geometry = pycolmap.estimate_two_view_geometry(
         camera, to_colmap_pixels(keypoints_a), camera, to_colmap_pixels(keypoints_b),
