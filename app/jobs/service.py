@@ -166,8 +166,10 @@ class BuildRunner(BackgroundRunner):
         await asyncio.to_thread(_drop_revision_tie_folders, folder.parent)
         await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE,
                                 BuildStage.TIE_POINTS)
+        donors = await asyncio.to_thread(self._tie_donors, map_id)
         await self._fan_out(job_id, [run_task(
-            self.engine, tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id))
+            self.engine, tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id),
+            donors.get(image_id, []))
             for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
         await self._match_pairs(job_id, url, map_id, tie_dir)
         await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files)
@@ -313,6 +315,27 @@ class BuildRunner(BackgroundRunner):
         step = max(1, len(images) // lens_sample)
         lens = [str(image_path(self.settings, img)) for img in images[::step]][:lens_sample]
         return lens, {img.id: str(image_path(self.settings, img)) for img in images}
+
+    def _tie_donors(self, map_id: uuid.UUID, most: int = 3) -> dict[int, list[str]]:
+        """For each of the map's images, where up to ``most`` other maps' images of the same
+        file (by its hash) keep their tie points: a second map of the same survey links
+        them instead of extracting them again (:func:`vloc.app.tasks.build.extract_ties`)."""
+        with self.db_sessions() as db:
+            mine = dict(db.execute(select(MapImage.file_hash, MapImage.id)
+                                   .where(MapImage.map_id == map_id)).all())
+            if not mine:
+                return {}
+            others = db.execute(select(MapImage.file_hash, MapImage.map_id, MapImage.id)
+                                .where(MapImage.file_hash.in_(list(mine)),
+                                       MapImage.map_id != map_id)
+                                .order_by(MapImage.id)).all()
+        donors: dict[int, list[str]] = {}
+        for file_hash, other_map, other_id in others:
+            stems = donors.setdefault(mine[file_hash], [])
+            if len(stems) < most:
+                stems.append(tasks.tie_stem(self.settings.tie_store_dir(str(other_map)),
+                                            other_id))
+        return donors
 
     def _progress(self, job_id: uuid.UUID, done: int, total: int) -> None:
         with self.db_sessions() as db:

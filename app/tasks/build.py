@@ -70,20 +70,32 @@ def _readers(paths: list[str]):
     return [Path(p).read_bytes for p in paths if Path(p).is_file()]
 
 
-def extract_ties(path: str | None, stem: str) -> int:
+def extract_ties(path: str | None, stem: str, donors: list[str] = ()) -> int:
     """Extract one map image file's tie points and write them beside ``stem``
     (:func:`~vloc.workers.core.mapbuild.save_tie_points`), for a build's reconstruction;
     run by the engine's workers, one image per call. Returns the number of tie points, or
     -1 where the file is missing or unreadable (the image's stored SIFT then ties it).
 
     Tie points already complete beside ``stem`` (a failed build's, kept for its retry: an
-    image's file never changes) are kept as they are."""
+    image's file never changes) are kept as they are. ``donors`` are the stems of other
+    maps' images of the same file (:class:`~vloc.app.jobs.service.BuildRunner` finds them
+    by its hash): the first that holds tie points lends them, hard-linked, and nothing is
+    extracted (:func:`~vloc.workers.core.mapbuild.link_tie_points`)."""
     from vloc.workers.core.image import ImageError
-    from vloc.workers.core.mapbuild import TiePointFiles, extract_tie_points, save_tie_points
+    from vloc.workers.core.mapbuild import (
+        TiePointFiles,
+        extract_tie_points,
+        link_tie_points,
+        save_tie_points,
+    )
 
     done = TiePointFiles.find(stem)
     if done is not None:
         return len(done)
+    for donor in donors:
+        linked = link_tie_points(donor, stem)
+        if linked >= 0:
+            return linked
     if path is None or not Path(path).is_file():
         return -1
     try:

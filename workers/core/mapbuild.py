@@ -10,6 +10,7 @@ map's images (:mod:`workers.core.carryover`).
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -109,6 +110,38 @@ def save_tie_points(tie: SiftFeatures, stem: str | Path) -> None:
         with tmp.open("wb") as f:
             np.save(f, arr)
         tmp.replace(out)
+
+
+def link_tie_points(source: str | Path, stem: str | Path) -> int:
+    """Give ``stem`` the tie points written beside ``source`` as hard links to its files,
+    without reading them: tie points depend on an image file's bytes alone, so another map's
+    image of the same bytes has the very same ones. Returns their number, or -1 where
+    ``source`` has no complete tie points (another map's, deleted meanwhile) or the files
+    cannot be linked (another file system); ``stem`` is then left without any.
+
+    Each link is made under a temporary name and renamed, the keypoints last, as
+    :func:`save_tie_points` writes them. Tie-point files are never written in place (a
+    new version is renamed over the old name), so the maps sharing one never see it change.
+    """
+    stem = Path(stem)
+    files = TiePointFiles.find(source)
+    if files is None:
+        return -1
+    done = []
+    try:
+        for suffix in reversed(TiePointFiles.SUFFIXES):
+            src = Path(source).with_name(Path(source).name + suffix)
+            out = stem.with_name(stem.name + suffix)
+            tmp = out.with_name("." + out.name)
+            tmp.unlink(missing_ok=True)
+            os.link(src, tmp)
+            tmp.replace(out)
+            done.append(out)
+    except OSError:
+        for path in done:
+            path.unlink(missing_ok=True)
+        return -1
+    return len(files)
 
 
 def load_tie_points(stem: str | Path) -> SiftFeatures | None:
