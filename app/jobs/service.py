@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sqlalchemy import bindparam, func, or_, select, update
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session, aliased, sessionmaker
 
 from vloc.app.background import BackgroundRunner
 from vloc.app.config import Settings
@@ -320,18 +320,17 @@ class BuildRunner(BackgroundRunner):
         """For each of the map's images, where up to ``most`` other maps' images of the same
         file (by its hash) keep their tie points: a second map of the same survey links
         them instead of extracting them again (:func:`vloc.app.tasks.build.extract_ties`)."""
+        # one join, not a list of the map's hashes: 50,000 of them pass SQLite's limit on
+        # a statement's parameters
+        other = aliased(MapImage)
         with self.db_sessions() as db:
-            mine = dict(db.execute(select(MapImage.file_hash, MapImage.id)
-                                   .where(MapImage.map_id == map_id)).all())
-            if not mine:
-                return {}
-            others = db.execute(select(MapImage.file_hash, MapImage.map_id, MapImage.id)
-                                .where(MapImage.file_hash.in_(list(mine)),
-                                       MapImage.map_id != map_id)
-                                .order_by(MapImage.id)).all()
+            rows = db.execute(select(MapImage.id, other.map_id, other.id)
+                              .join(other, other.file_hash == MapImage.file_hash)
+                              .where(MapImage.map_id == map_id, other.map_id != map_id)
+                              .order_by(MapImage.id, other.id)).all()
         donors: dict[int, list[str]] = {}
-        for file_hash, other_map, other_id in others:
-            stems = donors.setdefault(mine[file_hash], [])
+        for image_id, other_map, other_id in rows:
+            stems = donors.setdefault(image_id, [])
             if len(stems) < most:
                 stems.append(tasks.tie_stem(self.settings.tie_store_dir(str(other_map)),
                                             other_id))

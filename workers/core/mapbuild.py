@@ -101,11 +101,9 @@ def save_tie_points(tie: SiftFeatures, stem: str | Path) -> None:
     own memory. Each file is written under a temporary name and renamed, the keypoints
     last: their file says the pair is complete.
     """
-    stem = Path(stem)
-    kp_suffix, desc_suffix = TiePointFiles.SUFFIXES
-    for suffix, arr in ((desc_suffix, np.ascontiguousarray(tie.descriptors, np.uint8)),
-                        (kp_suffix, np.ascontiguousarray(tie.keypoints, np.float32))):
-        out = stem.with_name(stem.name + suffix)
+    kp_path, desc_path = TiePointFiles(stem).paths
+    for out, arr in ((desc_path, np.ascontiguousarray(tie.descriptors, np.uint8)),
+                     (kp_path, np.ascontiguousarray(tie.keypoints, np.float32))):
         tmp = out.with_name("." + out.name)
         with tmp.open("wb") as f:
             np.save(f, arr)
@@ -123,15 +121,14 @@ def link_tie_points(source: str | Path, stem: str | Path) -> int:
     :func:`save_tie_points` writes them. Tie-point files are never written in place (a
     new version is renamed over the old name), so the maps sharing one never see it change.
     """
-    stem = Path(stem)
     files = TiePointFiles.find(source)
     if files is None:
         return -1
     done = []
     try:
-        for suffix in reversed(TiePointFiles.SUFFIXES):
-            src = Path(source).with_name(Path(source).name + suffix)
-            out = stem.with_name(stem.name + suffix)
+        # the descriptors first, the keypoints (which say the pair is complete) last
+        for src, out in zip(reversed(files.paths), reversed(TiePointFiles(stem).paths),
+                            strict=True):
             tmp = out.with_name("." + out.name)
             tmp.unlink(missing_ok=True)
             os.link(src, tmp)
@@ -165,8 +162,12 @@ class TiePointFiles:
 
     def __init__(self, stem: str | Path) -> None:
         stem = Path(stem)
-        self._kp = stem.with_name(stem.name + self.SUFFIXES[0])
-        self._desc = stem.with_name(stem.name + self.SUFFIXES[1])
+        self._kp, self._desc = (stem.with_name(stem.name + s) for s in self.SUFFIXES)
+
+    @property
+    def paths(self) -> tuple[Path, Path]:
+        """The keypoints' file and the descriptors' (:data:`SUFFIXES`)."""
+        return self._kp, self._desc
 
     @classmethod
     def find(cls, stem: str | Path) -> TiePointFiles | None:
