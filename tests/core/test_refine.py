@@ -311,3 +311,73 @@ def test_refine_orb_needs_geometry_and_matches(uav_world):
                               orb=[data.orb(i) for i in range(len(data))])
     assert flat.has_orb and flat.geometry is None
     assert refine_orb(q.orb()[0], flat, np.array([0, 1]), np.ones(2), frame_shape=shape) is None
+
+
+def _without_pose(geo, image):
+    """``geo`` with ``image`` left out of the reconstruction (restore with the result)."""
+    saved = geo.centres
+    centres = np.array(saved, copy=True)
+    centres[image] = np.nan
+    geo.centres = centres
+    return saved
+
+
+def test_refine_orb_places_a_frame_at_an_image_left_out(uav_world, monkeypatch):
+    """A frame that overlaps a map image the reconstruction left out, beyond doubt, is
+    placed at that image (as one image places it without geometry); a frame that does not,
+    or overlaps it less than ORB_OVERLAP_INLIERS, gets nothing."""
+    from vloc.workers.core.localisers import refine as refine_module
+
+    data = uav_world.map_data
+    q, truth = uav_world.queries[3], uav_world.truth[3]
+    positions = np.asarray(data.positions)
+    by_distance = np.argsort(np.linalg.norm(positions - truth, axis=1))
+    near, far = int(by_distance[0]), int(by_distance[-1])
+    shape = q.frame.grey.shape
+    geo = data.geometry
+    saved = _without_pose(geo, near)
+    try:
+        assert not geo.reconstructed[near]
+        got = refine_orb(q.orb()[0], data, np.array([near]), np.ones(1), frame_shape=shape)
+        assert got is not None and got.kind == "interpolated" and got.images == (near,)
+        np.testing.assert_allclose(got.xy, positions[near])
+        assert got.sigma == pytest.approx(data.median_spacing() / 3.0)
+        assert got.heading_deg is None
+        assert got.inliers >= refine_module.ORB_OVERLAP_INLIERS
+        assert np.linalg.norm(got.xy - truth) < data.median_spacing()
+        # the other end of the survey: no overlap
+        saved_far = _without_pose(geo, far)
+        try:
+            assert refine_orb(q.orb()[0], data, np.array([far]), np.ones(1),
+                              frame_shape=shape) is None
+        finally:
+            geo.centres = saved_far
+        # an overlap short of the threshold places nothing
+        monkeypatch.setattr(refine_module, "ORB_OVERLAP_INLIERS", got.inliers + 1)
+        assert refine_orb(q.orb()[0], data, np.array([near]), np.ones(1),
+                          frame_shape=shape) is None
+    finally:
+        geo.centres = saved
+
+
+def test_refine_orb_places_a_frame_at_an_image_without_3d_points(uav_world):
+    """A placed image whose keypoints the frame matched have too few 3-D points gives no
+    pose: the frame is placed at it; with its points it registers as before."""
+    data = uav_world.map_data
+    q, truth = uav_world.queries[3], uav_world.truth[3]
+    near = int(np.argmin(np.linalg.norm(np.asarray(data.positions) - truth, axis=1)))
+    shape = q.frame.grey.shape
+    geo = data.geometry
+    registered = refine_orb(q.orb()[0], data, np.array([near]), np.ones(1), frame_shape=shape)
+    assert registered is not None and registered.kind == "registered"
+    saved = geo.points["orb"]
+    points = np.array(saved, copy=True)
+    offsets = np.asarray(data.orb_offsets)
+    points[offsets[near]:offsets[near + 1]] = np.nan
+    geo.points["orb"] = points
+    try:
+        got = refine_orb(q.orb()[0], data, np.array([near]), np.ones(1), frame_shape=shape)
+    finally:
+        geo.points["orb"] = saved
+    assert got is not None and got.kind == "interpolated" and got.images == (near,)
+    np.testing.assert_allclose(got.xy, np.asarray(data.positions)[near])

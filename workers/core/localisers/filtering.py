@@ -179,7 +179,9 @@ class FilterLocaliser(Localiser):
         SIFT steps register with SIFT against the best SIFT-scored images (or interpolate
         between them on maps without geometry). Global steps, under ``refine_global`` on a
         map with ORB 3-D points, register with ORB against the particles' images the
-        global features rank best; such a fix is used only where it lies within the gate
+        global features rank best, or are placed at one of them that has no 3-D points for
+        them and that they overlap beyond doubt (:func:`.refine.refine_orb`); such a fix is
+        used only where it lies within the gate
         of the predicted cloud and has enough inliers, and the switching rule hears of it.
         Under ``refine_sift_fallback`` (hybrid only) a global step whose ORB finds no fix
         registers with SIFT against the same images; ``fallback`` then receives the SIFT

@@ -8,19 +8,24 @@ camera's heading.
 
 Where it has none (a map whose structure could not be recovered), the best verified map images vote for
 the position with their match counts: a position between them rather than on one of them.
+Where it has some but not where the frame is (an image the reconstruction left out, or one
+whose keypoints it gave no 3-D points), a frame that overlaps that image beyond doubt is
+placed at it the same way.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..features.orb import OrbFeatures, hamming_ratio_matches
 from ..geometry import Registration, register_against
+from ..geometry.register import MIN_INLIERS
 from ..mapdata import MapData
 from ..sift import SiftFeatures, ratio_matches
+from .scoring import verified_count
 
 REFINE_RATIO: float = 0.8
 """Ratio test for the correspondences fed to the pose solver: its RANSAC removes outliers,
@@ -49,6 +54,17 @@ is passed over for the next ranked one rather than ending the registration: on s
 the best-ranked image is often a look-alike 40-90 m off, or an image nearer the frame that
 matches thinly, while the next one registers; SIFT steps fell from 31 % to 26 % of the
 frames, the mean error 4.86 -> 4.94 m, lewis-uav unchanged."""
+
+ORB_OVERLAP_INLIERS: int = 50
+"""A global step that registers nowhere places the frame at a map image that cannot give it
+a pose (the reconstruction left the image out, or gave fewer than
+:data:`~workers.core.geometry.register.MIN_INLIERS` of the keypoints the frame matched a 3-D
+point) where this many of their ORB ratio-test matches agree with one homography. Traced on
+seneca-uav (pass 2 on pass 1, 5 starts) and lewis-uav (alternate split, 3 starts), the
+frames over such images gave them 63 to 166 inliers at 1.5-6 m from the image; the
+look-alikes 25-125 m off gave 10-25. Before, the step fell back on SIFT, whose registration
+fails there too, so its fix was the same kind of position between images, for the SIFT
+extraction's cost."""
 
 
 @dataclass(frozen=True)
@@ -135,14 +151,18 @@ def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
     """Refine with ORB: register against the 3-D points of the best-ranked map images.
 
     The cheap counterpart of :func:`refine_sift` for global steps: binary descriptors
-    matched by Hamming distance, the same pose solver. Only a registration counts: without
-    camera geometry the global similarities already say which images are near. Of the
-    ranked images, those the reconstruction placed (the others have no 3-D points) are
-    tried one at a time, best first, at most ``max_images`` of them: the pose starts from
-    the first that gives at least :data:`ORB_FIRST_MATCHES` matches (an image thinner than
-    that is passed over), each later image adds its matches, and the first registration
-    with at least ``min_inliers`` inliers is the answer. The first usable image alone
-    usually suffices, and matching is most of the cost.
+    matched by Hamming distance, the same pose solver. Of the ranked images, those the
+    reconstruction placed (the others have no 3-D points) are tried one at a time, best
+    first, at most ``max_images`` of them: the pose starts from the first that gives at
+    least :data:`ORB_FIRST_MATCHES` matches (an image thinner than that is passed over),
+    each later image adds its matches, and the first registration with at least
+    ``min_inliers`` inliers is the answer. The first usable image alone usually suffices,
+    and matching is most of the cost.
+
+    Where none registers with ``min_inliers``, the best ``max_images`` ranked images that
+    cannot give the frame a pose are looked at (:func:`_overlap_fix`): the frame is placed
+    at the first one it overlaps beyond doubt. Otherwise a registration counts only: without
+    camera geometry the global similarities already say which images are near.
 
     Parameters are those of :func:`refine_sift`, with the frame's ORB features.
     """
@@ -150,28 +170,66 @@ def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
     if geometry is None or "orb" not in geometry.points or not map_data.has_orb:
         return None
     ranked = np.asarray(ranked, np.int64)
-    placed = geometry.reconstructed[ranked]
-    ranked, _ = _best(ranked[placed], np.asarray(scores)[placed], max_images)
-    if len(query) == 0 or len(ranked) == 0:
+    scores = np.asarray(scores)
+    if len(query) == 0:
         return None
     offsets = np.asarray(map_data.orb_offsets)
+    found: dict[int, np.ndarray] = {}
+
+    def matched(image: int) -> np.ndarray:
+        """The frame's ratio-test matches into ``image``, each image matched once."""
+        if image not in found:
+            found[image] = hamming_ratio_matches(query.descriptors,
+                                                 map_data.orb(image).descriptors,
+                                                 ratio=ORB_REFINE_RATIO)
+        return found[image]
+
+    placed = geometry.reconstructed[ranked]
+    tried, _ = _best(ranked[placed], scores[placed], max_images)
     matches: list[tuple[int, np.ndarray, np.ndarray]] = []
     reg = None
-    for image in ranked.tolist():
-        found = _matches(np.array([image]), offsets,
-                         lambda i: hamming_ratio_matches(query.descriptors,
-                                                         map_data.orb(i).descriptors,
-                                                         ratio=ORB_REFINE_RATIO))
-        if not matches and (not found or len(found[0][1]) < ORB_FIRST_MATCHES):
+    for image in tried.tolist():
+        more = _matches(np.array([image]), offsets, matched)
+        if not matches and (not more or len(more[0][1]) < ORB_FIRST_MATCHES):
             continue  # too thin to start a pose from (ORB_FIRST_MATCHES)
-        if not found:
+        if not more:
             continue
-        matches += found
+        matches += more
         reg = register_against(geometry, "orb", np.asarray(query.keypoints), matches,
                                frame_shape=frame_shape)
         if reg is not None and reg.inliers >= min_inliers:
-            break
+            return Refinement.from_registration(reg)
+    overlap = _overlap_fix(query, map_data, _best(ranked, scores, max_images)[0], matched)
+    if overlap is not None:
+        return overlap
     return None if reg is None else Refinement.from_registration(reg)
+
+
+def _overlap_fix(query: OrbFeatures, map_data: MapData, images: np.ndarray,
+                 matched) -> Refinement | None:
+    """The frame placed at the first of ``images`` that cannot give it a pose and that it
+    overlaps beyond doubt (:data:`ORB_OVERLAP_INLIERS`), as :func:`interpolate` places it
+    at one image; None where there is none.
+
+    An image cannot give the frame a pose where the reconstruction left it out, or where
+    fewer than :data:`~workers.core.geometry.register.MIN_INLIERS` of the keypoints the
+    frame matched in it have 3-D points (the image's own tie points were few and no plane
+    stood in for them). ``matched(image)`` gives the frame's ORB ratio-test matches."""
+    geometry = map_data.geometry
+    offsets = np.asarray(map_data.orb_offsets)
+    for image in np.asarray(images, np.int64).tolist():
+        m = matched(image)
+        if len(m) < ORB_FIRST_MATCHES:
+            continue
+        if geometry.reconstructed[image]:
+            points = np.asarray(geometry.points["orb"][m[:, 1] + int(offsets[image])])
+            if int(np.isfinite(points).all(axis=1).sum()) >= MIN_INLIERS:
+                continue  # it could give a pose, and gave none
+        inliers = verified_count(query, map_data.orb(image), m, "homography")
+        if inliers >= ORB_OVERLAP_INLIERS:
+            placed = interpolate(map_data, np.array([image]), np.array([1.0]))
+            return replace(placed, inliers=inliers)
+    return None
 
 
 def rank_cloud_images(nearest: np.ndarray, log: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 
 from ..features import DESCRIPTORS
+from ..features.orb import OrbFeatures
 from ..mapdata import MapData
 from ..measures import descriptor_similarities, similarities
 from ..sift import SiftFeatures, ratio_matches
@@ -62,9 +63,10 @@ def every_image_similarity(query: dict[str, np.ndarray], map_data: MapData, *,
     return scores
 
 
-def verified_count(query: SiftFeatures, ref: SiftFeatures, matches: np.ndarray,
-                   method: str) -> int:
-    """Number of matches consistent with one geometric model (RANSAC inliers)."""
+def verified_count(query: SiftFeatures | OrbFeatures, ref: SiftFeatures | OrbFeatures,
+                   matches: np.ndarray, method: str) -> int:
+    """Number of matches consistent with one geometric model (RANSAC inliers): the
+    keypoints' pixels of either local-feature kind."""
     if method == "none" or len(matches) < _MIN_VERIFY[method]:
         return len(matches) if method == "none" else 0
     src = np.ascontiguousarray(query.keypoints[matches[:, 0], :2], dtype=np.float32)
