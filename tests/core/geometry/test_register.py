@@ -281,3 +281,30 @@ def test_register_frame_survives_a_consensus_of_two_points_seen_many_times(seed)
                          view_prior=DOWN)
     assert reg is None or (np.linalg.norm(reg.xy - C[:2]) < 0.1
                            and reg.height == pytest.approx(C[2], abs=0.1))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_register_frame_rescues_a_survey_frame_the_similarity_cannot_start(seed):
+    """Points 5 to 60 m under a survey camera (towers over a street, 60 m up) bend the
+    two-point similarity start past any consensus: the three-point poses find the camera,
+    unless no rescue is asked for. Where the similarity holds, the rescue changes
+    nothing."""
+    rng = np.random.default_rng(300 + seed)
+    R = tilted_rotation(rng.uniform(0, 2 * np.pi), 3.0, rng.uniform(0, 2 * np.pi))
+    C = np.array([0.0, 0.0, GROUND_ALT + 60.0])
+    px, pts, image_of, _ = _correspondences(rng, R, C, n=40, outliers=0.0,
+                                            depth=(5.0, 60.0))
+    reg = register_frame(px, pts, image_of, K_TRUE, altitude_range=ALTITUDES,
+                         view_prior=DOWN)
+    assert reg is not None and reg.inliers == len(px)
+    assert np.linalg.norm(reg.xy - C[:2]) < 0.05
+    assert register_frame(px, pts, image_of, K_TRUE, altitude_range=ALTITUDES,
+                          view_prior=DOWN, rescue=False) is None
+    # the same camera over level ground: the similarity starts it either way
+    px, pts, image_of, _ = _correspondences(rng, R, C, n=80, outliers=0.25,
+                                            depth=(58.0, 62.0))
+    found = [register_frame(px, pts, image_of, K_TRUE, altitude_range=ALTITUDES,
+                            view_prior=DOWN, rescue=rescue) for rescue in (True, False)]
+    assert found[0] is not None and found[1] is not None
+    np.testing.assert_array_equal(found[0].xy, found[1].xy)
+    assert found[0].inliers == found[1].inliers

@@ -129,7 +129,7 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
 def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
                      matches: list[tuple[int, np.ndarray, np.ndarray]], *,
                      frame_shape: tuple[int, int], base_sigma: float | None = None,
-                     ) -> Registration | None:
+                     rescue: bool = True) -> Registration | None:
     """A frame's pose from its matches to map images of local-feature set ``kind``.
 
     Parameters
@@ -145,6 +145,9 @@ def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
         The frame's size: its intrinsics are the map's, centred on the frame.
     base_sigma : float, optional
         The map's own accuracy (m), under the solve's; by default its self-check's.
+    rescue : bool
+        Three-point poses where a survey's similarity start finds no consensus
+        (:func:`.register.register_frame`).
     """
     if kind not in geometry.points or not matches:
         return None
@@ -160,7 +163,8 @@ def register_against(geometry: MapGeometry, kind: str, frame_px: np.ndarray,
     return register_frame(fp, xyz, img, K, distortion=geometry.distortion,
                           altitude_range=geometry.altitude_range(),
                           view_prior=geometry.view_prior(),
-                          base_sigma=geometry.base_sigma if base_sigma is None else base_sigma)
+                          base_sigma=geometry.base_sigma if base_sigma is None else base_sigma,
+                          rescue=rescue)
 
 
 __all__ = ["Intrinsics", "KeptModels", "MapGeometry", "PairMatches", "Registration", "Structure",

@@ -89,7 +89,7 @@ def register_frame(frame_px: np.ndarray, points: np.ndarray, image_of: np.ndarra
                    altitude_range: tuple[float, float],
                    view_prior: tuple[np.ndarray, float] | None = None,
                    reproj_px: float = 4.0, base_sigma: float = 2.0, iterations: int = 200,
-                   rng_seed: int = 0) -> Registration | None:
+                   rng_seed: int = 0, rescue: bool = True) -> Registration | None:
     """Camera pose of a frame from its matches to map keypoints with 3-D points.
 
     Parameters
@@ -112,6 +112,11 @@ def register_frame(frame_px: np.ndarray, points: np.ndarray, image_of: np.ndarra
         by the reprojection errors alone.
     base_sigma : float
         The map's own alignment error (m), under the solve's.
+    rescue : bool
+        With a view prior, try three-point poses also where the similarity start finds no
+        consensus at all (relief can bend the similarity past its threshold); False leaves
+        such a frame unregistered, for a caller with a more thorough registration to
+        fall back on.
 
     Returns
     -------
@@ -128,15 +133,18 @@ def register_frame(frame_px: np.ndarray, points: np.ndarray, image_of: np.ndarra
     centre = obj.mean(axis=0)
     obj_c = obj - centre
     # A survey's frame starts from its similarity, a RANSAC of two points; three-point
-    # poses are tried where it finds no clear consensus, and always elsewhere.
+    # poses are tried where it finds no clear consensus (where it finds none, only to
+    # rescue), and always elsewhere.
     starts = [lambda: _p3p_start(obj_c, img_pts, K, dist, reproj_px, iterations, rng_seed)]
     if view_prior is not None:
         starts.insert(0, lambda: _similarity_start(obj_c, img_pts, K, dist, view_prior[0],
                                                    reproj_px, iterations, rng_seed))
     best = None
-    for make in starts:
+    for k, make in enumerate(starts):
         if best is not None and len(best[2]) >= CLEAR_CONSENSUS * len(img_pts):
             break
+        if k and best is None and not rescue:
+            break  # the similarity found no consensus, and no rescue is asked for
         try:
             start = make()
             if start is None:
