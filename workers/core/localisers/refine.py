@@ -161,8 +161,8 @@ def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
 
     Where none registers with ``min_inliers``, the best ``max_images`` ranked images that
     cannot give the frame a pose are looked at (:func:`_overlap_fix`): the frame is placed
-    at the first one it overlaps beyond doubt. Otherwise a registration counts only: without
-    camera geometry the global similarities already say which images are near.
+    at the first one it overlaps beyond doubt. Nothing weaker counts: a position between
+    images the frame merely resembles is what the global similarities already say.
 
     Parameters are those of :func:`refine_sift`, with the frame's ORB features.
     """
