@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vloc.workers.core.estimate import Status
-from vloc.workers.core.evaluation.evaluate import choose_starts, evaluate
+from vloc.workers.core.evaluation.evaluate import choose_starts, evaluate, run_sequence
 from vloc.workers.core.features import shortlist
 from vloc.workers.core.features.shortlist import PlaceCodes
 from vloc.workers.core.geo import GeoOrigin
@@ -359,11 +359,19 @@ def test_evaluate_summary_and_starts(world, small_map):
     assert choose_starts(100, 5, 10) == [0, 12, 25, 38, 50]
     assert choose_starts(5, 3, 10) == [0]
     queries, truth = _queries(world, n=25)
+    calls = []
     res = evaluate(small_map, queries, truth, modes=["sift", "retrieval"], configs=["default"],
-                   starts=2, skip=5)
+                   starts=2, skip=5, progress=lambda *a: calls.append(a))
     d = res["default"]["sift"].to_dict()
     assert d["runs"] == 2 and d["sift_step_share"] == 1.0
     assert d["median_error_m"] < 6.0
+    # start by start, the modes in turn, so that a speed-up compares runs made side by side
+    assert calls == [("default", "sift", 1, 2), ("default", "retrieval", 1, 2),
+                     ("default", "sift", 2, 2), ("default", "retrieval", 2, 2)]
+    # each run is a fresh localiser: the order they run in changes nothing
+    alone = run_sequence(small_map, queries, truth, mode="retrieval", params={}, seed=1,
+                         start=res["default"]["retrieval"].runs[1].start, config="default")
+    np.testing.assert_array_equal(res["default"]["retrieval"].runs[1].estimate, alone.estimate)
 
 
 @pytest.mark.parametrize("feature", ["vlad_orb", "bow_orb", "vlad_rootsift", "bow_rootsift"])
