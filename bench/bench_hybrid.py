@@ -73,9 +73,10 @@ def main() -> None:
                           seed=args.seed)
     starts = choose_starts(len(exp.queries), args.starts, SKIP)
     out = {m: {"err": [], "cpu": [], "kinds": []} for m in ("sift", "hybrid")}
-    for s in starts:
+    for k, s in enumerate(starts):
         for mode in ("sift", "hybrid"):
-            r = run(exp, mode, int(s), args.seed)
+            # each start's seed as `vloc eval` seeds it, so both run the same filters
+            r = run(exp, mode, int(s), args.seed + k)
             for key in r:
                 out[mode][key] += r[key]
             print(f"start {s}: {mode} done", flush=True)
