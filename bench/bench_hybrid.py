@@ -75,7 +75,7 @@ def main() -> None:
     out = {m: {"err": [], "cpu": [], "kinds": []} for m in ("sift", "hybrid")}
     for k, s in enumerate(starts):
         for mode in ("sift", "hybrid"):
-            # each start's seed as `vloc eval` seeds it, so both run the same filters
+            # seeded per start as `vloc eval` seeds it: its runs are the evaluation's runs
             r = run(exp, mode, int(s), args.seed + k)
             for key in r:
                 out[mode][key] += r[key]
