@@ -41,6 +41,13 @@ def _on_ground(R, C, px, altitude=GROUND_ALT):
     return C + t[:, None] * rays
 
 
+def _survey_camera(rng: np.random.Generator, tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """A survey camera 60 m over the ground at the origin: a random heading, tilted
+    ``tilt_deg`` from nadir towards a random direction (its rotation and centre)."""
+    R = tilted_rotation(rng.uniform(0, 2 * np.pi), tilt_deg, rng.uniform(0, 2 * np.pi))
+    return R, np.array([0.0, 0.0, GROUND_ALT + 60.0])
+
+
 def _correspondences(rng, R, C, *, n=150, outliers=0.25, depth=(0.8, 1.0)):
     """n points seen by camera (R, C) anywhere in its image at depths ``depth`` (a range
     in metres), their exact pixels, a share of them mismatched to other points."""
@@ -108,8 +115,7 @@ def test_register_frame_finds_the_pose_among_as_many_mismatches(seed):
     # with half of them mismatched a sample is clean one time in 16, and among its 200
     # tries one is clean but for 2.5e-6.
     rng = np.random.default_rng(100 + seed)
-    R = tilted_rotation(rng.uniform(0, 2 * np.pi), 6.0, rng.uniform(0, 2 * np.pi))
-    C = np.array([0.0, 0.0, GROUND_ALT + 60.0])
+    R, C = _survey_camera(rng, 6.0)
     px, pts, image_of, bad = _correspondences(rng, R, C, n=200, outliers=0.5,
                                               depth=(45.0, 62.0))
     reg = register_frame(px, pts, image_of, K_TRUE, altitude_range=ALTITUDES)
@@ -125,8 +131,7 @@ def test_register_frame_with_a_view_prior_finds_the_pose_among_three_mismatches_
     # a clean sample one time in 16 at a quarter of inliers, where the four-point samples of
     # the pose RANSAC are clean one time in 256 (its 200 tries, alone, lose seed 3 here).
     rng = np.random.default_rng(200 + seed)
-    R = tilted_rotation(rng.uniform(0, 2 * np.pi), 4.0, rng.uniform(0, 2 * np.pi))
-    C = np.array([0.0, 0.0, GROUND_ALT + 60.0])
+    R, C = _survey_camera(rng, 4.0)
     px, pts, image_of, bad = _correspondences(rng, R, C, n=200, outliers=0.75,
                                               depth=(52.0, 62.0))
     reg = register_frame(px, pts, image_of, K_TRUE, altitude_range=ALTITUDES,
@@ -290,8 +295,7 @@ def test_register_frame_rescues_a_survey_frame_the_similarity_cannot_start(seed)
     unless no rescue is asked for. Where the similarity holds, the rescue changes
     nothing."""
     rng = np.random.default_rng(300 + seed)
-    R = tilted_rotation(rng.uniform(0, 2 * np.pi), 3.0, rng.uniform(0, 2 * np.pi))
-    C = np.array([0.0, 0.0, GROUND_ALT + 60.0])
+    R, C = _survey_camera(rng, 3.0)
     px, pts, image_of, _ = _correspondences(rng, R, C, n=40, outliers=0.0,
                                             depth=(5.0, 60.0))
     reg = register_frame(px, pts, image_of, K_TRUE, altitude_range=ALTITUDES,
