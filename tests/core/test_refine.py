@@ -272,6 +272,44 @@ def test_refine_orb_passes_over_images_that_match_thinly(uav_world, monkeypatch)
     assert asked == [int(i) for i in near]
 
 
+def test_refine_orb_tries_on_past_a_thin_registration(uav_world, monkeypatch):
+    """A registration with fewer than ORB_SURE_INLIERS inliers is not the answer at once:
+    the next images are tried, and the registration with the most inliers wins. One with
+    that many is the answer at once, and nothing more is matched."""
+    from vloc.workers.core.localisers import refine as refine_module
+
+    data = uav_world.map_data
+    q, truth = uav_world.queries[3], uav_world.truth[3]
+    near = np.argsort(np.linalg.norm(np.asarray(data.positions) - truth, axis=1))[:3]
+    shape = q.frame.grey.shape
+    real, asked = refine_module.hamming_ratio_matches, []
+    keep = refine_module.ORB_FIRST_MATCHES + 2  # enough to start a pose, too few to be sure
+
+    def thinned(a, b, ratio):
+        image = next(i for i in range(len(data)) if data.orb(i).descriptors is b
+                     or np.array_equal(data.orb(i).descriptors, b))
+        asked.append(image)
+        m = real(a, b, ratio=ratio)
+        return m[:keep] if image == int(near[0]) else m
+
+    monkeypatch.setattr(refine_module, "hamming_ratio_matches", thinned)
+    thin = refine_orb(q.orb()[0], data, near[:1], np.ones(1), frame_shape=shape)
+    assert thin is not None and thin.kind == "registered"
+    assert thin.inliers < refine_module.ORB_SURE_INLIERS
+    asked.clear()
+    got = refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape, max_images=3)
+    assert got is not None and got.kind == "registered"
+    assert asked[:2] == [int(near[0]), int(near[1])]
+    assert got.inliers > thin.inliers and int(near[1]) in got.images
+    assert np.linalg.norm(got.xy - truth) < 1.0
+    # the old rule, the first registration the answer: the thin one, nothing else matched
+    monkeypatch.setattr(refine_module, "ORB_SURE_INLIERS", 0)
+    asked.clear()
+    first = refine_orb(q.orb()[0], data, near, np.ones(3), frame_shape=shape, max_images=3)
+    assert asked == [int(near[0])]
+    np.testing.assert_allclose(first.xy, thin.xy)
+
+
 def test_refine_orb_passes_over_images_the_reconstruction_left_out(uav_world):
     """An image without a camera pose has no 3-D points: it is not matched, and does not
     count against the images tried."""

@@ -55,6 +55,16 @@ the best-ranked image is often a look-alike 40-90 m off, or an image nearer the 
 matches thinly, while the next one registers; SIFT steps fell from 31 % to 26 % of the
 frames, the mean error 4.86 -> 4.94 m, lewis-uav unchanged."""
 
+ORB_SURE_INLIERS: int = 40
+"""A registration with this many inliers is the answer at once; a thinner one is kept while
+the other images are tried, and the one with the most inliers is the answer. On seneca-uav
+(pass 2 on pass 1, 5 starts) the ORB registrations with 20-25 inliers were the ones 10-18 m
+off, several from a look-alike ranked first where the next image registered the frame
+within 2 m with twice the inliers; those with 30 or more were within 11 m and mostly within
+5. The hybrid's mean error fell from 4.95 to 4.73 m (median 2.74 to 2.68), lewis-uav and
+the worlds' within a few centimetres, for 5-12 % more time a frame from the extra matching
+(``bench/results/geometry.md``)."""
+
 ORB_OVERLAP_INLIERS: int = 50
 """A global step that registers nowhere places the frame at a map image that cannot give it
 a pose (the reconstruction left the image out, or gave fewer than
@@ -156,8 +166,9 @@ def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
     first, at most ``max_images`` of them: the pose starts from the first that gives at
     least :data:`ORB_FIRST_MATCHES` matches (an image thinner than that is passed over),
     each later image adds its matches, and the first registration with at least
-    ``min_inliers`` inliers is the answer. The first usable image alone usually suffices,
-    and matching is most of the cost.
+    :data:`ORB_SURE_INLIERS` inliers is the answer, else the one with the most inliers of at
+    least ``min_inliers``. The first usable image alone usually suffices, and matching is
+    most of the cost.
 
     Where none registers with ``min_inliers``, the best ``max_images`` ranked images that
     cannot give the frame a pose are looked at (:func:`_overlap_fix`): the frame is placed
@@ -187,7 +198,7 @@ def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
     placed = geometry.reconstructed[ranked]
     tried, _ = _best(ranked[placed], scores[placed], max_images)
     matches: list[tuple[int, np.ndarray, np.ndarray]] = []
-    reg = None
+    reg = best = None
     for image in tried.tolist():
         more = _matches(np.array([image]), offsets, matched)
         if not matches and (not more or len(more[0][1]) < ORB_FIRST_MATCHES):
@@ -202,7 +213,12 @@ def refine_orb(query: OrbFeatures, map_data: MapData, ranked: np.ndarray,
         reg = register_against(geometry, "orb", np.asarray(query.keypoints), matches,
                                frame_shape=frame_shape, rescue=False)
         if reg is not None and reg.inliers >= min_inliers:
-            return Refinement.from_registration(reg)
+            if reg.inliers >= ORB_SURE_INLIERS:
+                return Refinement.from_registration(reg)
+            if best is None or reg.inliers > best.inliers:
+                best = reg  # thin: the next image may register the frame better
+    if best is not None:
+        return Refinement.from_registration(best)
     overlap = _overlap_fix(query, map_data, _best(ranked, scores, max_images)[0], matched)
     if overlap is not None:
         return overlap
