@@ -419,3 +419,21 @@ def test_refine_orb_places_a_frame_at_an_image_without_3d_points(uav_world):
         geo.points["orb"] = saved
     assert got is not None and got.kind == "interpolated" and got.images == (near,)
     np.testing.assert_allclose(got.xy, np.asarray(data.positions)[near])
+
+
+def test_the_hybrid_tries_a_global_step_after_every_sift_step(uav_world):
+    """On a map whose global steps register and escalate, no SIFT step is followed by
+    another by the spread alone: the next step starts global (``switching.decide``)."""
+    from vloc.workers.core.localisers import make_localiser
+
+    loc = make_localiser("hybrid", uav_world.map_data, {"config": "default"}, seed=0)
+    assert loc.escalates
+    sift_steps = 0
+    for q in uav_world.queries:
+        if loc.step(q).feature == "sift":
+            sift_steps += 1
+            assert loc.switch.next == "global"
+    assert sift_steps >= 1  # the first step, at least
+    off = make_localiser("hybrid", uav_world.map_data, {"config": "default", "escalate": False},
+                         seed=0)
+    assert not off.escalates

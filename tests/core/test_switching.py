@@ -150,3 +150,21 @@ def test_misses_of_the_global_registration_send_the_cloud_to_sift():
     s = SwitchState(GLOBAL, misses=5)
     assert decide(off, s, StepEvidence(GLOBAL, 1.0, registered=False), thresholds=AT_4M,
                   agree_radius=10.0).next == GLOBAL
+
+
+@pytest.mark.parametrize("spread", [1.0, 7.0, 50.0])
+def test_where_global_steps_escalate_a_sift_step_is_followed_by_a_global_one(spread):
+    """A global step that registers the frame, or is taken back for SIFT where it finds no
+    fix, can follow a SIFT step however spread the cloud; elsewhere the spread decides."""
+    rule = _registered_rule(None)
+    for trust in (0.0, 1.0):
+        got = decide(rule, SwitchState(SIFT, trust), StepEvidence(SIFT, spread),
+                     thresholds=AT_4M, agree_radius=10.0, escalates=True)
+        assert got.next == GLOBAL
+    assert _next(SIFT, spread, rule) == (GLOBAL if spread < AT_4M[1] else SIFT)
+    # after a global step the spread still decides, and pinned filters keep their type
+    assert decide(rule, SwitchState(GLOBAL), StepEvidence(GLOBAL, spread), thresholds=AT_4M,
+                  agree_radius=10.0, escalates=True).next \
+        == (GLOBAL if spread <= AT_4M[0] else SIFT)
+    assert decide(rule, SwitchState(SIFT), StepEvidence(SIFT, spread), thresholds=AT_4M,
+                  agree_radius=10.0, pinned=SIFT, escalates=True).next == SIFT

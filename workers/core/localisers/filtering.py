@@ -89,6 +89,8 @@ class FilterLocaliser(Localiser):
                                    and "orb" in map_data.geometry.points)
         if self.registers_globally:
             self.config = cfg = replace(cfg, switching=replace(cfg.switching, global_trust=0))
+        # a global step that finds no fix becomes a SIFT step: trying one costs little
+        self.escalates = self.registers_globally and cfg.switching.escalate
         self.switch = SwitchState(switching.start(self.pinned))
         self.thresholds = switching.thresholds(cfg.switching, self.motion.sigma(None))
         # Agreement within one map spacing (or d_global, if larger): the scaled thresholds
@@ -133,7 +135,8 @@ class FilterLocaliser(Localiser):
             ms += judge_ms + max(extract_ms - judge_ms, 0.0)
         self.switch = switching.decide(self.config.switching, self.switch, evidence,
                                        thresholds=self.thresholds,
-                                       agree_radius=self._agree_radius, pinned=self.pinned)
+                                       agree_radius=self._agree_radius, pinned=self.pinned,
+                                       escalates=self.escalates)
         if used == SIFT:
             self.prev_sift, self.prev_key = query.sift()[0], query.key
         else:
