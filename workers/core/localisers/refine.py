@@ -61,10 +61,11 @@ the other images are tried, and the one with the most inliers is the answer. On 
 (pass 2 on pass 1, 5 starts) the ORB registrations with 15-25 inliers were the ones 10-18 m
 off; those with 30 or more were within 11 m and mostly within 5. With the next images'
 matches added, the frame registered from one image with 21 inliers at 15.8 m registers
-with 34 at 6.4 m, the one with 17 at 10.0 m with 26 at 1.3 m. The hybrid's mean error fell from 4.95 to 4.73 m (median 2.74 to 2.68 m), lewis-uav's
-stayed 5.51 m, the robot world's fell from 0.51 to 0.43 m and the UAV worlds' moved by 0.1 m
-or less (flat 1.17 -> 1.09, hills 1.09 -> 1.17, drifting altitude 1.12 -> 1.06), for 3-12 %
-more time a frame on seneca-uav from the extra matching, in three side-by-side runs
+with 34 at 6.4 m, the one with 17 at 10.0 m with 26 at 1.3 m. The hybrid's mean error fell
+from 4.95 to 4.73 m (median 2.74 to 2.68 m), lewis-uav's stayed 5.51 m, the robot world's
+fell from 0.51 to 0.43 m and the UAV worlds' moved by 0.1 m or less (flat 1.17 -> 1.09,
+hills 1.09 -> 1.17, drifting altitude 1.12 -> 1.06), for 3-12 % more time a frame on
+seneca-uav from the extra matching, in four side-by-side runs
 (``bench/results/geometry.md``)."""
 
 ORB_OVERLAP_INLIERS: int = 50
