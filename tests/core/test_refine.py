@@ -236,6 +236,12 @@ def test_uav_world_frames_register_with_orb(uav_world):
     assert np.median(errors) < 1.0
 
 
+def _orb_image(data, descriptors) -> int:
+    """The map image whose ORB descriptors these are (what a matcher was handed)."""
+    return next(i for i in range(len(data)) if data.orb(i).descriptors is descriptors
+                or np.array_equal(data.orb(i).descriptors, descriptors))
+
+
 def test_refine_orb_passes_over_images_that_match_thinly(uav_world, monkeypatch):
     """A map image giving fewer than ORB_FIRST_MATCHES ratio-test matches starts no pose:
     the next ranked image is tried instead, and where every one is that thin, nothing is
@@ -252,8 +258,7 @@ def test_refine_orb_passes_over_images_that_match_thinly(uav_world, monkeypatch)
     thin = {int(near[0])}
 
     def thinned(a, b, ratio):
-        image = next(i for i in range(len(data)) if data.orb(i).descriptors is b
-                     or np.array_equal(data.orb(i).descriptors, b))
+        image = _orb_image(data, b)
         asked.append(image)
         m = real(a, b, ratio=ratio)
         return m[:refine_module.ORB_FIRST_MATCHES - 1] if image in thin else m
@@ -286,8 +291,7 @@ def test_refine_orb_tries_on_past_a_thin_registration(uav_world, monkeypatch):
     keep = refine_module.ORB_FIRST_MATCHES + 2  # enough to start a pose, too few to be sure
 
     def thinned(a, b, ratio):
-        image = next(i for i in range(len(data)) if data.orb(i).descriptors is b
-                     or np.array_equal(data.orb(i).descriptors, b))
+        image = _orb_image(data, b)
         asked.append(image)
         m = real(a, b, ratio=ratio)
         return m[:keep] if image == int(near[0]) else m

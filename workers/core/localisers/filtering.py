@@ -89,8 +89,6 @@ class FilterLocaliser(Localiser):
                                    and "orb" in map_data.geometry.points)
         if self.registers_globally:
             self.config = cfg = replace(cfg, switching=replace(cfg.switching, global_trust=0))
-        # a global step that finds no fix becomes a SIFT step: trying one costs little
-        self.escalates = self.registers_globally and cfg.switching.escalate
         self.switch = SwitchState(switching.start(self.pinned))
         self.thresholds = switching.thresholds(cfg.switching, self.motion.sigma(None))
         # Agreement within one map spacing (or d_global, if larger): the scaled thresholds
@@ -104,6 +102,13 @@ class FilterLocaliser(Localiser):
         self.anchor: tuple[float, float, float] | None = None
         self.clock = 0.0
 
+    @property
+    def escalates(self) -> bool:
+        """Whether a global step that finds no fix is taken back for SIFT (``escalate`` on a
+        map whose global steps register): trying one costs little, so the switching rule may
+        try one after any SIFT step."""
+        return self.registers_globally and self.config.switching.escalate
+
     def _step(self, query: QueryFrame, t0: float) -> Estimate:
         dt = None
         if query.captured_at is not None and self.last_time is not None:
@@ -111,7 +116,9 @@ class FilterLocaliser(Localiser):
         used = self.switch.next
         sensors = self._sensors(query.metadata, dt)
         allowed = self.config.switching.global_misses or 0
-        escalate = (used == GLOBAL and self.pinned is None and self.config.switching.escalate)
+        # only where global steps register can one find no fix and be taken back: elsewhere
+        # no snapshot of the cloud is needed
+        escalate = used == GLOBAL and self.pinned is None and self.escalates
         before = self.pf.snapshot() if escalate else None
         result, fixes, tried, fell_back, ms = self._filter_step(query, used, dt, sensors)
         if fell_back:
