@@ -34,8 +34,8 @@ sys.path.insert(0, str(REPO))
 from vloc.workers.core import tiepairs  # noqa: E402
 from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 from vloc.workers.core.geometry import pairs  # noqa: E402
-from vloc.workers.core.mapbuild import extract_tie_points  # noqa: E402
 from vloc.workers.core.sift import ratio_matches  # noqa: E402
+from vloc.workers.core.tiepoints import extract_tie_points  # noqa: E402
 
 DATASETS = REPO.parent / "shared" / "datasets"
 MAPS = {"seneca-uav pass 1": ("seneca-uav", {"rule": "pass", "map_pass": 1, "query_pass": 2}),

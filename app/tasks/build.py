@@ -72,7 +72,7 @@ def _readers(paths: list[str]):
 
 def extract_ties(path: str | None, stem: str, donors: list[str] = ()) -> int:
     """Extract one map image file's tie points and write them beside ``stem``
-    (:func:`~vloc.workers.core.mapbuild.save_tie_points`), for a build's reconstruction;
+    (:func:`~vloc.workers.core.tiepoints.save_tie_points`), for a build's reconstruction;
     run by the engine's workers, one image per call. Returns the number of tie points, or
     -1 where the file is missing or unreadable (the image's stored SIFT then ties it).
 
@@ -80,9 +80,9 @@ def extract_ties(path: str | None, stem: str, donors: list[str] = ()) -> int:
     image's file never changes) are kept as they are. ``donors`` are the stems of other
     maps' images of the same file (:class:`~vloc.app.jobs.service.BuildRunner` finds them
     by its hash): the first that holds tie points lends them, hard-linked, and nothing is
-    extracted (:func:`~vloc.workers.core.mapbuild.link_tie_points`)."""
+    extracted (:func:`~vloc.workers.core.tiepoints.link_tie_points`)."""
     from vloc.workers.core.image import ImageError
-    from vloc.workers.core.mapbuild import (
+    from vloc.workers.core.tiepoints import (
         TiePointFiles,
         extract_tie_points,
         link_tie_points,
@@ -142,7 +142,7 @@ def _planned_pairs(images: list[dict]) -> list[tuple[int, int]]:
 def _forget_tie_points(tie_dir: Path, image_ids: set[int]) -> None:
     """Delete the tie points in ``tie_dir`` (:func:`tie_stem`) of images not in
     ``image_ids``."""
-    from vloc.workers.core.mapbuild import TiePointFiles
+    from vloc.workers.core.tiepoints import TiePointFiles
 
     for suffix in TiePointFiles.SUFFIXES:
         for path in tie_dir.glob("*" + suffix):
@@ -175,7 +175,8 @@ def plan_tiles(database_url: str, map_id: str, tie_dir: str,
     there (:mod:`vloc.workers.core.tiles`), for :func:`reconstruct_tile` to reconstruct;
     returns how many (0 for a map the packing reconstructs whole)."""
     from vloc.workers.core import tiepairs, tiles
-    from vloc.workers.core.mapbuild import local_frame, typical_focal_px
+    from vloc.workers.core.geo import local_frame
+    from vloc.workers.core.mapbuild import typical_focal_px
 
     images = _read_images(database_url, map_id)
     known = tiepairs.load_results(tie_dir, [img["id"] for img in images])
@@ -335,12 +336,8 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
     """
     from vloc.workers.core import tiepairs, tiles
     from vloc.workers.core.geometry import KeptModels
-    from vloc.workers.core.mapbuild import (
-        TiePointFiles,
-        assemble_map,
-        stage,
-        typical_focal_px,
-    )
+    from vloc.workers.core.mapbuild import assemble_map, stage, typical_focal_px
+    from vloc.workers.core.tiepoints import TiePointFiles
 
     timings: dict[str, tuple[float, float]] = {}
     report: dict = {}

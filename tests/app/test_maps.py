@@ -521,7 +521,7 @@ def test_a_frame_that_pillow_cannot_identify_has_a_clean_detail(module_client):
 
 def test_tie_points_are_extracted_to_files_and_unreadable_images_say_so(tmp_path, shots):
     from vloc.app.tasks.build import extract_ties
-    from vloc.workers.core.mapbuild import extract_tie_points, load_tie_points
+    from vloc.workers.core.tiepoints import extract_tie_points, load_tie_points
 
     image = tmp_path / "map.jpg"
     image.write_bytes(shots[0][0].jpeg)
@@ -597,7 +597,7 @@ def test_a_rebuild_takes_up_what_an_earlier_build_left(module_client, shots, tmp
     next build's tie points and pairs found there are not computed again, and those an
     older results format or a deleted image have made stale are."""
     from vloc.app.tasks import build as tasks
-    from vloc.workers.core import mapbuild
+    from vloc.workers.core import tiepoints
 
     map_id, url, files = _built_six_image_map(module_client, shots)
     ties = tmp_path / "ties"
@@ -627,8 +627,8 @@ def test_a_rebuild_takes_up_what_an_earlier_build_left(module_client, shots, tmp
             return real(*a, **k)
         return call
 
-    monkeypatch.setattr(mapbuild, "extract_tie_points",
-                        counted("tie", mapbuild.extract_tie_points))
+    monkeypatch.setattr(tiepoints, "extract_tie_points",
+                        counted("tie", tiepoints.extract_tie_points))
     monkeypatch.setattr(tiepairs, "match_pair", counted("pair", tiepairs.match_pair))
     assert attempt() == (counts, planned, 0, first)
     assert calls == {"tie": 0, "pair": 0}

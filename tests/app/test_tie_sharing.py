@@ -12,8 +12,8 @@ from sqlalchemy import select
 
 from tests.app.conftest import ADMIN, build_map, wait_job
 from vloc.app.maps.models import MapImage
-from vloc.workers.core.mapbuild import TiePointFiles, link_tie_points, save_tie_points
 from vloc.workers.core.sift import SiftFeatures
+from vloc.workers.core.tiepoints import TiePointFiles, link_tie_points, save_tie_points
 
 
 def _tie_files(client, map_id: str) -> dict[str, str]:

@@ -9,11 +9,11 @@ import pytest
 
 from tests.core.geometry.scene import survey
 from vloc.workers.core import tiepairs
-from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.geo import GeoOrigin, local_frame
 from vloc.workers.core.geometry import build_geometry, match_pair, tie_pairs
 from vloc.workers.core.geometry.pairs import PairMatches, match_pairs
-from vloc.workers.core.mapbuild import local_frame, save_tie_points
 from vloc.workers.core.sift import SiftFeatures
+from vloc.workers.core.tiepoints import save_tie_points
 
 ORIGIN = GeoOrigin(42.0, -76.5, 300.0)
 

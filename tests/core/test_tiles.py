@@ -11,13 +11,13 @@ import pytest
 
 from tests.core.geometry.scene import F_TRUE, survey
 from vloc.workers.core import tiepairs, tiles
-from vloc.workers.core.geo import GeoOrigin
+from vloc.workers.core.geo import GeoOrigin, local_frame
 from vloc.workers.core.geometry import TIE_NEIGHBOURS, build_geometry, sfm, tie_pairs, tiling
 from vloc.workers.core.geometry import pairs as pairs_module
 from vloc.workers.core.geometry.kept import KeptModels
 from vloc.workers.core.geometry.pairs import match_pairs
-from vloc.workers.core.mapbuild import local_frame, save_tie_points
 from vloc.workers.core.sift import SiftFeatures
+from vloc.workers.core.tiepoints import save_tie_points
 
 
 @pytest.fixture(scope="module")

@@ -57,3 +57,16 @@ def check_lat_lon(lat: float, lon: float) -> None:
             raise ValueError(f"{name} must be a finite number, got {value!r}")
         if abs(v) > bound:
             raise ValueError(f"{name} must be within +-{bound:g} degrees, got {v:g}")
+
+
+def local_frame(lats, lons, alts, origin: GeoOrigin | None = None,
+                ) -> tuple[GeoOrigin, np.ndarray, np.ndarray]:
+    """The local frame a map of these images is packed in (``origin``, by default at their
+    centroid), their (N, 2) east/north in it and their (N,) altitudes (NaN where None)."""
+    lat = np.asarray(lats, np.float64)
+    lon = np.asarray(lons, np.float64)
+    alt = np.array([np.nan if a is None else a for a in alts], np.float64)
+    if origin is None:
+        origin = GeoOrigin.centroid_of(lat, lon, np.where(np.isfinite(alt), alt, 0.0))
+    east, north = origin.to_local(lat, lon)
+    return origin, np.stack([np.atleast_1d(east), np.atleast_1d(north)], axis=1), alt

@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .geo import local_frame
 from .geometry import PairMatches, match_pair, tie_pairs
-from .mapbuild import load_tie_points, local_frame
+from .tiepoints import load_tie_points
 
 RESULTS_GLOB = "pairs-*.npz"
 KEPT = "pairs-kept.npz"
@@ -121,7 +122,7 @@ def match_batch(stems: dict[int, str], pairs: list[tuple[int, int]], out: str | 
     (:func:`save_results`).
 
     ``stems[i]`` is where image ``i``'s tie points were written
-    (:func:`~workers.core.mapbuild.save_tie_points`) and ``image_ids[i]`` the image's id; a
+    (:func:`~workers.core.tiepoints.save_tie_points`) and ``image_ids[i]`` the image's id; a
     pair with an image whose tie points are missing is left out, for the packing to match
     from the image's stored SIFT. Returns the number of pairs that verified.
 

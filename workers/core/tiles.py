@@ -25,8 +25,8 @@ from .geometry.kept import KeptModels
 from .geometry.pairs import PairMatches
 from .geometry.sfm import TileModel, tags
 from .geometry.tiling import tile_key, tile_models, tile_pairs
-from .mapbuild import load_tie_points
 from .tiepairs import read_results, save_results
+from .tiepoints import load_tie_points
 
 PLAN_FILE = "tiles-plan.npz"
 MODELS = "models"
@@ -44,7 +44,7 @@ def plan(folder: str | Path, verified: list[PairMatches], positions: np.ndarray,
     tiles (0 for a map reconstructed whole, which the packing does itself).
 
     ``verified`` are the map's verified pairs (map indices), ``stems[i]`` where image
-    ``i``'s tie points were written (:func:`~workers.core.mapbuild.save_tie_points`),
+    ``i``'s tie points were written (:func:`~workers.core.tiepoints.save_tie_points`),
     ``times`` the capture times (s, NaN unknown)."""
     positions = np.asarray(positions, np.float64)
     folder = Path(folder)

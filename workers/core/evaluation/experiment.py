@@ -13,10 +13,11 @@ from pathlib import Path
 import numpy as np
 
 from ..image import prepare
-from ..mapbuild import assemble_map, extract_image_features, extract_tie_points, typical_focal_px
+from ..mapbuild import assemble_map, extract_image_features, typical_focal_px
 from ..mapdata import MapData
 from ..metadata import FrameMetadata
 from ..query import QueryFrame
+from ..tiepoints import extract_tie_points
 from .datasets import Dataset, DatasetImage, load_dataset, load_frames, split
 
 

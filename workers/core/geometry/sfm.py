@@ -1,6 +1,6 @@
 """The map's structure from motion: COLMAP's incremental mapper over the map's own tie points.
 
-The map's tie points (:func:`workers.core.mapbuild.extract_tie_points`) and the verified
+The map's tie points (:func:`workers.core.tiepoints.extract_tie_points`) and the verified
 matches between GPS-neighbouring images (:mod:`.pairs`) go into a COLMAP database, the way
 hloc feeds its features and matches, and COLMAP's incremental mapper
 (:func:`pycolmap.incremental_mapping`) recovers the cameras and the 3-D points they see, in
