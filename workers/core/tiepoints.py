@@ -22,7 +22,7 @@ from .sift import SiftFeatures, extract_sift
 
 TIE_SIZE: tuple[int, int] = (640, 480)
 """Resolution the map's tie points are extracted at: twice the working resolution
-(:data:`~workers.core.geometry.sfm.COLMAP_SCALE`)."""
+(:data:`~workers.core.geometry.models.COLMAP_SCALE`)."""
 
 TIE_KEYPOINTS: int = 3000
 """Most tie points per map image."""

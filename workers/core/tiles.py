@@ -22,8 +22,8 @@ from threadpoolctl import threadpool_limits
 
 from .geometry import tiling
 from .geometry.kept import KeptModels
+from .geometry.models import TileModel, tags
 from .geometry.pairs import PairMatches
-from .geometry.sfm import TileModel, tags
 from .geometry.tiling import tile_key, tile_models, tile_pairs
 from .tiepairs import read_results, save_results
 from .tiepoints import load_tie_points

@@ -23,7 +23,7 @@ from tests.core.geometry.scene import (
 from vloc.workers.core.geometry import build_geometry, register_against, tie_pairs, tie_reach
 from vloc.workers.core.geometry import pairs as pairs_module
 from vloc.workers.core.geometry.camera import compass_heading_deg
-from vloc.workers.core.geometry.sfm import Structure
+from vloc.workers.core.geometry.models import Structure
 
 
 def _build(s, *, gps_sigma=0.0, seed=0, **kwargs):

@@ -23,6 +23,7 @@ from vloc.workers.core.geometry.kept import (
     KeptModels,
     read_order,
 )
+from vloc.workers.core.geometry.models import TileModel
 from vloc.workers.core.geometry.tiling import reconstruct
 
 
@@ -192,7 +193,7 @@ def _run_placing(order: int, held: int, registered: int, placed: int) -> sfm._Ru
     """A grown run: ``held`` images in the kept model, ``registered`` of them placed, and
     ``order - held`` new ones, the first ``placed - registered`` of which are placed."""
     images = np.r_[0:registered, held:held + placed - registered]
-    model = sfm.TileModel(images, np.zeros((len(images), 3, 3)), np.zeros((len(images), 3)),
+    model = TileModel(images, np.zeros((len(images), 3, 3)), np.zeros((len(images), 3)),
                           [], [], np.zeros(4), 0.0)
     return sfm._Run([model], None, list(range(order)), base=(held, registered))
 

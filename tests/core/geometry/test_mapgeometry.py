@@ -17,7 +17,7 @@ from vloc.workers.core.geometry.mapgeometry import (
     EXACT_PX,
     MapGeometry,
 )
-from vloc.workers.core.geometry.sfm import Structure
+from vloc.workers.core.geometry.models import Structure
 
 K = Intrinsics(100.0, 159.5, 119.5)
 

@@ -15,11 +15,8 @@ from tests.core.geometry.scene import (
     survey,
 )
 from vloc.workers.core.geometry import sfm
-from vloc.workers.core.geometry.sfm import (
-    COLMAP_SCALE,
-    tags,
-    to_colmap_pixels,
-)
+from vloc.workers.core.geometry.models import COLMAP_SCALE, tags
+from vloc.workers.core.geometry.sfm import to_colmap_pixels
 from vloc.workers.core.geometry.tiling import left_out_models, reconstruct, tile_models
 
 

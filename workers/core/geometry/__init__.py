@@ -23,9 +23,9 @@ from ..image import WORK_SIZE
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .kept import KeptModels
 from .mapgeometry import MapGeometry
+from .models import Structure
 from .pairs import PairMatches, candidate_pairs, match_pair, match_pairs
 from .register import Registration, register_frame
-from .sfm import Structure
 from .tiling import reconstruct
 
 MIN_PLACED: float = 0.3

@@ -81,7 +81,7 @@ class MapGeometry:
 
     @classmethod
     def from_structure(cls, structure) -> MapGeometry:
-        """The geometry of a :class:`~.sfm.Structure` (its points added by
+        """The geometry of a :class:`~.models.Structure` (its points added by
         :meth:`add_points`)."""
         return cls(structure.rotations, structure.centres, structure.intrinsics,
                    structure.k1, structure.residual_px, structure.gps_rms_h,

@@ -4,10 +4,8 @@ The map's tie points (:func:`workers.core.tiepoints.extract_tie_points`) and the
 matches between GPS-neighbouring images (:mod:`.pairs`) go into a COLMAP database, the way
 hloc feeds its features and matches, and COLMAP's incremental mapper
 (:func:`pycolmap.incremental_mapping`) recovers the cameras and the 3-D points they see, in
-one or several models. Each model is then brought onto the images' GPS by a robust
-similarity weighted per axis (:func:`.align.align_to_gps`: altitudes looser than positions,
-cameras level), and cameras it leaves far from their GPS are dropped. Nothing assumes a
-ground plane: nadir, oblique and street-level maps take the same path.
+one or several models, each then brought onto the images' GPS (:mod:`.models`). Nothing
+assumes a ground plane: nadir, oblique and street-level maps take the same path.
 
 One camera model serves the map: SIMPLE_RADIAL (a focal length and one radial term; the
 principal point at the image centre), started from the EXIF focal length. Over flat ground
@@ -21,18 +19,17 @@ held, and the run that places more cameras consistently wins.
 
 Coordinates: the project's pixels are at the working resolution with 0 at the centre of the
 first pixel (OpenCV's convention); COLMAP's put 0.5 there. The database holds pixels scaled
-by :data:`COLMAP_SCALE` (the tie points' own resolution), so that COLMAP's thresholds in
+by :data:`~.models.COLMAP_SCALE` (the tie points' own resolution), so that COLMAP's thresholds in
 pixels mean what its defaults intend.
 
-This module runs COLMAP on one set of images (:func:`reconstruct_images`) and joins aligned
-models into the map's cameras (:func:`structure_of`); :mod:`.tiling` decides which sets: a
+This module runs COLMAP on one set of images (:func:`reconstruct_images`); :mod:`.models`
+joins the aligned models into the map's cameras, and :mod:`.tiling` decides which sets: a
 small map whole, a large one in overlapping spatial tiles.
 """
 
 from __future__ import annotations
 
 import hashlib
-import math
 import shutil
 import tempfile
 from collections.abc import Sequence
@@ -42,14 +39,17 @@ from pathlib import Path
 import numpy as np
 
 from ..image import WORK_SIZE
-from .align import align_to_gps
-from .camera import DEFAULT_HFOV_DEG, Intrinsics, focal_from_fov
+from .camera import DEFAULT_HFOV_DEG, focal_from_fov
 from .kept import load_models, read_inputs, save_models
+from .models import (
+    COLMAP_SCALE,
+    GPS_SIGMA_H,
+    GPS_SIGMA_V,
+    TileModel,
+    align_models,
+    placed_images,
+)
 from .pairs import PairMatches
-
-COLMAP_SCALE: float = 2.0
-"""COLMAP's pixels per working-resolution pixel: tie points are extracted at twice the
-working resolution."""
 
 MAX_FOCAL_CHANGE: float = 0.15
 """A refined focal length further than this (relative) from the EXIF's is distrusted."""
@@ -88,57 +88,6 @@ LARGE_BA: dict[str, float | int] = {
 fewer iterations, one local refinement; and the global adjustment skips 3-D points that
 other points already constrain (``mapper.ba_global_ignore_redundant_points3D``)."""
 
-GPS_SIGMA_H: float = 5.0
-"""Horizontal standard deviation of a map image's GPS position (m)."""
-
-GPS_SIGMA_V: float = 15.0
-"""Vertical standard deviation of its GPS altitude (m): consumer GPS altitudes are several
-times worse than positions, and drift."""
-
-
-@dataclass(frozen=True)
-class Structure:
-    """The map's reconstruction in its local east-north-up frame.
-
-    Attributes
-    ----------
-    rotations : (N, 3, 3) float64
-        World -> camera rotation of each map image; NaN where not placed.
-    centres : (N, 3) float64
-        Camera centre (east, north, altitude in the GPS altitudes' frame); NaN where not
-        placed.
-    intrinsics : Intrinsics
-        Focal length and principal point at the working resolution (OpenCV's pixels).
-    k1 : float
-        Radial distortion (OpenCV's first coefficient, on normalised coordinates).
-    observations : list of (K_i,) int64 ndarray
-        Per image, the tie points (indices) that see a 3-D point.
-    points : list of (K_i, 3) float64 ndarray
-        Their 3-D points.
-    residual_px : float
-        Mean reprojection error of the 3-D points (working-resolution pixels).
-    gps_rms_h, gps_rms_v : float
-        RMS distance of the placed cameras from their GPS tags, horizontally and vertically.
-    models : int
-        How many of COLMAP's models the map's cameras come from.
-    """
-
-    rotations: np.ndarray
-    centres: np.ndarray
-    intrinsics: Intrinsics
-    k1: float
-    observations: list[np.ndarray]
-    points: list[np.ndarray]
-    residual_px: float
-    gps_rms_h: float
-    gps_rms_v: float
-    models: int
-
-    @property
-    def placed(self) -> np.ndarray:
-        """(N,) bool: which map images have a camera."""
-        return np.isfinite(self.centres[:, 0])
-
 
 def settings_key() -> str:
     """What a reconstruction depends on besides its inputs: COLMAP's version and the
@@ -170,23 +119,13 @@ def colmap_camera(focal_px: float | None):
     return camera
 
 
-def tags(positions: np.ndarray, altitudes: np.ndarray,
-         times: np.ndarray | None = None) -> np.ndarray:
-    """(N, 4) east, north, altitude and capture time (NaN unknown) of the map images: what
-    the alignment reads of each."""
-    n = len(positions)
-    t = np.full(n, np.nan) if times is None else np.asarray(times, np.float64)
-    return np.column_stack([np.asarray(positions, np.float64),
-                            np.asarray(altitudes, np.float64), t])
-
-
 def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                        gps: np.ndarray, focal_px: float | None, seed: int, *,
                        names: Sequence[str] | None = None, base: Path | None = None,
                        keep: Path | None = None, context: str = "",
                        core: np.ndarray | None = None) -> list[TileModel] | None:
     """COLMAP's models of one set of images (indices of ``keypoints``), aligned to ``gps``
-    (:func:`tags`); run again with the intrinsics held where refining them went astray.
+    (:func:`.models.tags`); run again with the intrinsics held where refining them went astray.
     A whole map goes through :func:`.tiling.reconstruct`, which calls this once per tile.
 
     ``base`` holds the models kept from an earlier build of images among these
@@ -207,7 +146,7 @@ def reconstruct_images(keypoints: Sequence[np.ndarray], pairs: list[PairMatches]
         loaded = load_models(base, {name: k for k, name in enumerate(names)})
         if loaded is not None:
             order, recs = loaded
-            return _kept(_Run(_align_all(recs, gps, seed), recs, order), names, keep,
+            return _kept(_Run(align_models(recs, gps, seed), recs, order), names, keep,
                          context, inputs)
     with tempfile.TemporaryDirectory(prefix="vloc-sfm-") as tmp:
         if base is not None:
@@ -315,23 +254,8 @@ def _grew_well(run: _Run, core: np.ndarray | None = None) -> bool:
         new = new[np.asarray(core, bool)[new]]
     if len(new) == 0:
         return True
-    placed = np.isin(new, _images(run.models))
+    placed = np.isin(new, placed_images(run.models))
     return int(placed.sum()) >= registered / max(held, 1) * len(new) - 1
-
-
-@dataclass
-class TileModel:
-    """One of COLMAP's models, aligned to GPS: per placed image (map index) its pose,
-    observed tie points and their 3-D points, with the model's camera (COLMAP's f, cx, cy,
-    k at :data:`COLMAP_SCALE`) and mean reprojection error."""
-
-    images: np.ndarray
-    rotations: np.ndarray
-    centres: np.ndarray
-    observations: list[np.ndarray]
-    points: list[np.ndarray]
-    camera: np.ndarray  # COLMAP's f, cx, cy, k
-    residual_px: float
 
 
 def _write_database(path: Path, keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
@@ -404,67 +328,12 @@ def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool, seed: i
     models = pycolmap.incremental_mapping(str(database), str(folder), str(out), options,
                                           input_path="" if base is None else str(base))
     recs = [rec for _, rec in sorted(models.items())]
-    return _Run(_align_all(recs, gps, seed), recs, order)
-
-
-def _align_all(recs: list, gps: np.ndarray, seed: int) -> list[TileModel] | None:
-    """COLMAP's models, in order, each aligned to ``gps``; those the alignment refuses
-    left out."""
-    rng = np.random.default_rng(seed)
-    aligned = [m for m in (_aligned(rec, gps, rng) for rec in recs) if m is not None]
-    return aligned or None
-
-
-def _aligned(rec, gps: np.ndarray, rng: np.random.Generator) -> TileModel | None:
-    """A COLMAP model on the map's GPS, without the cameras the alignment refuses."""
-    images, rotations, centres, observations, points = [], [], [], [], []
-    for image in rec.images.values():
-        if not image.has_pose:
-            continue
-        pose = image.cam_from_world()
-        R = np.asarray(pose.rotation.matrix(), np.float64)
-        t = np.asarray(pose.translation, np.float64)
-        idx, xyz = [], []
-        for k, p2 in enumerate(image.points2D):
-            if p2.has_point3D():
-                idx.append(k)
-                xyz.append(rec.points3D[p2.point3D_id].xyz)
-        images.append(int(image.name))
-        rotations.append(R)
-        centres.append(-R.T @ t)
-        observations.append(np.asarray(idx, np.int64))
-        points.append(np.asarray(xyz, np.float64).reshape(-1, 3))
-    if len(images) < 3:
-        return None
-    images_a = np.asarray(images, np.int64)
-    rotations_a, centres_a = np.asarray(rotations), np.asarray(centres)
-    found = align_to_gps(centres_a, rotations_a[:, 0, :], gps[images_a, :3],
-                         axes=rotations_a, times=gps[images_a, 3],
-                         sigma_h=GPS_SIGMA_H, sigma_v=GPS_SIGMA_V, rng=rng)
-    if found is None:
-        return None
-    sim, inliers = found
-    if inliers.sum() < 3:
-        return None
-    keep = np.flatnonzero(inliers)
-    camera = np.asarray(next(iter(rec.cameras.values())).params, np.float64)
-    return TileModel(images_a[keep], sim.apply_to_rotations(rotations_a[keep]),
-                  sim.apply(centres_a[keep]),
-                  [observations[k] for k in keep],
-                  [sim.apply(points[k]) if len(points[k]) else points[k] for k in keep],
-                  camera, float(rec.compute_mean_reprojection_error()) / COLMAP_SCALE)
-
-
-def _images(models: list[TileModel] | None) -> np.ndarray:
-    """The distinct images the models place, ascending."""
-    if not models:
-        return np.zeros(0, np.int64)
-    return np.unique(np.concatenate([m.images for m in models]))
+    return _Run(align_models(recs, gps, seed), recs, order)
 
 
 def _count(models: list[TileModel] | None) -> int:
     """Distinct images the models place."""
-    return len(_images(models))
+    return len(placed_images(models))
 
 
 def _good(models: list[TileModel] | None, focal_px: float, n: int) -> bool:
@@ -483,36 +352,3 @@ def _focal_strays(models: list[TileModel] | None, focal_px: float) -> bool:
     return abs(largest.camera[0] / COLMAP_SCALE / focal_px - 1.0) > MAX_FOCAL_CHANGE
 
 
-def structure_of(models: list[TileModel], n: int, gps: np.ndarray) -> Structure | None:
-    """One set of cameras from the aligned models: an image placed by several models takes
-    the largest's pose; the intrinsics are the largest model's."""
-    models = sorted(models, key=lambda m: -len(m.images))
-    rotations = np.full((n, 3, 3), np.nan)
-    centres = np.full((n, 3), np.nan)
-    observations = [np.zeros(0, np.int64) for _ in range(n)]
-    points = [np.zeros((0, 3)) for _ in range(n)]
-    used = 0
-    for m in models:
-        took = False
-        for k, i in enumerate(m.images.tolist()):
-            if np.isfinite(centres[i, 0]):
-                continue
-            rotations[i], centres[i] = m.rotations[k], m.centres[k]
-            observations[i], points[i] = m.observations[k], m.points[k]
-            took = True
-        used += took
-    placed = np.isfinite(centres[:, 0])
-    if placed.sum() < 3:
-        return None
-    f, cx, cy, k = models[0].camera
-    d = centres[placed] - gps[placed, :3]
-    has_alt = np.isfinite(d[:, 2])
-    return Structure(
-        rotations, centres,
-        Intrinsics(f / COLMAP_SCALE, cx / COLMAP_SCALE - 0.5, cy / COLMAP_SCALE - 0.5),
-        float(k), observations, points,
-        residual_px=float(np.average([m.residual_px for m in models],
-                                     weights=[len(m.images) for m in models])),
-        gps_rms_h=float(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, axis=1)))),
-        gps_rms_v=float(np.sqrt(np.mean(d[has_alt, 2] ** 2))) if has_alt.any() else math.nan,
-        models=used)

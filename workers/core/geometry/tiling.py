@@ -21,15 +21,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .kept import KeptModels
+from .models import Structure, TileModel, structure_of, tags
 from .pairs import PairMatches
-from .sfm import (
-    Structure,
-    TileModel,
-    reconstruct_images,
-    settings_key,
-    structure_of,
-    tags,
-)
+from .sfm import reconstruct_images, settings_key
 
 MAX_TILE: int = 400
 """A map of more images is reconstructed in overlapping spatial tiles of at most this many
