@@ -2,8 +2,8 @@
 
 At map build, :func:`build_geometry` reconstructs the map's cameras and the 3-D points they
 see with COLMAP (:mod:`.sfm`), on the map's own tie points and verified matches
-(:mod:`.pairs`), aligned to the images' GPS (:mod:`.align`), and gives every stored keypoint
-its 3-D point (:mod:`.mapgeometry`). Per frame, :func:`register_against` matches the frame's
+(:mod:`.pairs`), aligned to the images' GPS (:mod:`.models`, :mod:`.align`), and gives
+every stored keypoint its 3-D point (:mod:`.mapgeometry`). Per frame, :func:`register_against` matches the frame's
 keypoints to a few map images and solves its camera pose from the 2D-3D matches
 (:mod:`.register`). The same path serves nadir, oblique and street-level maps; a map whose
 structure cannot be recovered, or whose structure localises its own images no better than
