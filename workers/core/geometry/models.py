@@ -23,10 +23,8 @@ COLMAP_SCALE: float = 2.0
 """COLMAP's pixels per working-resolution pixel: tie points are extracted at twice the
 working resolution."""
 
-
 GPS_SIGMA_H: float = 5.0
 """Horizontal standard deviation of a map image's GPS position (m)."""
-
 
 GPS_SIGMA_V: float = 15.0
 """Vertical standard deviation of its GPS altitude (m): consumer GPS altitudes are several
