@@ -3,6 +3,8 @@ scenes with exact keypoints: the cameras and 3-D points come back where they are
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -192,6 +194,17 @@ def test_reconstruct_needs_three_related_images():
     assert reconstruct(s.keypoints, two, s.positions, s.altitudes, F_TRUE) is None
     # the same pairs, matched right, reconstruct
     assert reconstruct(s.keypoints, pairs, s.positions, s.altitudes, F_TRUE) is not None
+
+
+def test_a_run_that_finds_no_model_writes_nothing_to_stderr(capfd):
+    """COLMAP reports a mapper run without a model as an error on the process's stderr; the
+    build handles that outcome (it reports no geometry), so a user's terminal and the
+    service's log are not told of a fault."""
+    s = survey(np.random.default_rng(8), rows=1, cols=4)
+    # too few matches a pair for COLMAP to start a model from
+    thin = [replace(p, matches=p.matches[:20]) for p in exact_pairs(s)]
+    assert reconstruct(s.keypoints, thin, s.positions, s.altitudes, F_TRUE) is None
+    assert capfd.readouterr().err == ""
 
 
 def test_reconstruct_places_images_the_alignment_left_out_as_a_model_of_their_own():

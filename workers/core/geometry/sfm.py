@@ -323,8 +323,11 @@ def _run(database: Path, folder: Path, gps: np.ndarray, *, refine: bool, seed: i
     out = folder / ("extended" if base is not None else "refined" if refine else "held")
     out.mkdir(exist_ok=True)
     pycolmap.set_random_seed(seed)
-    # COLMAP logs every registration to the process's stderr: its errors only
-    pycolmap.logging.minloglevel = pycolmap.logging.ERROR
+    # COLMAP logs every registration to the process's stderr, and a run that finds no
+    # model as an error ("Failed to create any sparse model"): an outcome this module
+    # handles (the other run, or no geometry, which the build reports), not a fault, so
+    # only its fatal messages are let through
+    pycolmap.logging.minloglevel = pycolmap.logging.FATAL
     models = pycolmap.incremental_mapping(str(database), str(folder), str(out), options,
                                           input_path="" if base is None else str(base))
     recs = [rec for _, rec in sorted(models.items())]
