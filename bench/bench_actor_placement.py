@@ -27,7 +27,6 @@ import argparse
 import os
 import platform
 import statistics
-import sys
 import tempfile
 import threading
 import time
@@ -36,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 import ray
+from _common import DATASETS, RESULTS, repo_on_path, write_result
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+repo_on_path()
 
 from vloc.workers.core.evaluation.datasets import load_dataset, load_frames, split  # noqa: E402
 from vloc.workers.core.evaluation.experiment import build_map  # noqa: E402
@@ -153,13 +152,11 @@ def markdown(rows: list[dict], args, n_cpus: int) -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dataset", type=Path,
-                   default=REPO.parent / "shared" / "datasets" / "seneca-uav")
+    p.add_argument("--dataset", type=Path, default=DATASETS / "seneca-uav")
     p.add_argument("--sessions", default="1,10,50")
     p.add_argument("--frames", default="20,6,3", help="frames per session at each level")
     p.add_argument("--rounds", type=int, default=3)
-    p.add_argument("--out", type=Path,
-                   default=REPO / "bench" / "results" / "actor_placement.md")
+    p.add_argument("--out", type=Path, default=RESULTS / "actor_placement.md")
     args = p.parse_args()
     levels = [int(x) for x in args.sessions.split(",")]
     counts = [int(x) for x in args.frames.split(",")]
@@ -191,9 +188,7 @@ def main() -> None:
     finally:
         ray.shutdown()
     text = markdown(rows, args, n_cpus)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

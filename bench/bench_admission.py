@@ -22,7 +22,6 @@ import argparse
 import asyncio
 import os
 import platform
-import sys
 import tempfile
 import threading
 import time
@@ -32,10 +31,9 @@ from pathlib import Path
 import cv2
 import httpx
 import numpy as np
+from _common import RESULTS, repo_on_path, write_result
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
+repo_on_path()
 
 from bench_service import ADMIN_KEY, start_server  # noqa: E402
 
@@ -93,7 +91,7 @@ def main() -> None:
     ap.add_argument("--in-flight", type=int, default=8)
     ap.add_argument("--frame-mb", type=float, default=8.0)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=REPO / "bench/results/admission.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "admission.md")
     args = ap.parse_args()
 
     frame = big_jpeg(int(args.frame_mb * 1e6), 1)
@@ -165,8 +163,7 @@ def main() -> None:
         "Worker processes hold their own frames (one at a time each) and are not counted.",
         "",
     ]
-    args.out.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, "\n".join(lines))
     if peak > bound:
         raise SystemExit(f"peak {peak:.0f} MiB is over the bound {bound:.0f} MiB")
 

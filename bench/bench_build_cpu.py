@@ -26,8 +26,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+from _common import DATASETS, RESULTS, repo_on_path, write_result
+
+SENECA = DATASETS / "seneca-uav"
 
 CHILD = """
 import json, sys, time
@@ -65,7 +66,7 @@ def build_once(folder: Path, map_pass: int, pkg: Path | None) -> dict:
 
 def test_images(folder: Path) -> Path:
     """The service tests' ten map images, written as a data set."""
-    sys.path.insert(0, str(ROOT))
+    repo_on_path()
     from tests.app.imagery import map_and_queries
 
     (folder / "images").mkdir(parents=True, exist_ok=True)
@@ -87,7 +88,7 @@ def main() -> None:
     ap.add_argument("--baseline", type=Path, help="folder holding an earlier checkout as vloc")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seneca-repeats", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "build_cpu.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "build_cpu.md")
     args = ap.parse_args()
 
     work = Path(tempfile.mkdtemp(prefix="build-cpu-"))
@@ -124,8 +125,7 @@ def main() -> None:
             ratio = by_variant["this checkout"]["total"] / by_variant["baseline"]["total"]
             lines += ["", f"This checkout's build takes {ratio:.2f} of the baseline's CPU."]
         lines.append("")
-    args.out.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, "\n".join(lines))
 
 
 if __name__ == "__main__":

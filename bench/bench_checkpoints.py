@@ -16,16 +16,15 @@ import argparse
 import concurrent.futures
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
+from _common import RESULTS, repo_on_path, write_result
 from fastapi.testclient import TestClient
 from sqlalchemy import text
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+repo_on_path()
 
 from tests.app.conftest import ADMIN, build_map, service_settings  # noqa: E402
 from tests.app.imagery import map_and_queries  # noqa: E402
@@ -78,7 +77,7 @@ def main() -> None:
     ap.add_argument("--sessions", type=int, default=5)
     ap.add_argument("--fps", type=float, default=5.0)
     ap.add_argument("--seconds", type=float, default=30.0)
-    ap.add_argument("--out", type=Path, default=REPO / "bench/results/checkpoints.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "checkpoints.md")
     args = ap.parse_args()
     rows = [run(interval, args) for interval in (0.0, 2.0)]
     lines = [
@@ -99,8 +98,7 @@ def main() -> None:
         lines.append(f"| {r['interval']:g} | {r['frames']} | {r['before']:.2f} MiB | "
                      f"{r['after']:.2f} MiB | {per:.2f} MiB |")
     lines.append("")
-    args.out.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, "\n".join(lines))
 
 
 if __name__ == "__main__":

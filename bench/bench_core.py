@@ -11,14 +11,12 @@ Usage::
 
 from __future__ import annotations
 
-import os
+from _common import DATASETS, RESULTS, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import platform  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -26,15 +24,14 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
 from vloc.workers.core.localisers import make_localiser  # noqa: E402
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 from vloc.workers.core.sift import extract_sift, ratio_matches  # noqa: E402
 
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+SENECA = DATASETS / "seneca-uav"
 
 
 def median_ms(fn, repeats: int) -> float:
@@ -72,7 +69,7 @@ def step_time(exp, mode: str, config: str, kind: str, repeats: int) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=30)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "core.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "core.md")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     folder, split = dataset()
@@ -100,9 +97,7 @@ def main() -> None:
              "| stage | ms | note |", "|---|---|---|"]
     lines += [f"| {name} | {ms:.2f} | {note} |" for name, ms, note in rows]
     text = "\n".join(lines) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

@@ -19,21 +19,18 @@ By default the frames are seneca-uav's (``../shared/datasets/seneca-uav/images``
 
 from __future__ import annotations
 
-import os
+from _common import DATASETS, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.workers.core import image  # noqa: E402
 
@@ -92,8 +89,7 @@ def measure(data: bytes, repeats: int) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--images", type=Path,
-                    default=ROOT.parent / "shared" / "datasets" / "seneca-uav" / "images")
+    ap.add_argument("--images", type=Path, default=DATASETS / "seneca-uav" / "images")
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--out", type=Path, default=None)
@@ -122,7 +118,7 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     if args.out is not None:
-        args.out.write_text(text + "\n")
+        write_result(args.out, text + "\n", echo=False)
 
 
 if __name__ == "__main__":

@@ -13,22 +13,19 @@ Writes a Markdown table (default ``bench/results/features.md``) and prints it.
 
 from __future__ import annotations
 
-import os
+from _common import RESULTS, ROOT, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import platform  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.workers.core.features import FEATURE_NAMES, GLOBAL_FEATURES, extract_many  # noqa: E402
 from vloc.workers.core.image import decode_image, prepare  # noqa: E402
@@ -130,13 +127,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=200)
     parser.add_argument("--image", type=Path, default=DEFAULT_IMAGE)
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "features.md")
+    parser.add_argument("--out", type=Path, default=RESULTS / "features.md")
     args = parser.parse_args(argv)
     rows, source = run(args.image, args.repeats)
     text = render(rows, source, args.repeats)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

@@ -11,16 +11,15 @@ of a single session), on a SQLite file and, when reachable, on PostgreSQL.
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+from _common import repo_on_path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+repo_on_path()
 
 from vloc.app import migrate  # noqa: E402
 from vloc.app.db import make_engine, make_session_factory  # noqa: E402

@@ -18,29 +18,26 @@ Writes ``bench/results/hybrid.md`` (or ``hybrid_<photometric>.md``) and prints i
 
 from __future__ import annotations
 
-import os
+from _common import DATASETS, RESULTS, machine_and_python, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
-import platform  # noqa: E402
-import sys  # noqa: E402
+import os  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.workers.core.evaluation.evaluate import choose_starts  # noqa: E402
 from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
 from vloc.workers.core.localisers import make_localiser  # noqa: E402
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+SENECA = DATASETS / "seneca-uav"
 SKIP = 10
 
 
@@ -83,7 +80,7 @@ def main() -> None:
     base = float(np.mean(out["sift"]["cpu"]))
     lines = [f"# Hybrid against SIFT on seneca-uav, CPU time on one core"
              f"{'' if args.photometric == 'none' else f' ({args.photometric} queries)'}", "",
-             f"{platform.machine()}, Python {platform.python_version()}, OpenCV "
+             f"{machine_and_python()}, OpenCV "
              f"{cv2.__version__}; one thread; {len(starts)} starts {list(map(int, starts))}; "
              f"errors and times over the frames after the {SKIP}th of each run; load average "
              f"at the end {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs.",
@@ -100,10 +97,8 @@ def main() -> None:
                      f"{np.mean(cpu[sift]):.1f} | {base / cpu.mean():.2f} |")
     text = "\n".join(lines) + "\n"
     suffix = "" if args.photometric == "none" else f"_{args.photometric}"
-    path = args.out or ROOT / "bench" / "results" / f"hybrid{suffix}.md"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
-    print(text)
+    path = args.out or RESULTS / f"hybrid{suffix}.md"
+    write_result(path, text)
 
 
 if __name__ == "__main__":

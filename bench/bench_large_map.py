@@ -39,15 +39,15 @@ The report is written by :mod:`large_map_report`; ``make bench-large`` runs the 
 
 from __future__ import annotations
 
-import os
+from _common import RESULTS, ROOT, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import csv  # noqa: E402
 import functools  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -57,9 +57,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+repo_on_path()
 
 from large_map_report import report  # noqa: E402
 from large_map_world import (  # noqa: E402
@@ -542,7 +540,7 @@ def main() -> None:
                              "(default: --images)")
     parser.add_argument("--no-generate", action="store_true",
                         help="wait for tiles another process generates")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "large_map.md")
+    parser.add_argument("--out", type=Path, default=RESULTS / "large_map.md")
     args = parser.parse_args()
     args.work = (args.work or ROOT / "bench" / ".cache" / "large-map" / str(args.images)).resolve()
     args.work.mkdir(parents=True, exist_ok=True)
@@ -585,10 +583,7 @@ def main() -> None:
     if generator is not None:
         generator.wait()
     text = report(args, layout, stats, os.getloadavg()[0])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text, encoding="utf-8")
-    print(text)
-    print(f"wrote {args.out}")
+    write_result(args.out, text, announce=True)
 
 
 if __name__ == "__main__":

@@ -18,18 +18,17 @@ included, which any caller of the core pays too).
 
 from __future__ import annotations
 
-import os
+from _common import DATASETS, RESULTS, one_thread, repo_on_path, write_result
 
 # As in a worker process: one thread each for BLAS and OpenCV, so that the core's step here
 # is timed as the worker runs it.
-for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_name, "1")
+one_thread(override=False)
 
 import argparse  # noqa: E402
 import asyncio  # noqa: E402
+import os  # noqa: E402
 import platform  # noqa: E402
 import signal  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -37,9 +36,7 @@ from pathlib import Path  # noqa: E402
 import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
+repo_on_path()
 
 from bench_service import ADMIN_KEY, build_map, start_server  # noqa: E402
 
@@ -88,12 +85,11 @@ def in_process(folder: Path, frames: list[bytes], repeats: int) -> np.ndarray:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dataset", type=Path,
-                   default=REPO.parent / "shared" / "datasets" / "seneca-uav")
+    p.add_argument("--dataset", type=Path, default=DATASETS / "seneca-uav")
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--workers", type=int, default=1)
-    p.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "localize.md")
+    p.add_argument("--out", type=Path, default=RESULTS / "localize.md")
     args = p.parse_args()
     ds = load_dataset(args.dataset)
     map_images, query_images = split(ds, "pass", map_pass=1, query_pass=2)
@@ -139,9 +135,7 @@ def main() -> None:
         f"| latency - step - decoding (HTTP, checks, engine call) | {med['added']:.1f} |",
         f"| the core alone, this process: SIFT step | {med['core_step']:.1f} |",
         f"| the core alone: decode + new filter + step | {med['core_call']:.1f} |", ""])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

@@ -21,16 +21,13 @@ frames.
 
 from __future__ import annotations
 
-import os
+from _common import RESULTS, machine_and_python, one_thread, repo_on_path, write_result
 
-for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_name] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import shutil  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -38,8 +35,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+repo_on_path()
 
 from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 from vloc.workers.core.image import load_frame  # noqa: E402
@@ -85,7 +81,7 @@ def main() -> None:
     p.add_argument("--dataset", type=Path, required=True)
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "map_chunks.md")
+    p.add_argument("--out", type=Path, default=RESULTS / "map_chunks.md")
     args = p.parse_args()
     cv2.setNumThreads(1)
     _, queries = split(load_dataset(args.dataset), "pass", map_pass=1, query_pass=2)
@@ -114,7 +110,7 @@ def main() -> None:
         "# A revision read from chunks against one file per array", "",
         f"`python bench/bench_map_chunks.py --revision {args.revision.name} --dataset "
         f"{args.dataset.name} --frames {args.frames} --repeats {args.repeats}`", "",
-        f"{platform.machine()}, Python {platform.python_version()}, one thread; "
+        f"{machine_and_python()}, one thread; "
         f"{len(chunked)} map images in {n_chunks} chunks; {len(frames)} frames of pass 2 "
         f"through a `default` hybrid filter started at the first frame's GPS (sigma 10 m), "
         f"{args.repeats} repeats, the two alternately.", "",
@@ -124,9 +120,7 @@ def main() -> None:
         "",
         f"Chunks / whole: {med['chunks'] / med['whole']:.3f}. The two runs' estimates lie "
         f"{np.median(apart):.2g} m apart (median; at most {apart.max():.2g} m).", ""])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

@@ -15,14 +15,13 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from _common import RESULTS, repo_on_path, write_result
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+repo_on_path()
 
 from tests.e2e.test_multinode import node_loss  # noqa: E402
 
@@ -30,7 +29,7 @@ from tests.e2e.test_multinode import node_loss  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--out", type=Path, default=REPO / "bench/results/node_loss.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "node_loss.md")
     args = ap.parse_args()
     rows = []
     for run in range(args.runs):
@@ -72,8 +71,7 @@ def main() -> None:
     lines += ["", "The test `tests/e2e/test_multinode.py` runs the same scenario once and "
               "requires the surviving session's longest silence from the kill on to be at most "
               "1.5 s (a stall of the loaded machine before the kill is not the loss's).", ""]
-    args.out.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -16,10 +16,9 @@ Writes ``bench/results/pack_memory.md`` and prints it.
 
 from __future__ import annotations
 
-import os
+from _common import RESULTS, ROOT, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
@@ -29,8 +28,7 @@ import tempfile  # noqa: E402
 import tracemalloc  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 MIB = 2 ** 20
 
@@ -39,7 +37,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=ROOT / "bench" / ".cache" / "large-map" / "1000",
                         help="a work directory of bench_large_map.py")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "pack_memory.md")
+    parser.add_argument("--out", type=Path, default=RESULTS / "pack_memory.md")
     args = parser.parse_args()
     tracemalloc.start()
     from sqlalchemy import create_engine, select
@@ -92,9 +90,7 @@ def main() -> None:
               "images, if it all grew in proportion; the vocabularies' peak over what they "
               "hold after is their training sample, bounded whatever the map's size)."]
     text = "\n".join(lines) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text, encoding="utf-8")
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

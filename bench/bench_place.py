@@ -26,8 +26,9 @@ from __future__ import annotations
 
 import os
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+from _common import DATASETS, RESULTS, one_thread, repo_on_path, write_result
+
+one_thread()
 if hasattr(os, "sched_setaffinity"):
     os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[-1]})
 
@@ -42,8 +43,7 @@ import numpy as np  # noqa: E402
 
 cv2.setNumThreads(1)
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 from vloc.workers.core.features import DESCRIPTOR_NAMES, DESCRIPTORS, extract_many  # noqa: E402
@@ -58,7 +58,7 @@ from vloc.workers.core.measures import descriptor_similarities, weiss_similarity
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 from vloc.workers.core.sift import extract_sift  # noqa: E402
 
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+SENECA = DATASETS / "seneca-uav"
 
 
 def _views(images: list[np.ndarray], n: int, rng: np.random.Generator) -> list:
@@ -85,7 +85,7 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=40)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "place_timing.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "place_timing.md")
     args = ap.parse_args()
     if not (SENECA / "images").is_dir():
         sys.exit(f"data set not found: {SENECA}")
@@ -180,9 +180,7 @@ def main() -> None:
               "(`bench/results/core.md`). For RootSIFT the last time column leaves out the "
               "SIFT extraction, which a SIFT step has already paid when the descriptor "
               "shortlists its candidates.", ""]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -14,21 +14,19 @@ Usage::
 
 from __future__ import annotations
 
-import os
+from _common import RESULTS, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
+import os  # noqa: E402
 import platform  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.workers.core.pf.clusters import heaviest_cluster  # noqa: E402
 from vloc.workers.core.pf.filter import cloud_stats  # noqa: E402
@@ -58,7 +56,7 @@ def median_us(fn, repeats: int) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=2000)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench/results/point_estimate.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "point_estimate.md")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     rows = []
@@ -98,8 +96,7 @@ def main() -> None:
         lines.append(f"| {n:,} | {a:.0f} us | {b:.0f} us | {b - a:.0f} us |")
     lines += ["", "A step of the hybrid on seneca-uav takes 12-15 ms on this machine "
               "(`bench/results/geometry.md`); `default` runs 300 particles.", ""]
-    args.out.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result(args.out, "\n".join(lines))
 
 
 if __name__ == "__main__":

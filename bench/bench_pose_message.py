@@ -16,14 +16,12 @@ Usage::
 
 from __future__ import annotations
 
-import os
+from _common import one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 import uuid  # noqa: E402
 from datetime import UTC, datetime  # noqa: E402
@@ -31,8 +29,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.app.sessions import pose  # noqa: E402
 from vloc.app.sessions.schemas import PoseEstimate  # noqa: E402
@@ -125,7 +122,7 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     if args.out is not None:
-        args.out.write_text(text + "\n")
+        write_result(args.out, text + "\n", echo=False)
 
 
 if __name__ == "__main__":

@@ -23,17 +23,15 @@ import argparse
 import os
 import platform
 import signal
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import httpx
 import numpy as np
+from _common import DATASETS, RESULTS, repo_on_path, write_result
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
+repo_on_path()
 
 from bench_large_map import build as build_job  # noqa: E402
 from bench_service import ADMIN_KEY, start_server  # noqa: E402
@@ -63,13 +61,12 @@ def build(http: httpx.Client, map_id: str, *, full: bool = False,
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dataset", type=Path,
-                   default=REPO.parent / "shared" / "datasets" / "seneca-uav")
+    p.add_argument("--dataset", type=Path, default=DATASETS / "seneca-uav")
     p.add_argument("--added", type=int, default=10)
     p.add_argument("--deleted", type=int, default=0,
                    help="then delete this many of the first images and rebuild again")
     p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "rebuild.md")
+    p.add_argument("--out", type=Path, default=RESULTS / "rebuild.md")
     p.add_argument("--no-whole", action="store_true",
                    help="build neither the map of every image at once nor the full rebuild "
                         "(a large map: the first build is the full build's measure)")
@@ -149,9 +146,7 @@ def main() -> None:
         "| build | wall s | cameras placed | " + " | ".join(stages) + " |",
         "|---|---|---|" + "---|" * len(stages), *rows, "",
         summary, "", *packing_table(maps, revisions, label, timed)])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
     if not same:
         raise SystemExit("the full rebuild differs from the whole build")
 

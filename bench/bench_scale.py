@@ -34,10 +34,9 @@ import uuid
 from pathlib import Path
 
 import httpx
+from _common import DATASETS, RESULTS, ROOT, repo_on_path, write_result
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "bench"))
+repo_on_path()
 
 from bench_service import ADMIN_KEY, build_map, free_port, level, wait_ready  # noqa: E402
 
@@ -78,7 +77,7 @@ def start_server(tmp: Path, env: dict, processes: int) -> tuple[subprocess.Popen
     log = tmp / f"server-{port}.log"
     proc = subprocess.Popen(
         [sys.executable, "-m", "vloc.clients.cli", "serve", "--port", str(port), "--processes",
-         str(processes)], cwd=REPO, env=environ, stdout=subprocess.DEVNULL,
+         str(processes)], cwd=ROOT, env=environ, stdout=subprocess.DEVNULL,
         stderr=log.open("wb"), start_new_session=True)
     base = f"http://127.0.0.1:{port}"
     if wait_ready(proc, base, tries=900):
@@ -155,8 +154,7 @@ def markdown(rows: list[dict], args, n_map: int) -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dataset", type=Path,
-                   default=REPO.parent / "shared" / "datasets" / "seneca-uav")
+    p.add_argument("--dataset", type=Path, default=DATASETS / "seneca-uav")
     p.add_argument("--sessions", default="1,10,50")
     p.add_argument("--frames", default="40,8,3",
                    help="frames per session at each level (from the start of pass 2)")
@@ -164,7 +162,7 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3,
                    help="rounds over every configuration, in reversed order every other "
                         "round; each figure is the median over the rounds")
-    p.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "scale.md")
+    p.add_argument("--out", type=Path, default=RESULTS / "scale.md")
     args = p.parse_args()
     levels = [int(x) for x in args.sessions.split(",")]
     counts = [int(x) for x in args.frames.split(",")]
@@ -226,9 +224,7 @@ def main() -> None:
     finally:
         drop()
     text = markdown(medians(rows), args, len(map_images))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

@@ -32,10 +32,10 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from _common import DATASETS, RESULTS, ROOT, repo_on_path, write_result
 from websockets.asyncio.client import connect
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+repo_on_path()
 
 from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 
@@ -75,7 +75,7 @@ def start_server(data_dir: Path, workers: int, *, max_pending_frames: int | None
         env["VLOC_MAX_PENDING_FRAMES"] = str(max_pending_frames)
     env.pop("VLOC_DATABASE_URL", None)
     proc = subprocess.Popen([sys.executable, "-m", "vloc.clients.cli", "serve", "--port", str(port)],
-                            cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
                             stderr=(data_dir.parent / "server.log").open("wb"))
     base = f"http://127.0.0.1:{port}"
     if wait_ready(proc, base):
@@ -170,13 +170,12 @@ def markdown(rows: list[dict], args, n_map: int, cpu: str) -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dataset", type=Path,
-                   default=REPO.parent / "shared" / "datasets" / "seneca-uav")
+    p.add_argument("--dataset", type=Path, default=DATASETS / "seneca-uav")
     p.add_argument("--sessions", default="1,10,100")
     p.add_argument("--frames", default="97,30,6",
                    help="frames per session at each level (from the start of pass 2)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
-    p.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "service.md")
+    p.add_argument("--out", type=Path, default=RESULTS / "service.md")
     args = p.parse_args()
     levels = [int(x) for x in args.sessions.split(",")]
     counts = [int(x) for x in args.frames.split(",")]
@@ -209,9 +208,7 @@ def main() -> None:
         proc.wait(60)
     cpu = platform.processor() or platform.machine()
     text = markdown(rows, args, len(map_images), cpu)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

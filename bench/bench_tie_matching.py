@@ -18,28 +18,25 @@ Writes ``bench/results/tie_matching.md`` and prints it.
 
 from __future__ import annotations
 
-import os
+from _common import DATASETS, RESULTS, machine_and_python, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
-import platform  # noqa: E402
-import sys  # noqa: E402
+import os  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.workers.core.evaluation.datasets import load_dataset, read_image  # noqa: E402
 from vloc.workers.core.sift import ratio_matches  # noqa: E402
 from vloc.workers.core.tiepoints import extract_tie_points  # noqa: E402
 
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+SENECA = DATASETS / "seneca-uav"
 RATIO = 0.8
 FLANN = ((4, 32), (4, 64), (8, 128))
 """(trees, checks) of the approximate searches tried."""
@@ -67,7 +64,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "tie_matching.md")
+    parser.add_argument("--out", type=Path, default=RESULTS / "tie_matching.md")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     images = [im for im in load_dataset(SENECA).images if im.pass_ == 1][: args.pairs + 1]
@@ -91,7 +88,7 @@ def main() -> None:
             found[name].append(len(want & set(map(tuple, m.tolist()))) / max(len(want), 1))
     base = float(np.median(ms[next(iter(methods))]))
     lines = ["# The tie points' ratio test: exact against approximate nearest neighbours", "",
-             f"{platform.machine()}, Python {platform.python_version()}, OpenCV "
+             f"{machine_and_python()}, OpenCV "
              f"{cv2.__version__}, NumPy {np.__version__}; one thread; {len(sizes)} pairs of "
              f"consecutive seneca-uav pass-1 images, {int(np.median([s[0] for s in sizes]))} "
              f"tie points an image (median); median of {args.repeats} runs a pair, then over "
@@ -106,9 +103,7 @@ def main() -> None:
         lines.append(f"| {name} | {t:.1f} | {t / base:.2f}x | "
                      f"{100 * float(np.mean(found[name])):.1f} % |")
     text = "\n".join(lines) + "\n"
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    print(text)
+    write_result(args.out, text)
 
 
 if __name__ == "__main__":

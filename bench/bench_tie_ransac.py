@@ -20,16 +20,15 @@ A variant is a budget, capped where it ends in ``c``; the first is the reference
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from _common import DATASETS, RESULTS, machine_and_python, repo_on_path, write_result
 from threadpoolctl import threadpool_limits
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+repo_on_path()
 
 from vloc.workers.core import tiepairs  # noqa: E402
 from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
@@ -37,7 +36,6 @@ from vloc.workers.core.geometry import pairs  # noqa: E402
 from vloc.workers.core.sift import ratio_matches  # noqa: E402
 from vloc.workers.core.tiepoints import extract_tie_points  # noqa: E402
 
-DATASETS = REPO.parent / "shared" / "datasets"
 MAPS = {"seneca-uav pass 1": ("seneca-uav", {"rule": "pass", "map_pass": 1, "query_pass": 2}),
         "lewis-uav alternate": ("lewis-uav", {"rule": "alternate"})}
 
@@ -111,7 +109,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--variants", default="2000,2000c,1000c,500",
                     help="RANSAC trial budgets, capped where they end in c; the reference first")
-    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "tie_ransac.md")
+    ap.add_argument("--out", type=Path, default=RESULTS / "tie_ransac.md")
     args = ap.parse_args()
     variants = args.variants.split(",")
     rows = []
@@ -126,15 +124,14 @@ def main() -> None:
         sys.exit("no data set found")
     text = (f"# The tie points' RANSAC budget\n\n"
             f"`OMP_NUM_THREADS=1 .venv/bin/python bench/bench_tie_ransac.py --variants "
-            f"{args.variants}` ({platform.machine()}, Python {platform.python_version()}, one "
+            f"{args.variants}` ({machine_and_python()}, one "
             f"thread; CPU time of the matching thread). The build runs "
             f"{pairs.TIE_RANSAC_TRIALS} trials, capped by the inlier ratio a pair could verify "
             f"with (`pairs.ransac_floor`). Lost / gained: pairs that verify with "
             f"{label(variants[0])} trials and not with these, and the reverse; as the first's: "
             f"pairs whose result (not verified, or every inlier match) is the first's.\n\n"
             + table(rows, variants) + "\n")
-    args.out.write_text(text)
-    print(f"wrote {args.out}")
+    write_result(args.out, text, echo=False, announce=True)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from _common import RESULTS, ROOT, write_result
+
 TEST = "tests/e2e/test_viewer.py::test_ten_live_sessions_at_10_hz"
 FIGURES = (
     ("received", "pose messages received", "{:.0f}"),
@@ -43,7 +44,7 @@ def run_once(seconds: float, out: Path) -> dict:
     env = {**os.environ, "VLOC_VIEWER_LOAD_SECONDS": str(seconds),
            "VLOC_VIEWER_BENCH_OUT": str(out), "VLOC_REQUIRE_SERVICES": "1"}
     subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", TEST],
-                   cwd=REPO, env=env, check=True)
+                   cwd=ROOT, env=env, check=True)
     return json.loads(out.with_suffix(".json").read_text())
 
 
@@ -78,7 +79,7 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=30.0,
                         help="How long the ten sessions stream in each run")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "viewer.md")
+    parser.add_argument("--out", type=Path, default=RESULTS / "viewer.md")
     parser.add_argument("--report-only", action="store_true",
                         help="Rewrite OUT from the runs already in OUT's .json")
     args = parser.parse_args()
@@ -89,10 +90,8 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as tmp:
             runs = [run_once(args.seconds, Path(tmp) / f"run{i}.md")
                     for i in range(args.repeats)]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(report(runs, args.seconds))
+    write_result(args.out, report(runs, args.seconds))
     args.out.with_suffix(".json").write_text(json.dumps(runs, indent=1, sort_keys=True))
-    print(args.out.read_text())
     return 0
 
 

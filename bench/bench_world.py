@@ -14,12 +14,12 @@ Usage::
 
 from __future__ import annotations
 
-import os
+from _common import RESULTS, one_thread, repo_on_path, write_result
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
+import os  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -29,8 +29,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.clients.world import generate_world  # noqa: E402
 
@@ -56,7 +55,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--full", action="store_true")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "world.md")
+    parser.add_argument("--out", type=Path, default=RESULTS / "world.md")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     rows = []
@@ -93,9 +92,7 @@ def main() -> None:
         f"Python {platform.python_version()}, NumPy {np.__version__}, OpenCV {cv2.__version__}.",
         "",
     ]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines), encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_result(args.out, "\n".join(lines), echo=False, announce=True)
 
 
 if __name__ == "__main__":

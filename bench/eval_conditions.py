@@ -29,15 +29,15 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import platform
 import sys
 import tempfile
 import time
 from datetime import datetime, timedelta
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from _common import DATASETS, RESULTS, ROOT, machine_and_python, repo_on_path, write_result
+
+repo_on_path()
 
 import cv2  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
@@ -54,7 +54,6 @@ from vloc.workers.core.evaluation.photometric import apply_variant, variant_rng 
 from vloc.workers.core.evaluation.report import results_dict  # noqa: E402
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "datasets"
 CACHE = ROOT / "bench" / ".cache" / "conditions"
 STARTS, SKIP = 3, 10
 MAPS = {"sunny map": (1,), "sunny + dusk map": (1, 2),
@@ -74,7 +73,7 @@ def uav_world() -> Path:
 
 def seneca_relit() -> Path | None:
     """seneca-uav as four passes: 1 as it is, 1 relit (2), 2 as it is (3), 2 relit (4)."""
-    source = SHARED / "seneca-uav"
+    source = DATASETS / "seneca-uav"
     if not (source / "images").is_dir():
         return None
     out = CACHE / "seneca-relit"
@@ -194,7 +193,7 @@ def verdicts(rows: list[dict]) -> list[str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=",".join(SURVEYS))
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     rows = []
     with threadpool_limits(limits=1):
@@ -207,13 +206,12 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     text = "\n".join([
         "# A map of two flights in other light", "",
-        f"{platform.machine()}, Python {platform.python_version()}, one BLAS thread. Command: "
+        f"{machine_and_python()}, one BLAS thread. Command: "
         f"`OMP_NUM_THREADS=1 .venv/bin/python bench/eval_conditions.py --only {args.only}`.",
         f"Default `hybrid`, {STARTS} starts, errors after the first {SKIP} frames of each run.",
         "", table(rows), "", *verdicts(rows), ""])
-    (args.out / "conditions.md").write_text(text)
+    write_result(args.out / "conditions.md", text)
     (args.out / "conditions.json").write_text(json.dumps(rows, indent=1, default=float))
-    print(text)
 
 
 if __name__ == "__main__":

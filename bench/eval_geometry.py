@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from _common import DATASETS, RESULTS, ROOT, machine_and_python, repo_on_path, write_result
+
+repo_on_path()
 
 from threadpoolctl import threadpool_limits  # noqa: E402
 
@@ -37,13 +37,12 @@ from vloc.workers.core.evaluation.evaluate import evaluate  # noqa: E402
 from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
 from vloc.workers.core.evaluation.report import results_dict  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "datasets"
 WORLDS = ROOT / "bench" / ".cache" / "geometry-worlds"
 
 # name -> (folder or world options, split, starts, skip)
 CASES = {
-    "seneca": (SHARED / "seneca-uav", {"rule": "pass", "map_pass": 1, "query_pass": 2}, 5, 10),
-    "lewis": (SHARED / "lewis-uav", {"rule": "alternate"}, 3, 3),
+    "seneca": (DATASETS / "seneca-uav", {"rule": "pass", "map_pass": 1, "query_pass": 2}, 5, 10),
+    "lewis": (DATASETS / "lewis-uav", {"rule": "alternate"}, 3, 3),
     "robot": ({"kind": "robot"}, {"rule": "pass", "map_pass": 1, "query_pass": 2}, 3, 10),
     "uav-flat": ({"kind": "uav"}, {"rule": "pass", "map_pass": 1, "query_pass": 2}, 3, 10),
     "uav-relief": ({"kind": "uav", "relief_m": 40.0},
@@ -102,7 +101,7 @@ def table(rows: list[dict]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=",".join(CASES))
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--seed", type=int, default=0,
                     help="the maps' build seed: another shows the spread the build's chance "
                          "alone gives")
@@ -121,15 +120,14 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     text = "\n".join([
         "# Map geometry: real surveys and worlds that break planes", "",
-        f"{platform.machine()}, Python {platform.python_version()}, one BLAS thread. Command: "
+        f"{machine_and_python()}, one BLAS thread. Command: "
         f"`OMP_NUM_THREADS=1 .venv/bin/python bench/eval_geometry.py --only {args.only} "
         f"--seed {args.seed}`.",
         "Default configuration; errors over the frames after each run's `skip`; speed-up is "
         "`sift`'s time per frame over `hybrid`'s, measured in the same run.", "",
         table(rows), ""])
-    (args.out / "geometry.md").write_text(text)
+    write_result(args.out / "geometry.md", text)
     (args.out / "geometry.json").write_text(json.dumps(rows, indent=1, default=float))
-    print(text)
 
 
 if __name__ == "__main__":

@@ -22,16 +22,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # one core, before numpy loads
+from _common import DATASETS, RESULTS, machine_and_python, one_thread, repo_on_path, write_result
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+one_thread(["OPENBLAS_NUM_THREADS"], override=False)  # one core, before numpy loads
+
+repo_on_path()
 
 import numpy as np  # noqa: E402
 
@@ -47,7 +46,7 @@ from vloc.workers.core.localisers.scoring import (  # noqa: E402
 from vloc.workers.core.mapbuild import assemble_map, extract_image_features  # noqa: E402
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+SENECA = DATASETS / "seneca-uav"
 RADIUS_M = 25.0
 FEATURES: dict[str, tuple[tuple[str, ...], str]] = {
     **{name: ((name,), "bradley") for name in DESCRIPTOR_NAMES},
@@ -142,7 +141,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="Seed of the photometric variant.")
     ap.add_argument("--seeds", type=int, default=3, help="Vocabulary seeds 0..N-1.")
     ap.add_argument("--no-sift", action="store_true", help="Leave out the SIFT reference row.")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     if not (SENECA / "images").is_dir():
         sys.exit(f"data set not found: {SENECA}")
@@ -151,7 +150,7 @@ def main() -> None:
                 f"Recall@k: one of the k most similar map images within {RADIUS_M:.0f} m of "
                 "the query's true position. Vocabularies trained on the map's own images "
                 f"with seeds 0..{args.seeds - 1}; descriptor rows are means over the seeds. "
-                f"{platform.machine()}, Python {platform.python_version()}, "
+                f"{machine_and_python()}, "
                 "one BLAS thread; the times include extracting the frame's features (SIFT "
                 "itself for RootSIFT) and scoring all map images.",
                 "Command: `.venv/bin/python bench/eval_place.py`.", ""]
@@ -165,9 +164,8 @@ def main() -> None:
                      f"{result['queries']} queries, {result['map_images']} map images.", "",
                      table(result), "", f"({(time.perf_counter() - t0) / 60:.1f} min)", ""]
         print(f"{variant}: done", flush=True)
-    (args.out / "place.md").write_text("\n".join(sections))
+    write_result(args.out / "place.md", "\n".join(sections))
     (args.out / "place.json").write_text(json.dumps(everything, indent=2))
-    print("\n".join(sections))
 
 
 if __name__ == "__main__":

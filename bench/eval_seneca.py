@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from _common import DATASETS, RESULTS, machine_and_python, repo_on_path, write_result
+
+repo_on_path()
 
 from vloc.workers.core.evaluation.evaluate import evaluate, retrieval_grid  # noqa: E402
 from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
@@ -33,7 +33,7 @@ from vloc.workers.core.evaluation.report import (  # noqa: E402
 from vloc.workers.core.features import FEATURE_NAMES  # noqa: E402
 from vloc.workers.core.measures import MEASURES  # noqa: E402
 
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+SENECA = DATASETS / "seneca-uav"
 MODES = ["hybrid", "global", "sift", "hierarchical", "retrieval"]
 README_FLOOR = """| method, pass 2 against pass 1 | mean error | median error | within 25 m |
 |---|---|---|---|
@@ -48,14 +48,14 @@ def main() -> None:
     ap.add_argument("--starts", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variants", default="none,dusk")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     if not (args.dataset / "images").is_dir():
         sys.exit(f"data set not found: {args.dataset}")
     args.out.mkdir(parents=True, exist_ok=True)
     sections = ["# seneca-uav: pass 2 localised against a map of pass 1", "",
                 f"{args.starts} starting frames, seed {args.seed}, errors over the frames after "
-                f"the 10th of each run. {platform.machine()}, Python {platform.python_version()}.",
+                f"the 10th of each run. {machine_and_python()}.",
                 "Command: `make eval-seneca` (`.venv/bin/python bench/eval_seneca.py`).", "",
                 "The data set's own floor (single-frame methods, from its README):", "",
                 README_FLOOR, ""]
@@ -82,9 +82,8 @@ def main() -> None:
                         {"default": results["default"]},
                         title="seneca-uav pass 2, default configuration, first start")
         print(f"{variant}: done in {minutes:.1f} min", flush=True)
-    (args.out / "seneca.md").write_text("\n".join(sections))
+    write_result(args.out / "seneca.md", "\n".join(sections))
     (args.out / "seneca.json").write_text(json.dumps(everything, indent=2))
-    print("\n".join(sections))
 
 
 if __name__ == "__main__":

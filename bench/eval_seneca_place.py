@@ -23,20 +23,20 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # one core, before numpy loads
+from _common import DATASETS, RESULTS, machine_and_python, one_thread, repo_on_path, write_result
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+one_thread(["OPENBLAS_NUM_THREADS"], override=False)  # one core, before numpy loads
+
+repo_on_path()
 
 from vloc.workers.core.evaluation.evaluate import evaluate  # noqa: E402
 from vloc.workers.core.evaluation.experiment import load_experiment  # noqa: E402
 
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+SENECA = DATASETS / "seneca-uav"
 VLAD = {"global_features": ["vlad_orb"], "global_power": 5.0}
 ROWS: tuple[tuple[str, str, dict], ...] = (
     ("sift", "sift", {}),
@@ -54,14 +54,14 @@ def main() -> None:
     ap.add_argument("--starts", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variants", default="none,dusk")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     if not (SENECA / "images").is_dir():
         sys.exit(f"data set not found: {SENECA}")
     lines = ["# seneca-uav: the filter with a place descriptor as its global feature", "",
              f"Map pass 1, queries pass 2, `default` configuration with the overrides named, "
              f"{args.starts} starts, seed {args.seed}, errors over the frames after the 10th. "
-             f"{platform.machine()}, Python {platform.python_version()}, one BLAS thread; "
+             f"{machine_and_python()}, one BLAS thread; "
              f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} shared CPUs, so "
              "the milliseconds are wall clock under load: compare them within a table.",
              "Command: `.venv/bin/python bench/eval_seneca_place.py`.", ""]
@@ -92,9 +92,8 @@ def main() -> None:
                          f"{f(r['ms_per_sift_step'])} | {r['speedup_vs_sift']:.2f} |")
         everything[variant] = rows
         lines += [f"## Query images: {variant}", ""] + table + [""]
-    (args.out / "seneca_place.md").write_text("\n".join(lines))
+    write_result(args.out / "seneca_place.md", "\n".join(lines))
     (args.out / "seneca_place.json").write_text(json.dumps(everything, indent=2))
-    print("\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -31,13 +31,13 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from _common import DATASETS, RESULTS, repo_on_path, write_result
+
+repo_on_path()
 
 import numpy as np  # noqa: E402
 import pycolmap  # noqa: E402
@@ -53,7 +53,6 @@ from vloc.workers.core.evaluation.experiment import build_map, truth_positions  
 from vloc.workers.core.evaluation.report import results_dict  # noqa: E402
 from vloc.workers.core.query import QueryFrame  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "datasets"
 MODES = ["hybrid", "sift"]
 
 
@@ -62,7 +61,7 @@ def _by_time(images):
 
 
 def seneca() -> tuple[list, list, list, dict]:
-    ds = load_dataset(SHARED / "seneca-uav")
+    ds = load_dataset(DATASETS / "seneca-uav")
     first, second = split(ds, map_pass=1, query_pass=2)
     second = _by_time(second)
     half = len(second) // 2
@@ -70,7 +69,7 @@ def seneca() -> tuple[list, list, list, dict]:
 
 
 def lewis() -> tuple[list, list, list, dict]:
-    ds = load_dataset(SHARED / "lewis-uav")
+    ds = load_dataset(DATASETS / "lewis-uav")
     maps, queries = split(ds, "alternate")
     maps = _by_time(maps)
     cut = 2 * len(maps) // 3
@@ -180,7 +179,7 @@ def table(rows: list[dict]) -> str:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--only", default=",".join(SURVEYS))
-    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "update.md")
+    p.add_argument("--out", type=Path, default=RESULTS / "update.md")
     args = p.parse_args()
     rows = []
     with threadpool_limits(limits=1):
@@ -204,8 +203,7 @@ def main() -> None:
                     f"{maps['updated']['mapper_cpu_s']:.1f} CPU s against "
                     f"{maps['scratch']['mapper_cpu_s']:.1f} (the first map's: "
                     f"{maps['first']['mapper_cpu_s']:.1f}).")
-    args.out.write_text("\n".join(text) + "\n")
-    print(args.out.read_text())
+    write_result(args.out, "\n".join(text) + "\n")
 
 
 if __name__ == "__main__":

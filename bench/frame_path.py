@@ -36,8 +36,9 @@ import time
 from collections import OrderedDict
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from _common import repo_on_path, write_result
+
+repo_on_path()
 
 import vloc.app  # noqa: E402
 from vloc.workers.engine.messages import FrameTask, OpenSession  # noqa: E402
@@ -330,7 +331,7 @@ def main() -> None:
     text = report(results)
     print(text)
     if args.out is not None:
-        args.out.write_text(text + "\n")
+        write_result(args.out, text + "\n", echo=False)
 
 
 if __name__ == "__main__":

@@ -26,9 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
+from _common import ROOT, write_result
 
-REPO = Path(__file__).resolve().parents[1]
-CONFIG = REPO / "bench" / "schemathesis.toml"
+CONFIG = ROOT / "bench" / "schemathesis.toml"
 
 
 @dataclass
@@ -52,7 +52,7 @@ def run_fuzz(max_examples: int, *, seed: int = 1, phases: str | None = None,
         log = (Path(tmp) / "server.log").open("wb")
         server = subprocess.Popen(
             [sys.executable, "-m", "vloc.clients.cli", "serve", "--host", "127.0.0.1",
-             "--port", str(port)], cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=log)
+             "--port", str(port)], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=log)
         try:
             base = f"http://127.0.0.1:{port}"
             _wait_ready(base, server)
@@ -118,7 +118,7 @@ def main() -> int:
             f"# exit code {result.returncode}, {result.seconds:.0f} s\n\n{result.summary}\n")
     print(result.output if result.returncode else text)
     if args.out is not None:
-        args.out.write_text(text)
+        write_result(args.out, text, echo=False)
     return result.returncode
 
 

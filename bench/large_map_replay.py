@@ -23,24 +23,20 @@ Usage::
 
 from __future__ import annotations
 
-import os
+from _common import one_thread, repo_on_path
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
 import pickle  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+repo_on_path()
 
 from bench_large_map import query_frames, time_steps  # noqa: E402
 from large_map_world import generate_tile, layout_for, tile_dir, tile_done  # noqa: E402

@@ -17,21 +17,18 @@ Usage (normally through ``bench_large_map.py``)::
 
 from __future__ import annotations
 
-import os
+from _common import one_thread, repo_on_path
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import csv  # noqa: E402
 import math  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+repo_on_path()
 
 from vloc.clients.world import DEFAULT_ORIGIN, generate_world, uav  # noqa: E402
 from vloc.workers.core.geo import GeoOrigin  # noqa: E402

@@ -26,8 +26,9 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-SENECA = ROOT.parent / "shared" / "datasets" / "seneca-uav"
+from _common import DATASETS, ROOT
+
+SENECA = DATASETS / "seneca-uav"
 
 QUICK_OUT = ROOT / "bench" / ".cache" / "quick-results"
 """Where ``--quick`` writes, so that small runs never replace the committed results."""

@@ -24,9 +24,9 @@ from pathlib import Path as FilePath
 
 import numpy as np
 
-ROOT = FilePath(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(FilePath(__file__).resolve().parents[2]))  # the repository
 
+from bench._common import RESULTS, write_result  # noqa: E402
 from vloc.clients.world import robot  # noqa: E402
 from vloc.clients.world.routes import rounded_rectangle  # noqa: E402
 from vloc.workers.core.navigation import (  # noqa: E402
@@ -37,7 +37,6 @@ from vloc.workers.core.navigation import (  # noqa: E402
     unicycle_step,
 )
 
-RESULTS = ROOT / "bench" / "results"
 SUBSTEPS = 10
 
 
@@ -166,7 +165,7 @@ def write(args, summary: dict, full: dict, starts: list[dict]) -> None:
         c = s["converged_at_m"]
         lines.append(f"| {s['image']} | {s['side_m']:+.0f} | {s['heading_deg']:+.0f} | "
                      f"{'never' if c is None else f'{c:.1f}'} |")
-    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    md = write_result(args.out.with_suffix(".md"), "\n".join(lines) + "\n", echo=False)
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
     for s in starts:
         ax1.plot(s["_run"]["travel"], s["_run"]["d"], lw=0.8)
@@ -182,7 +181,7 @@ def write(args, summary: dict, full: dict, starts: list[dict]) -> None:
     ax2.set_title(f"whole route: mean |d| {fr['mean_cross_track_m']:.3f} m")
     fig.tight_layout()
     fig.savefig(args.out.with_suffix(".png"), dpi=110)
-    print(f"wrote {args.out.with_suffix('.md')}")
+    print(f"wrote {md}")
 
 
 if __name__ == "__main__":

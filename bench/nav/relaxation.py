@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository
 
+from bench._common import RESULTS, write_result  # noqa: E402
 from vloc.clients.world.teach import TeachWorld  # noqa: E402
 from vloc.workers.core.image import load_frame  # noqa: E402
 from vloc.workers.core.mapbuild import extract_image_features  # noqa: E402
@@ -31,8 +31,6 @@ from vloc.workers.core.navigation import RouteParams, build_route  # noqa: E402
 from vloc.workers.core.navigation.relaxation import predict  # noqa: E402
 from vloc.workers.core.navigation.routemap import sift_verifier, yaw_from_views  # noqa: E402
 from vloc.workers.core.navigation.visual import camera_matrix  # noqa: E402
-
-RESULTS = ROOT / "bench" / "results"
 
 
 def run(seed: int, length: float, drift: float, extra: float) -> dict:
@@ -155,7 +153,7 @@ def write(args, runs: list[dict]) -> None:
               f"(target <= 1 m); before: {np.mean([r['before_mean_m'] for r in public]):.2f} m; "
               f"aligned after: {np.mean([r['aligned_after_mean_m'] for r in public]):.2f} m.",
               ""]
-    args.out.with_suffix(".md").write_text("\n".join(lines))
+    md = write_result(args.out.with_suffix(".md"), "\n".join(lines), echo=False)
     fig, axes = plt.subplots(1, len(runs), figsize=(5 * len(runs), 4.5), squeeze=False)
     for ax, r in zip(axes[0], runs, strict=True):
         for key, label, style in (("_truth", "true", "k-"), ("_odo", "odometry", "r--"),
@@ -167,7 +165,7 @@ def write(args, runs: list[dict]) -> None:
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(args.out.with_suffix(".png"), dpi=110)
-    print(f"wrote {args.out.with_suffix('.md')}")
+    print(f"wrote {md}")
 
 
 if __name__ == "__main__":

@@ -13,14 +13,14 @@ the runs of one evaluation.
 
 from __future__ import annotations
 
-import os
+from bench._common import RESULTS, ROOT, one_thread
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+one_thread()
 
 import argparse  # noqa: E402
 import hashlib  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import platform  # noqa: E402
 import re  # noqa: E402
 import shutil  # noqa: E402
@@ -31,7 +31,6 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
@@ -41,7 +40,7 @@ from vloc.workers.core.evaluation.experiment import Experiment, load_experiment 
 
 cv2.setNumThreads(1)
 
-RESULTS_DIR = ROOT / "bench" / "results" / "paper"
+RESULTS_DIR = RESULTS / "paper"
 CACHE_DIR = ROOT / "bench" / ".cache"
 
 ROUTE_M = 260.0
