@@ -24,15 +24,11 @@ import os  # noqa: E402
 import platform  # noqa: E402
 import re  # noqa: E402
 import shutil  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
 from vloc.clients.world import generate_world  # noqa: E402
 from vloc.workers.core.evaluation.evaluate import Run  # noqa: E402
