@@ -22,6 +22,7 @@ Writes ``bench/results/conditions.md`` and ``conditions.json``.
 Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/eval_conditions.py [--only uav,seneca]
+        [--dusk-alone]
 """
 
 from __future__ import annotations
@@ -60,6 +61,8 @@ MAPS = {"sunny map": (1,), "sunny + dusk map": (1, 2),
         "sunny map updated with dusk": (1, 2)}
 UPDATED = "sunny map updated with dusk"
 """Built as an update of the sunny map, not at once."""
+DUSK_ALONE = {"dusk map": (2,)}
+"""With ``--dusk-alone``: the dusk flight on its own, what it is worth as a map by itself."""
 QUERIES = {"sunny": 3, "dusk": 4}
 
 
@@ -134,9 +137,9 @@ def updated_map(folder: Path) -> tuple[object, dict]:
     return data, report
 
 
-def run_survey(name: str, folder: Path) -> list[dict]:
+def run_survey(name: str, folder: Path, maps: dict[str, tuple[int, ...]]) -> list[dict]:
     rows = []
-    for map_name, passes in MAPS.items():
+    for map_name, passes in maps.items():
         t0 = time.perf_counter()
         if map_name == UPDATED:
             data, geometry = updated_map(folder)
@@ -175,13 +178,16 @@ def table(rows: list[dict]) -> str:
 
 
 def verdicts(rows: list[dict]) -> list[str]:
-    """Per survey: the dusk frames' gain from the dusk flight, and the sunny frames' change."""
+    """Per survey: the dusk frames' gain from the dusk flight, and the sunny frames' change,
+    of each map against the sunny map alone."""
     out = []
+    sunny_map = next(iter(MAPS))
     for survey in dict.fromkeys(r["survey"] for r in rows):
         err = {(r["map"], r["query"]): r["hybrid"]["mean_error_m"] for r in rows
                if r["survey"] == survey}
-        sunny_map, *with_dusk = MAPS
-        for both_map in with_dusk:
+        for both_map in dict.fromkeys(m for m, _ in err):
+            if both_map == sunny_map:
+                continue
             dusk_gain = 1.0 - err[(both_map, "dusk")] / err[(sunny_map, "dusk")]
             sunny_change = err[(both_map, "sunny")] / err[(sunny_map, "sunny")] - 1.0
             out.append(f"- {survey}, {both_map}: dusk frames {dusk_gain:+.0%} better with "
@@ -193,8 +199,11 @@ def verdicts(rows: list[dict]) -> list[str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=",".join(SURVEYS))
+    ap.add_argument("--dusk-alone", action="store_true",
+                    help="also build a map of the dusk flight alone")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
+    maps = {**(DUSK_ALONE if args.dusk_alone else {}), **MAPS}
     rows = []
     with threadpool_limits(limits=1):
         for name in args.only.split(","):
@@ -202,12 +211,13 @@ def main() -> None:
             if folder is None:
                 print(f"{name}: data set not found, skipped", file=sys.stderr)
                 continue
-            rows += run_survey(name, folder)
+            rows += run_survey(name, folder, maps)
     args.out.mkdir(parents=True, exist_ok=True)
     text = "\n".join([
         "# A map of two flights in other light", "",
         f"{machine_and_python()}, one BLAS thread. Command: "
-        f"`OMP_NUM_THREADS=1 .venv/bin/python bench/eval_conditions.py --only {args.only}`.",
+        f"`OMP_NUM_THREADS=1 .venv/bin/python bench/eval_conditions.py --only {args.only}"
+        f"{' --dusk-alone' if args.dusk_alone else ''}`.",
         f"Default `hybrid`, {STARTS} starts, errors after the first {SKIP} frames of each run.",
         "", table(rows), "", *verdicts(rows), ""])
     write_result(args.out / "conditions.md", text)
