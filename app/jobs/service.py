@@ -172,14 +172,15 @@ class BuildRunner(BackgroundRunner):
             donors.get(image_id, []))
             for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
         await self._match_pairs(job_id, url, map_id, tie_dir)
-        await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files)
+        origin = await asyncio.to_thread(self._frame_origin, job_id, map_id)
+        await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files, origin)
         current = await asyncio.to_thread(self._current_folder, map_id)
         previous = await asyncio.to_thread(self._previous_folder, job_id, current)
         packed = await run_task(
             self.engine, tasks.pack_map, url, str(map_id), revision, str(folder),
             lens_files=lens_files, image_files=image_files, tie_dir=str(tie_dir),
             job_id=str(job_id), previous=previous, share=current,
-            chunk_images=self.settings.map_chunk_images)
+            chunk_images=self.settings.map_chunk_images, origin=origin)
         await asyncio.to_thread(self._finish_done, job_id, map_id, revision, packed)
         if self.on_revised is not None:
             self.on_revised(str(map_id), revision)
@@ -242,11 +243,13 @@ class BuildRunner(BackgroundRunner):
                 return
 
     async def _reconstruct_tiles(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
-                                 tie_dir: Path, lens_files: list[str]) -> None:
+                                 tie_dir: Path, lens_files: list[str],
+                                 origin: tuple[float, float, float] | None) -> None:
         """A large map's reconstruction, tile by tile on the engine's workers
-        (:mod:`vloc.workers.core.tiles`); the packing reads the results from ``tie_dir``."""
+        (:mod:`vloc.workers.core.tiles`), in the frame the packing packs in (``origin``);
+        the packing reads the results from ``tie_dir``."""
         n = await run_task(self.engine, tasks.plan_tiles, url, str(map_id), str(tie_dir),
-                           lens_files)
+                           lens_files, origin=origin)
         if n:
             await asyncio.to_thread(self._set_progress, job_id,
                                     EXTRACT_SHARE + TIE_SHARE + PAIR_SHARE, BuildStage.TILES)
@@ -282,6 +285,21 @@ class BuildRunner(BackgroundRunner):
             job.n_images = len(images)
             db.commit()
             return job.map_id, [(img.id, str(image_path(self.settings, img))) for img in images]
+
+    def _frame_origin(self, job_id: uuid.UUID,
+                      map_id: uuid.UUID) -> tuple[float, float, float] | None:
+        """Where the build's local frame lies (lat, lon, alt): for an update, where the
+        current revision's does, so that the images it holds keep their east and north, and
+        a large map's tiles that no added or deleted image reached keep the keys of their
+        reconstructions and are taken up as they are (a frame moved to the new centroid
+        moves every image's GPS position in it, so every tile's key changed and each tile's
+        kept model was aligned to its GPS again). None for a first or a ``full`` build: the
+        frame is centred on the images, as a fresh build of them centres it."""
+        with self.db_sessions() as db:
+            m = db.get(Map, map_id)
+            if db.get(BuildJob, job_id).full or m.origin_lat is None:
+                return None
+            return (m.origin_lat, m.origin_lon, m.origin_alt or 0.0)
 
     def _previous_folder(self, job_id: uuid.UUID, current: str | None) -> str | None:
         """The packed revision the build packs from: ``current``, the map's current one

@@ -170,12 +170,15 @@ def tie_pairs_file(tie_dir: str | Path, batch: int) -> Path:
 
 
 def plan_tiles(database_url: str, map_id: str, tie_dir: str,
-               lens_files: list[str] | None = None) -> int:
+               lens_files: list[str] | None = None, *,
+               origin: tuple[float, float, float] | None = None) -> int:
     """Write the tiles of a large map's reconstruction to ``tie_dir`` from the pairs matched
     there (:mod:`vloc.workers.core.tiles`), for :func:`reconstruct_tile` to reconstruct;
-    returns how many (0 for a map the packing reconstructs whole)."""
+    returns how many (0 for a map the packing reconstructs whole). ``origin`` (lat, lon,
+    alt) is the local frame the build packs in (:func:`pack_map`'s), by default the
+    images' centroid."""
     from vloc.workers.core import tiepairs, tiles
-    from vloc.workers.core.geo import local_frame
+    from vloc.workers.core.geo import GeoOrigin, local_frame
     from vloc.workers.core.mapbuild import typical_focal_px
 
     images = _read_images(database_url, map_id)
@@ -185,7 +188,8 @@ def plan_tiles(database_url: str, map_id: str, tie_dir: str,
     # flights' spacing, and the pairs' reach with it)
     planned = _planned_pairs(images)
     _, xy, alt = local_frame([img["lat"] for img in images], [img["lon"] for img in images],
-                             [img["alt"] for img in images])
+                             [img["alt"] for img in images],
+                             None if origin is None else GeoOrigin(*origin))
     return tiles.plan(tie_dir, [known[p] for p in planned if known.get(p) is not None], xy,
                       alt, typical_focal_px(_readers(lens_files or [])),
                       [tie_stem(tie_dir, img["id"]) for img in images],
@@ -297,8 +301,10 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
              lens_files: list[str] | None = None,
              image_files: dict[int, str] | None = None, tie_dir: str | None = None,
              job_id: str | None = None, previous: str | None = None,
-             share: str | None = None, chunk_images: int | None = None) -> dict:
-    """Assemble every extracted image of a map into a MapData folder.
+             share: str | None = None, chunk_images: int | None = None,
+             origin: tuple[float, float, float] | None = None) -> dict:
+    """Assemble every extracted image of a map into a MapData folder, in the local frame at
+    ``origin`` (lat, lon, alt; by default the images' centroid).
 
     ``lens_files`` are some of the map's image files, read for the camera's focal length
     (EXIF) that the map's camera geometry starts from. The tie points of the
@@ -335,6 +341,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         geometry (:func:`vloc.workers.core.mapbuild.geometry_report`).
     """
     from vloc.workers.core import tiepairs, tiles
+    from vloc.workers.core.geo import GeoOrigin
     from vloc.workers.core.geometry import KeptModels
     from vloc.workers.core.mapbuild import assemble_map, stage, typical_focal_px
     from vloc.workers.core.tiepoints import TiePointFiles
@@ -373,7 +380,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                                                     timings),
                             captured_at=[img["captured_at"] for img in images],
                             flights=[img["flight"] for img in images],
-                            map_id=map_id, revision=revision, known_pairs=known,
+                            map_id=map_id, revision=revision,
+                            origin=None if origin is None else GeoOrigin(*origin),
+                            known_pairs=known,
                             known_tiles=reconstructed,
                             kept=None if own else KeptModels(
                                 ties_at / tiles.MODELS, tuple(str(img["id"]) for img in images)),

@@ -264,6 +264,7 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     tie_files = sorted(store.glob("*.kp.npy"))
     assert len(tie_files) == 6 and list(store.glob(tiepairs.RESULTS_GLOB))
     stamps = {p: p.stat().st_mtime_ns for p in tie_files}
+    first_origin = m["origin"]
     origin = GeoOrigin(m["origin"]["lat"], m["origin"]["lon"], m["origin"]["alt"])
     images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
     assert origin.lat == pytest.approx(np.mean([i["lat"] for i in images]), abs=1e-12)
@@ -325,7 +326,17 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     # Sessions on revision 1 keep their folder.
     assert len(MapData.load(ctx.settings.packed_map_dir(map_id, 1))) == 6
     images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
-    assert math.isclose(m["origin"]["lat"], np.mean([i["lat"] for i in images]), abs_tol=1e-12)
+    # The update packs in the first build's frame: its six images keep their east and
+    # north to the bit (a large map's untouched tiles keep their keys with them), and
+    # the four new ones are placed in it.
+    assert m["origin"] == first_origin
+    assert not math.isclose(m["origin"]["lat"], np.mean([i["lat"] for i in images]),
+                            abs_tol=1e-9)
+    np.testing.assert_array_equal(second.positions[:6], first.positions)
+    for img in images:
+        east, north = origin.to_local(img["lat"], img["lon"])
+        assert (img["east"], img["north"]) == pytest.approx((float(east), float(north)),
+                                                            abs=1e-6)
     assert [i["built_revision"] for i in images] == [1] * 6 + [2] * 4
     # The rebuild took up the first build's tie points and pairs: it extracted the new
     # images' tie points and matched only the pairs they take part in...
@@ -352,6 +363,9 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     assert (job["status"], job["n_images"], job["revision"], job["full"]) == \
         ("done", 0, 3, True)
     third = MapData.load(ctx.settings.packed_map_dir(map_id, 3))
+    # a full build centres its frame on the images, as a fresh build does
+    m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
+    assert math.isclose(m["origin"]["lat"], np.mean([i["lat"] for i in images]), abs_tol=1e-12)
     fresh_id = new_map(c)
     c.post(f"/v1/maps/{fresh_id}/images", files=jpeg_files(maps), headers=ADMIN)
     assert wait_job(c, c.post(f"/v1/maps/{fresh_id}/build", headers=ADMIN)
@@ -735,3 +749,12 @@ def test_the_tiles_take_only_the_pairs_the_build_planned(module_client, shots, m
     in_tiles = {(p.a, p.b) for k in range(n)
                 for _, _, p in tiepairs.read_results(store / tiles.INPUT.format(k))}
     assert in_tiles and in_tiles <= planned & stored
+    # the tiles are planned in the frame the packing packs in (an update's is the current
+    # revision's, not the images' centroid), so that the packing finds them by their key
+    o = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()["origin"]
+    frame = (o["lat"] + 1e-4, o["lon"], o["alt"])
+    assert build_tasks.plan_tiles(url, map_id, str(store), origin=frame) > 1
+    east, north = GeoOrigin(*frame).to_local([i["lat"] for i in images],
+                                             [i["lon"] for i in images])
+    np.testing.assert_allclose(np.load(store / tiles.PLAN_FILE)["tags"][:, :2],
+                               np.column_stack([east, north]), atol=1e-9)

@@ -49,8 +49,8 @@ def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
     folder ``kept``, the build registers the images into the COLMAP models an earlier build
     of some of them kept there, and keeps its own (:mod:`..geometry.kept`; images are named
     by their file names); with ``previous``, the map an earlier build packed of some of
-    them, it carries over what still holds of it as the service's updates do
-    (:mod:`..carryover`; images named by their file names too)."""
+    them, it carries over what still holds of it and keeps its local frame, as the
+    service's updates do (:mod:`..carryover`; images named by their file names too)."""
     from ..carryover import Previous
     from ..geometry.kept import KeptModels
 
@@ -62,6 +62,7 @@ def build_map(images: list[DatasetImage], frames, *, map_id: str = "",
                         lons=[im.lon for im in images], alts=[im.alt for im in images],
                         features=feats, captured_at=[_timestamp(im) for im in images],
                         map_id=map_id, revision=revision, focal_px=focal, report=report,
+                        origin=None if previous is None else previous.origin,
                         geometry=geometry, seed=seed, timings=timings,
                         kept=None if kept is None else KeptModels(
                             Path(kept), tuple(im.name for im in images)),
