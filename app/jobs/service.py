@@ -30,6 +30,7 @@ from vloc.app.maps.service import image_path
 from vloc.app.metrics import Metrics
 from vloc.app.problems import Problem, ProblemKind
 from vloc.app.tasks import build as tasks
+from vloc.workers.core.geo import GeoOrigin
 
 log = logging.getLogger(__name__)
 
@@ -244,7 +245,7 @@ class BuildRunner(BackgroundRunner):
 
     async def _reconstruct_tiles(self, job_id: uuid.UUID, url: str, map_id: uuid.UUID,
                                  tie_dir: Path, lens_files: list[str],
-                                 origin: tuple[float, float, float] | None) -> None:
+                                 origin: GeoOrigin | None) -> None:
         """A large map's reconstruction, tile by tile on the engine's workers
         (:mod:`vloc.workers.core.tiles`), in the frame the packing packs in (``origin``);
         the packing reads the results from ``tie_dir``."""
@@ -286,9 +287,8 @@ class BuildRunner(BackgroundRunner):
             db.commit()
             return job.map_id, [(img.id, str(image_path(self.settings, img))) for img in images]
 
-    def _frame_origin(self, job_id: uuid.UUID,
-                      map_id: uuid.UUID) -> tuple[float, float, float] | None:
-        """Where the build's local frame lies (lat, lon, alt): for an update, where the
+    def _frame_origin(self, job_id: uuid.UUID, map_id: uuid.UUID) -> GeoOrigin | None:
+        """Where the build's local frame lies: for an update, where the
         current revision's does, so that the images it holds keep their east and north, and
         a large map's tiles that no added or deleted image reached keep the keys of their
         reconstructions and are taken up as they are (a frame moved to the new centroid
@@ -299,7 +299,7 @@ class BuildRunner(BackgroundRunner):
             m = db.get(Map, map_id)
             if db.get(BuildJob, job_id).full or m.origin_lat is None:
                 return None
-            return (m.origin_lat, m.origin_lon, m.origin_alt or 0.0)
+            return GeoOrigin(m.origin_lat, m.origin_lon, m.origin_alt or 0.0)
 
     def _previous_folder(self, job_id: uuid.UUID, current: str | None) -> str | None:
         """The packed revision the build packs from: ``current``, the map's current one

@@ -16,6 +16,7 @@ import logging
 import shutil
 import uuid
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from sqlalchemy import delete, select, update
@@ -32,6 +33,9 @@ from vloc.app.maps.codecs import (
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapImage, MapVocabulary
 from vloc.app.maps.revisions import revision_images, write_image_ids, write_timings
 from vloc.app.tasks.database import sessions
+
+if TYPE_CHECKING:
+    from vloc.workers.core.geo import GeoOrigin
 
 log = logging.getLogger(__name__)
 
@@ -171,14 +175,13 @@ def tie_pairs_file(tie_dir: str | Path, batch: int) -> Path:
 
 def plan_tiles(database_url: str, map_id: str, tie_dir: str,
                lens_files: list[str] | None = None, *,
-               origin: tuple[float, float, float] | None = None) -> int:
+               origin: GeoOrigin | None = None) -> int:
     """Write the tiles of a large map's reconstruction to ``tie_dir`` from the pairs matched
     there (:mod:`vloc.workers.core.tiles`), for :func:`reconstruct_tile` to reconstruct;
-    returns how many (0 for a map the packing reconstructs whole). ``origin`` (lat, lon,
-    alt) is the local frame the build packs in (:func:`pack_map`'s), by default the
-    images' centroid."""
+    returns how many (0 for a map the packing reconstructs whole). ``origin`` is the local
+    frame the build packs in (:func:`pack_map`'s), by default at the images' centroid."""
     from vloc.workers.core import tiepairs, tiles
-    from vloc.workers.core.geo import GeoOrigin, local_frame
+    from vloc.workers.core.geo import local_frame
     from vloc.workers.core.mapbuild import typical_focal_px
 
     images = _read_images(database_url, map_id)
@@ -188,8 +191,7 @@ def plan_tiles(database_url: str, map_id: str, tie_dir: str,
     # flights' spacing, and the pairs' reach with it)
     planned = _planned_pairs(images)
     _, xy, alt = local_frame([img["lat"] for img in images], [img["lon"] for img in images],
-                             [img["alt"] for img in images],
-                             None if origin is None else GeoOrigin(*origin))
+                             [img["alt"] for img in images], origin)
     return tiles.plan(tie_dir, [known[p] for p in planned if known.get(p) is not None], xy,
                       alt, typical_focal_px(_readers(lens_files or [])),
                       [tie_stem(tie_dir, img["id"]) for img in images],
@@ -302,9 +304,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
              image_files: dict[int, str] | None = None, tie_dir: str | None = None,
              job_id: str | None = None, previous: str | None = None,
              share: str | None = None, chunk_images: int | None = None,
-             origin: tuple[float, float, float] | None = None) -> dict:
+             origin: GeoOrigin | None = None) -> dict:
     """Assemble every extracted image of a map into a MapData folder, in the local frame at
-    ``origin`` (lat, lon, alt; by default the images' centroid).
+    ``origin`` (by default at the images' centroid).
 
     ``lens_files`` are some of the map's image files, read for the camera's focal length
     (EXIF) that the map's camera geometry starts from. The tie points of the
@@ -341,7 +343,6 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         geometry (:func:`vloc.workers.core.mapbuild.geometry_report`).
     """
     from vloc.workers.core import tiepairs, tiles
-    from vloc.workers.core.geo import GeoOrigin
     from vloc.workers.core.geometry import KeptModels
     from vloc.workers.core.mapbuild import assemble_map, stage, typical_focal_px
     from vloc.workers.core.tiepoints import TiePointFiles
@@ -381,8 +382,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                             captured_at=[img["captured_at"] for img in images],
                             flights=[img["flight"] for img in images],
                             map_id=map_id, revision=revision,
-                            origin=None if origin is None else GeoOrigin(*origin),
-                            known_pairs=known,
+                            origin=origin, known_pairs=known,
                             known_tiles=reconstructed,
                             kept=None if own else KeptModels(
                                 ties_at / tiles.MODELS, tuple(str(img["id"]) for img in images)),

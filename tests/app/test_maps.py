@@ -752,9 +752,9 @@ def test_the_tiles_take_only_the_pairs_the_build_planned(module_client, shots, m
     # the tiles are planned in the frame the packing packs in (an update's is the current
     # revision's, not the images' centroid), so that the packing finds them by their key
     o = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()["origin"]
-    frame = (o["lat"] + 1e-4, o["lon"], o["alt"])
+    frame = GeoOrigin(o["lat"] + 1e-4, o["lon"], o["alt"])
     assert build_tasks.plan_tiles(url, map_id, str(store), origin=frame) > 1
-    east, north = GeoOrigin(*frame).to_local([i["lat"] for i in images],
+    east, north = frame.to_local([i["lat"] for i in images],
                                              [i["lon"] for i in images])
     np.testing.assert_allclose(np.load(store / tiles.PLAN_FILE)["tags"][:, :2],
                                np.column_stack([east, north]), atol=1e-9)
