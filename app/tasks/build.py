@@ -127,20 +127,31 @@ def plan_tie_pairs(database_url: str, map_id: str, tie_dir: str) -> dict:
     ids = [img["id"] for img in images]
     kept = tiepairs.keep_valid(tie_dir, ids)
     _forget_tie_points(Path(tie_dir), set(ids))
-    pairs = _planned_pairs(images)
+    pairs = _planned_pairs(images, tie_dir)
     return {"image_ids": ids, "pairs": [p for p in pairs if p not in kept],
             "planned": len(pairs)}
 
 
-def _planned_pairs(images: list[dict]) -> list[tuple[int, int]]:
+def _planned_pairs(images: list[dict], tie_dir: str | Path) -> list[tuple[int, int]]:
     """The pairs (map indices) whose tie points a build of ``images`` (:func:`_read_images`)
-    matches (:func:`vloc.workers.core.tiepairs.plan`)."""
+    matches (:func:`vloc.workers.core.tiepairs.plan`), at the reach the map's store in
+    ``tie_dir`` keeps (its first build's, decided and kept there by the first to ask)."""
     from vloc.workers.core import tiepairs
 
     return tiepairs.plan([img["lat"] for img in images], [img["lon"] for img in images],
                          [img["alt"] for img in images],
                          [np.nan if img["captured_at"] is None else img["captured_at"]
-                          for img in images], [img["flight"] for img in images])
+                          for img in images], [img["flight"] for img in images],
+                         kept=_kept_models(tie_dir, images))
+
+
+def _kept_models(tie_dir: str | Path, images: list[dict]):
+    """The map's store of what its last build reconstructed, in ``tie_dir``
+    (:class:`vloc.workers.core.geometry.KeptModels`), its images named by their ids."""
+    from vloc.workers.core import tiles
+    from vloc.workers.core.geometry import KeptModels
+
+    return KeptModels(Path(tie_dir) / tiles.MODELS, tuple(str(img["id"]) for img in images))
 
 
 def _forget_tie_points(tie_dir: Path, image_ids: set[int]) -> None:
@@ -187,9 +198,9 @@ def plan_tiles(database_url: str, map_id: str, tie_dir: str,
     images = _read_images(database_url, map_id)
     known = tiepairs.load_results(tie_dir, [img["id"] for img in images])
     # the pairs this build planned, as the packing takes them: the store may also hold
-    # pairs an earlier build planned that this one does not (adding images moves the
-    # flights' spacing, and the pairs' reach with it)
-    planned = _planned_pairs(images)
+    # pairs an earlier build planned that this one does not (a full build decides the
+    # pairs' reach again, from the images' spacing)
+    planned = _planned_pairs(images, tie_dir)
     _, xy, alt = local_frame([img["lat"] for img in images], [img["lon"] for img in images],
                              [img["alt"] for img in images], origin)
     return tiles.plan(tie_dir, [known[p] for p in planned if known.get(p) is not None], xy,
@@ -343,7 +354,6 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         geometry (:func:`vloc.workers.core.mapbuild.geometry_report`).
     """
     from vloc.workers.core import tiepairs, tiles
-    from vloc.workers.core.geometry import KeptModels
     from vloc.workers.core.mapbuild import assemble_map, stage, typical_focal_px
     from vloc.workers.core.tiepoints import TiePointFiles
 
@@ -384,8 +394,7 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
                             map_id=map_id, revision=revision,
                             origin=origin, known_pairs=known,
                             known_tiles=reconstructed,
-                            kept=None if own else KeptModels(
-                                ties_at / tiles.MODELS, tuple(str(img["id"]) for img in images)),
+                            kept=None if own else _kept_models(ties_at, images),
                             previous=_previous(previous, [img["id"] for img in images]),
                             focal_px=typical_focal_px(_readers(lens_files or [])),
                             timings=timings, report=report,

@@ -34,7 +34,7 @@ from vloc.workers.core.features.descriptors import get_descriptor, local_vectors
 from vloc.workers.core.features.distortion import image_distortion
 from vloc.workers.core.features.orb import extract_orb
 from vloc.workers.core.geo import GeoOrigin
-from vloc.workers.core.geometry import tiling
+from vloc.workers.core.geometry import KeptModels, tie_reach, tiling
 from vloc.workers.core.geometry.kept import read_order
 from vloc.workers.core.image import load_frame
 from vloc.workers.core.mapdata import MapData
@@ -265,6 +265,9 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     assert len(tie_files) == 6 and list(store.glob(tiepairs.RESULTS_GLOB))
     stamps = {p: p.stat().st_mtime_ns for p in tie_files}
     first_origin = m["origin"]
+    # and the reach of its tie pairs, decided from the six images' spacing
+    first_reach = KeptModels(store / tiles.MODELS, ()).reach()
+    assert first_reach == tie_reach(first.positions, first.captured_at)
     origin = GeoOrigin(m["origin"]["lat"], m["origin"]["lon"], m["origin"]["alt"])
     images = c.get(f"/v1/maps/{map_id}/images", headers=ADMIN).json()
     assert origin.lat == pytest.approx(np.mean([i["lat"] for i in images]), abs=1e-12)
@@ -345,6 +348,9 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     rematched = [(a, b) for path in store.glob(tiepairs.RESULTS_GLOB)
                  if path.name != tiepairs.KEPT for a, b, _ in tiepairs.read_results(path)]
     assert rematched and all(b >= 6 for _, b in rematched)
+    # at the first build's reach, though the ten images' spacing is another
+    assert KeptModels(store / tiles.MODELS, ()).reach() == first_reach
+    assert tie_reach(second.positions, second.captured_at) != first_reach
     # ...and registered the new images into the COLMAP model the first build kept, whose
     # cameras stay where they were (tests/core/geometry/test_kept.py)
     models = store / tiles.MODELS
@@ -366,6 +372,9 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     # a full build centres its frame on the images, as a fresh build does
     m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
     assert math.isclose(m["origin"]["lat"], np.mean([i["lat"] for i in images]), abs_tol=1e-12)
+    # and decides the reach of its tie pairs again
+    assert KeptModels(store / tiles.MODELS, ()).reach() == \
+        tie_reach(third.positions, third.captured_at)
     fresh_id = new_map(c)
     c.post(f"/v1/maps/{fresh_id}/images", files=jpeg_files(maps), headers=ADMIN)
     assert wait_job(c, c.post(f"/v1/maps/{fresh_id}/build", headers=ADMIN)

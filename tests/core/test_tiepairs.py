@@ -10,7 +10,7 @@ import pytest
 from tests.core.geometry.scene import survey
 from vloc.workers.core import tiepairs
 from vloc.workers.core.geo import GeoOrigin, local_frame
-from vloc.workers.core.geometry import build_geometry, match_pair, tie_pairs
+from vloc.workers.core.geometry import KeptModels, build_geometry, match_pair, tie_pairs, tie_reach
 from vloc.workers.core.geometry.pairs import PairMatches, match_pairs
 from vloc.workers.core.sift import SiftFeatures
 from vloc.workers.core.tiepoints import save_tie_points
@@ -304,3 +304,34 @@ def test_a_batch_that_ends_mid_pair_says_which_pair(surveyed, tmp_path, monkeypa
     assert tiepairs.crashed_pair(out2) is None  # read once
     # the record is no results file: the pairs are matched again
     assert set(tiepairs.load_results(tmp_path, ids)) == set(planned[:2])
+
+
+def test_the_map_store_keeps_the_pairs_reach_so_that_added_images_leave_the_pairs_as_they_were(
+        tmp_path):
+    """The first build decides how far apart two images may be for their tie points to be
+    matched, from their spacing; images added later at another spacing would move that
+    reach and add or drop pairs among the images the map held (every tile's inputs would
+    change with them). With the map's store, an update plans them at the first build's
+    reach; a store that keeps none (a full build forgets it) decides it again."""
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(8.0), np.arange(6.0)), -1).reshape(-1, 2) * 10.0
+    held = grid + rng.normal(0.0, 1.0, grid.shape)
+    # a denser flight 2 km off, lower down: it lowers the images' median spacing
+    low = np.stack(np.meshgrid(np.arange(20.0), np.arange(10.0)), -1).reshape(-1, 2) * 2.0
+    dense = low + [2000.0, 0.0] + rng.normal(0.0, 0.1, low.shape)
+    both = np.vstack([held, dense])
+    assert tie_reach(both) < tie_reach(held)
+    n = len(held)
+    store = KeptModels(tmp_path / "models", tuple(str(k) for k in range(n)))
+    first = tie_pairs(held, kept=store)
+    assert store.reach() == tie_reach(held)
+    among_held = {p for p in tie_pairs(both) if p[1] < n}
+    assert among_held < set(first)  # planned afresh, some of the map's pairs go
+    grown = tie_pairs(both, kept=KeptModels(tmp_path / "models",
+                                            tuple(str(k) for k in range(len(both)))))
+    assert {p for p in grown if p[1] < n} == set(first)
+    assert {p for p in grown if p[0] >= n} == {p for p in tie_pairs(both) if p[0] >= n}
+    # forgotten (a full build): decided again from today's images
+    (tmp_path / "models" / "reach.json").unlink()
+    assert tie_pairs(both, kept=store) == tie_pairs(both)
+    assert store.reach() == tie_reach(both)

@@ -40,13 +40,15 @@ capped by the inlier ratio it could verify with (:func:`~workers.core.geometry.p
 ransac_floor`). Results of another version are matched again."""
 
 
-def plan(lats, lons, alts, times=None, flights=None) -> list[tuple[int, int]]:
+def plan(lats, lons, alts, times=None, flights=None, *, kept=None) -> list[tuple[int, int]]:
     """The pairs (indices in map order) whose tie points the map's geometry matches: those
     :func:`~workers.core.mapbuild.assemble_map` would match for images at these positions,
     taken at these times (s, NaN unknown; None: none known) in these flights (names, None
-    where not said)."""
+    where not said), at the reach the map's store ``kept`` keeps where given
+    (:class:`~workers.core.geometry.kept.KeptModels`)."""
     _, xy, _ = local_frame(lats, lons, alts)
-    return tie_pairs(xy, None if times is None else np.asarray(times, np.float64), flights)
+    return tie_pairs(xy, None if times is None else np.asarray(times, np.float64), flights,
+                     kept=kept)
 
 
 def keep_valid(folder: str | Path, image_ids: list[int]) -> set[tuple[int, int]]:

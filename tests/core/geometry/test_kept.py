@@ -208,22 +208,40 @@ def test_a_model_grew_well_when_it_placed_its_share_of_the_new_images():
 
 
 def test_a_tile_grew_well_when_it_placed_its_share_of_the_new_images_of_its_core():
-    """A tile of 400 kept images, all placed, gains 40 along its edge: 10 in its core, 9
+    """A tile of 100 kept images, all placed, gains 40 along its edge: 10 in its core, 9
     of them placed, and 30 in its margin, 20 placed. Judged over all 40 (29 placed, 39
     asked) it would be reconstructed whole; over its core's (9 of 10) it grew well."""
-    run = _run_placing(440, 400, 400, 429)
+    run = _run_placing(140, 100, 100, 129)
     assert not sfm._grew_well(run)
-    core = np.ones(440, bool)
-    core[409:430] = False  # margin: 409..428 placed, 429 not,
-    core[431:440] = False  # and 431..439 not: the core's new images are 400..408 and 430
-    assert int(core[400:].sum()) == 10
+    core = np.ones(140, bool)
+    core[109:130] = False  # margin: 109..128 placed, 129 not,
+    core[131:140] = False  # and 131..139 not: the core's new images are 100..108 and 130
+    assert int(core[100:].sum()) == 10
     assert sfm._grew_well(run, core)
     core[:] = True
     assert not sfm._grew_well(run, core)  # every image in the core: as without one
     # the core's new images placed too thinly: reconstructed whole
     core[:] = False
-    core[428:440] = True  # 428 placed, 429..439 not
+    core[128:140] = True  # 128 placed, 129..139 not
     assert not sfm._grew_well(run, core)
+
+
+def test_a_large_tile_grew_well_when_it_placed_half_its_share_of_the_new_images():
+    """A kept model of more than LARGE_MODEL cameras is reconstructed whole only where it
+    took in fewer than half the new images it would place at its own rate: the images it
+    leaves out are reconstructed apart, at a fraction of a whole run's cost."""
+    held = sfm.LARGE_MODEL + 50
+    registered = held - 10
+    share = registered / held * 40  # 40 new images
+    enough = int(np.ceil(sfm.LARGE_BASE_SHARE * share))
+    assert enough < share - 1  # the small models' rule would reconstruct it whole
+    assert sfm._grew_well(_run_placing(held + 40, held, registered, registered + enough))
+    assert not sfm._grew_well(_run_placing(held + 40, held, registered,
+                                           registered + enough - 1))
+    # a small kept model placing as many is reconstructed whole
+    small = sfm.LARGE_MODEL
+    assert not sfm._grew_well(_run_placing(small + 40, small, small,
+                                           small + int(np.ceil(sfm.LARGE_BASE_SHARE * 40))))
 
 
 def test_a_model_that_grew_badly_is_reconstructed_whole_too_and_the_better_kept(

@@ -54,16 +54,23 @@ def tie_reach(positions: np.ndarray, times: np.ndarray | None = None,
     return max(6.0 * flight_spacing(positions, times, flights), 1.0)
 
 
-def tie_pairs(positions: np.ndarray, times: np.ndarray | None = None, flights=None,
-              ) -> list[tuple[int, int]]:
+def tie_pairs(positions: np.ndarray, times: np.ndarray | None = None, flights=None, *,
+              kept: KeptModels | None = None) -> list[tuple[int, int]]:
     """The pairs of map images whose tie points :func:`build_geometry` matches (``times``:
     capture times, NaN unknown, and ``flights``: the flights named, None where not, which
-    tell the map's flights apart)."""
+    tell the map's flights apart): each image with its GPS-nearest within
+    :func:`tie_reach`. With ``kept`` (the map's store, :mod:`.kept`), the reach is the one
+    its first build decided and kept there (:meth:`.KeptModels.reach`), so that images added
+    since leave the pairs of the others as they were; a first build keeps its own."""
     positions = np.asarray(positions, np.float64)
     if len(positions) < 3:
         return []
-    return candidate_pairs(positions, max_distance=tie_reach(positions, times, flights),
-                           neighbours=TIE_NEIGHBOURS)
+    reach = None if kept is None else kept.reach()
+    if reach is None:
+        reach = tie_reach(positions, times, flights)
+        if kept is not None:
+            kept.save_reach(reach)
+    return candidate_pairs(positions, max_distance=reach, neighbours=TIE_NEIGHBOURS)
 
 
 def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.ndarray],
@@ -100,7 +107,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
         (:mod:`workers.core.tiles`); the rest are reconstructed here.
     kept : KeptModels, optional
         COLMAP's models kept from the map's last build (:mod:`.kept`): images added since
-        are registered into them; this build's are kept there in their place.
+        are registered into them; this build's are kept there in their place. The tie
+        pairs are planned at the reach kept there (:func:`tie_pairs`).
 
     Returns
     -------
@@ -113,8 +121,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
         return None
     # One BLAS thread, as in the engine's workers: a map build is the same wherever it runs.
     with threadpool_limits(limits=1, user_api="blas"):
-        pairs = match_pairs(keypoints, descriptors, tie_pairs(positions, times, flights),
-                            seed=seed,
+        pairs = match_pairs(keypoints, descriptors,
+                            tie_pairs(positions, times, flights, kept=kept), seed=seed,
                             known=known_pairs)
         structure = reconstruct(keypoints, pairs, positions, altitudes, focal_px, seed=seed,
                                 times=times, known_tiles=known_tiles, kept=kept)

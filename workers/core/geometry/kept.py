@@ -23,7 +23,12 @@ reconstructs the tile whole, as before.
 
 A large map's tiles are kept too (``tiles.json``: each tile's core and members, by name), so
 that the next build cuts the map where this one did (:func:`.tiling.plan_tiles`): images
-added join the tiles around them instead of moving every tile's edges.
+added join the tiles around them instead of moving every tile's edges. So is the reach of
+its tie pairs (``reach.json``, :meth:`KeptModels.reach`): the first build decides how far
+apart two images may be for their tie points to be matched, from the images' spacing, and
+later builds match at that reach, so that images added do not move the pairs of the images
+the map held (a spacing that moves by a few centimetres adds or drops a pair in every
+tile, and every tile's inputs change with it).
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ ORDER_FILE = "order.txt"
 CONTEXT_FILE = "context.txt"
 INPUTS_FILE = "inputs.txt"
 TILES_FILE = "tiles.json"
+REACH_FILE = "reach.json"
 MODEL_DIR = "model-{:02d}"
 
 EXTEND_MIN_SHARE: float = 0.5
@@ -86,8 +92,21 @@ class KeptModels:
         if not self.folder.is_dir():
             return
         for path in self.folder.iterdir():
-            if path.name not in keys and path.name != TILES_FILE:
+            if path.name not in keys and path.name not in (TILES_FILE, REACH_FILE):
                 shutil.rmtree(path, ignore_errors=True)
+
+    def reach(self) -> float | None:
+        """The reach (m) of the map's tie pairs as its first build decided it
+        (:func:`~workers.core.geometry.tie_pairs`); None where none was kept."""
+        path = self.folder / REACH_FILE
+        return float(json.loads(path.read_text())["reach_m"]) if path.is_file() else None
+
+    def save_reach(self, reach: float) -> None:
+        """Keep the reach (m) of the map's tie pairs for the builds after this one."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        tmp = self.folder / ("." + REACH_FILE)
+        tmp.write_text(json.dumps({"reach_m": float(reach)}))
+        tmp.replace(self.folder / REACH_FILE)
 
     def tiles(self) -> list[tuple[np.ndarray, np.ndarray]] | None:
         """The tiles of the map's last build, (core, members) in today's map indices, its
