@@ -10,7 +10,14 @@ import pytest
 from tests.core.geometry.scene import survey
 from vloc.workers.core import tiepairs
 from vloc.workers.core.geo import GeoOrigin, local_frame
-from vloc.workers.core.geometry import KeptModels, build_geometry, match_pair, tie_pairs, tie_reach
+from vloc.workers.core.geometry import (
+    REACH_GROWTH,
+    KeptModels,
+    build_geometry,
+    match_pair,
+    tie_pairs,
+    tie_reach,
+)
 from vloc.workers.core.geometry.pairs import PairMatches, match_pairs
 from vloc.workers.core.sift import SiftFeatures
 from vloc.workers.core.tiepoints import save_tie_points
@@ -335,3 +342,10 @@ def test_the_map_store_keeps_the_pairs_reach_so_that_added_images_leave_the_pair
     (tmp_path / "models" / "reach.json").unlink()
     assert tie_pairs(both, kept=store) == tie_pairs(both)
     assert store.reach() == tie_reach(both)
+    # a much sparser flight joins: its images would find too few neighbours within the
+    # kept reach, which is decided again
+    high = np.stack(np.meshgrid(np.arange(20.0), np.arange(15.0)), -1).reshape(-1, 2) * 80.0
+    wide = np.vstack([both, high - [5000.0, 0.0]])
+    assert tie_reach(wide) > REACH_GROWTH * store.reach()
+    assert tie_pairs(wide, kept=store) == tie_pairs(wide)
+    assert store.reach() == tie_reach(wide)

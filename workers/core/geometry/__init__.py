@@ -39,6 +39,11 @@ MAX_GPS_RMS: float = 15.0
 """... nor one whose cameras sit further than this (m RMS, horizontally) from their GPS."""
 
 
+REACH_GROWTH: float = 1.5
+"""A map's kept tie reach (:func:`tie_pairs`) is decided again once its images call for more
+than this many times it: a denser flight added leaves it (each image still takes at most
+:data:`TIE_NEIGHBOURS` pairs), a much sparser one would find too few neighbours within it."""
+
 TIE_NEIGHBOURS: int = 12
 """Each map image's tie points are matched with those of at most this many GPS-nearest images
 (within :func:`tie_reach`)."""
@@ -60,16 +65,19 @@ def tie_pairs(positions: np.ndarray, times: np.ndarray | None = None, flights=No
     capture times, NaN unknown, and ``flights``: the flights named, None where not, which
     tell the map's flights apart): each image with its GPS-nearest within
     :func:`tie_reach`. With ``kept`` (the map's store, :mod:`.kept`), the reach is the one
-    its first build decided and kept there (:meth:`.KeptModels.reach`), so that images added
-    since leave the pairs of the others as they were; a first build keeps its own."""
+    kept there (:meth:`.KeptModels.reach`, its first build's), so that images added since
+    leave the pairs of the others as they were, unless today's images call for more than
+    :data:`REACH_GROWTH` times it (a sparser flight joined the map), which is then kept; a
+    first build keeps its own."""
     positions = np.asarray(positions, np.float64)
     if len(positions) < 3:
         return []
-    reach = None if kept is None else kept.reach()
-    if reach is None:
-        reach = tie_reach(positions, times, flights)
-        if kept is not None:
-            kept.save_reach(reach)
+    reach = tie_reach(positions, times, flights)
+    held = None if kept is None else kept.reach()
+    if held is not None and reach <= REACH_GROWTH * held:
+        reach = held
+    elif kept is not None:
+        kept.save_reach(reach)
     return candidate_pairs(positions, max_distance=reach, neighbours=TIE_NEIGHBOURS)
 
 

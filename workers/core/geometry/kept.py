@@ -28,7 +28,8 @@ its tie pairs (``reach.json``, :meth:`KeptModels.reach`): the first build decide
 apart two images may be for their tie points to be matched, from the images' spacing, and
 later builds match at that reach, so that images added do not move the pairs of the images
 the map held (a spacing that moves by a few centimetres adds or drops a pair in every
-tile, and every tile's inputs change with it).
+tile, and every tile's inputs change with it), until images much sparser than the map's
+call for a longer one (:func:`~workers.core.geometry.tie_pairs`).
 """
 
 from __future__ import annotations
