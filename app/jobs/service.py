@@ -63,6 +63,15 @@ def _drop_revision_tie_folders(map_dir: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+def _without_tie_points(tie_dir: Path, image_files: dict[int, str]) -> dict[int, str]:
+    """The images of ``image_files`` (image id -> file) whose tie points the map's store in
+    ``tie_dir`` does not hold complete (:func:`vloc.app.tasks.build.extract_ties`)."""
+    from vloc.workers.core.tiepoints import TiePointFiles
+
+    return {image_id: path for image_id, path in image_files.items()
+            if TiePointFiles.find(tasks.tie_stem(tie_dir, image_id)) is None}
+
+
 def forget_reconstruction(tie_dir: Path) -> None:
     """Delete what the map's store keeps of its reconstruction (COLMAP's models, a large
     map's tiles), so that the next build reconstructs the map whole (``full``), and the
@@ -168,10 +177,13 @@ class BuildRunner(BackgroundRunner):
         await asyncio.to_thread(self._set_progress, job_id, EXTRACT_SHARE,
                                 BuildStage.TIE_POINTS)
         donors = await asyncio.to_thread(self._tie_donors, map_id)
+        # only the images the store holds no tie points of, an update's new ones: a call a
+        # worker answers at once still costs a round trip through the engine, per image
+        missing = await asyncio.to_thread(_without_tie_points, tie_dir, image_files)
         await self._fan_out(job_id, [run_task(
             self.engine, tasks.extract_ties, path, tasks.tie_stem(tie_dir, image_id),
             donors.get(image_id, []))
-            for image_id, path in image_files.items()], EXTRACT_SHARE, TIE_SHARE)
+            for image_id, path in missing.items()], EXTRACT_SHARE, TIE_SHARE)
         await self._match_pairs(job_id, url, map_id, tie_dir)
         origin = await asyncio.to_thread(self._frame_origin, job_id, map_id)
         await self._reconstruct_tiles(job_id, url, map_id, tie_dir, lens_files, origin)

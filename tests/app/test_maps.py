@@ -6,6 +6,7 @@ import math
 import struct
 import uuid
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,6 +24,8 @@ from tests.app.conftest import (
 from tests.app.imagery import plain_jpeg, png, png_bomb
 from tests.core.geometry.scene import similarity_residual
 from tests.core.packing import assert_same_places
+from vloc.app.engine import run_task
+from vloc.app.jobs import service as job_service
 from vloc.app.jobs.service import forget_reconstruction
 from vloc.app.maps.codecs import decode_vocabulary
 from vloc.app.maps.models import ImageGlobalFeature, ImageOrb, ImageSift, MapVocabulary
@@ -230,7 +233,7 @@ def test_partial_upload_keeps_the_good_files_and_reports_the_rest(module_client,
     assert snapshot(c) == before
 
 
-def test_build_then_add_images_and_rebuild(module_client, shots):
+def test_build_then_add_images_and_rebuild(module_client, shots, monkeypatch):
     c = module_client
     ctx = c.app.state.ctx
     maps = shots[0]
@@ -308,7 +311,15 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     c.post(f"/v1/maps/{map_id}/images", files=jpeg_files(maps[6:]), headers=ADMIN)
     m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
     assert (m["status"], m["revision"], m["pending_images"]) == ("unbuilt", 1, 4)
+    calls = []
+
+    def recorded(engine, task, *args, **kwargs):
+        calls.append((task.__name__, args))
+        return run_task(engine, task, *args, **kwargs)
+
+    monkeypatch.setattr(job_service, "run_task", recorded)
     job = wait_job(c, c.post(f"/v1/maps/{map_id}/build", headers=ADMIN).json()["job_id"])
+    monkeypatch.undo()
     assert (job["status"], job["n_images"], job["revision"]) == ("done", 4, 2)
     m = c.get(f"/v1/maps/{map_id}", headers=ADMIN).json()
     assert (m["status"], m["revision"], m["pending_images"], m["image_count"]) == \
@@ -345,6 +356,10 @@ def test_build_then_add_images_and_rebuild(module_client, shots):
     # images' tie points and matched only the pairs they take part in...
     assert {p: p.stat().st_mtime_ns for p in tie_files} == stamps
     assert len(list(store.glob("*.kp.npy"))) == 10
+    # (the engine was asked for the new images' alone)
+    new_ids = {i["id"] for i in images[6:]}
+    assert sorted(Path(args[1]).name for name, args in calls if name == "extract_ties") == \
+        sorted(str(i) for i in new_ids)
     rematched = [(a, b) for path in store.glob(tiepairs.RESULTS_GLOB)
                  if path.name != tiepairs.KEPT for a, b, _ in tiepairs.read_results(path)]
     assert rematched and all(b >= 6 for _, b in rematched)
