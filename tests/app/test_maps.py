@@ -747,7 +747,7 @@ def test_a_bad_flight_name_is_refused_and_nothing_stored(module_client, shots, f
 
 def test_the_tiles_take_only_the_pairs_the_build_planned(module_client, shots, monkeypatch):
     """The map's store may hold verified pairs an earlier build planned and this one does
-    not (adding images moves the flights' spacing, and the pairs' reach with it): the tiles
+    not (a full build decides the pairs' reach again from the images' spacing): the tiles
     leave them out, as the packing does, so that the packing finds the tiles the workers
     reconstructed by their key."""
     c = module_client

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tests.core.geometry.scene import F_TRUE, survey
+from vloc.workers.core.carryover import Previous
 from vloc.workers.core.geo import GeoOrigin
 from vloc.workers.core.image import prepare
 from vloc.workers.core.mapbuild import (
@@ -176,3 +177,44 @@ def test_tie_points_on_disk_tie_the_same_map_with_a_few_files_open(tmp_path):
     np.testing.assert_array_equal(got.rotations, want.rotations)
     np.testing.assert_array_equal(got.points["sift"], want.points["sift"])
     assert got.self_check == want.self_check
+
+
+def test_an_update_takes_up_the_points_of_the_images_whose_structure_stayed(tmp_path):
+    """An image whose pose, reconstructed tie points and intrinsics are the revision
+    before's (a large map's tile that no added image reached) keeps its keypoints' 3-D
+    points from there; the others are worked out again."""
+    _, data = _survey_map()
+    names = list(data.names)
+    data.geometry = map_geometry(data, focal_px=F_TRUE)
+    first = data.geometry
+    assert first.digests.shape == (len(data), 16) and first.digests.any(axis=1).all()
+    data.save(tmp_path / "rev")
+    before = MapData.load(tmp_path / "rev")
+    np.testing.assert_array_equal(before.geometry.digests, first.digests)
+    # mark the revision before's points, which no working-out gives, to see which are taken
+    offsets = np.asarray(before.sift_offsets)
+    marked = np.array(before.geometry.points["sift"])
+    marked[:] = 42.0
+    before.geometry.points["sift"] = marked
+    digests = np.array(before.geometry.digests)
+    digests[1, 0] ^= 1  # image 1's structure moved since
+    before.geometry.digests = digests
+    again = map_geometry(data, focal_px=F_TRUE, previous=Previous.of(before, names, names))
+    np.testing.assert_array_equal(again.digests, first.digests)  # the same structure
+    points = np.asarray(again.points["sift"])
+    for i in range(len(data)):
+        rows = slice(offsets[i], offsets[i + 1])
+        if i == 1:
+            np.testing.assert_array_equal(points[rows], np.asarray(first.points["sift"])[rows])
+        else:
+            assert (points[rows] == 42.0).all()
+    # an image added is worked out again too
+    previous = Previous.of(before, names, ["new", *names[1:]])
+    again = map_geometry(data, focal_px=F_TRUE, previous=previous)
+    rows0 = slice(offsets[0], offsets[1])
+    np.testing.assert_array_equal(np.asarray(again.points["sift"])[rows0],
+                                  np.asarray(first.points["sift"])[rows0])
+    # a revision packed before digests were kept gives nothing
+    before.geometry.digests = None
+    again = map_geometry(data, focal_px=F_TRUE, previous=Previous.of(before, names, names))
+    np.testing.assert_array_equal(again.points["sift"], first.points["sift"])

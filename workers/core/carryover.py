@@ -104,6 +104,34 @@ def known_masks(previous: Previous) -> dict[int, tuple[frozenset[int], np.ndarra
     return out
 
 
+def known_points(previous: Previous, kind: str, digests: np.ndarray, keypoints: np.ndarray,
+                 offsets: np.ndarray) -> dict[int, np.ndarray]:
+    """The revision before's 3-D points of local-feature set ``kind`` for each image (new
+    index) whose structure digest (``digests``,
+    :func:`~.geometry.mapgeometry.structure_digests`) and keypoints (``keypoints``, rows
+    ``offsets[i]:offsets[i + 1]``) are the same there: worked out from the same inputs,
+    they would come out the same (a tile no added image reached keeps its cameras and
+    points to the bit). Nothing where that revision has no geometry, none of ``kind`` or
+    no digests (packed before they were kept)."""
+    before = previous.data
+    geo = before.geometry
+    if geo is None or geo.digests is None or kind not in geo.points:
+        return {}
+    old_kp, old_off = ((before.sift_keypoints, before.sift_offsets) if kind == "sift"
+                       else (before.orb_keypoints, before.orb_offsets))
+    old_off, old_digests = np.asarray(old_off), np.asarray(geo.digests)
+    out = {}
+    for i in previous.kept:
+        row = int(previous.rows[i])
+        if not digests[i].any() or not np.array_equal(digests[i], old_digests[row]):
+            continue
+        a, b = int(offsets[i]), int(offsets[i + 1])
+        c, d = int(old_off[row]), int(old_off[row + 1])
+        if b - a == d - c and np.array_equal(keypoints[a:b], old_kp[c:d]):
+            out[int(i)] = np.asarray(geo.points[kind][c:d], np.float32)
+    return out
+
+
 @dataclass(frozen=True)
 class CarriedDescriptor:
     """A place descriptor taken up from the revision before: its vocabulary, fit and

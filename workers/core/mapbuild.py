@@ -17,12 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .carryover import Previous, known_masks
+from .carryover import Previous, known_masks, known_points
 from .features import DESCRIPTOR_NAMES, FEATURE_NAMES, extract_many
 from .features.orb import OrbFeatures, extract_orb
 from .features.shortlist import CODES_FROM
 from .geo import GeoOrigin, local_frame
 from .geometry import build_geometry
+from .geometry.mapgeometry import structure_digests
 from .image import WORK_SIZE, Frame
 from .lens import read_focal_px
 from .mapdata import MapData
@@ -172,7 +173,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         with stage(timings, "geometry"):
             data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
                                          known_pairs=known_pairs, known_tiles=known_tiles,
-                                         kept=kept, report=report)
+                                         kept=kept, previous=previous, report=report)
     return data
 
 
@@ -191,7 +192,7 @@ def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
                  tie_points: list[SiftFeatures | TiePointFiles | None] | None = None,
                  known_pairs: dict | None = None, known_tiles: dict | None = None,
-                 kept=None, report: dict | None = None):
+                 kept=None, previous: Previous | None = None, report: dict | None = None):
     """The map's camera geometry with every stored SIFT (and ORB) keypoint's 3-D point,
     checked by localising the map's own images (:func:`workers.core.selfcheck.self_check`),
     or None.
@@ -199,7 +200,10 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     ``tie_points`` (one per image, None where missing) tie the images together; an image
     without them is tied by its stored SIFT. ``known_pairs`` and ``known_tiles`` are pairs
     matched and tiles reconstructed beforehand, ``kept`` the models kept from the last build
-    (:func:`~workers.core.geometry.build_geometry`). ``report`` is filled with what became
+    (:func:`~workers.core.geometry.build_geometry`). With ``previous`` (the revision an
+    update packs from), an image whose structure is that revision's keeps its keypoints'
+    3-D points (:func:`~workers.core.carryover.known_points`): a large map's tiles that no
+    added image reached are not worked through again. ``report`` is filled with what became
     of the geometry (:func:`geometry_report`).
     """
     from .selfcheck import self_check
@@ -222,14 +226,15 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
                              "with their GPS")
         return None
     geo, structure = built
-    seen = [(np.asarray(kps[i])[structure.observations[i], :2], structure.points[i])
-            if structure.placed[i] else (np.zeros((0, 2)), np.zeros((0, 3)))
-            for i in range(n)]
-    geo.add_points("sift", np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets),
-                   seen)
-    if data.has_orb:
-        geo.add_points("orb", np.asarray(data.orb_keypoints), np.asarray(data.orb_offsets),
-                       seen)
+    geo.digests = structure_digests(structure)
+    seen = _Seen(kps, structure)
+    for kind in ("sift", "orb") if data.has_orb else ("sift",):
+        keypoints, offsets = (
+            (np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets)) if kind == "sift"
+            else (np.asarray(data.orb_keypoints), np.asarray(data.orb_offsets)))
+        known = None if previous is None else known_points(previous, kind, geo.digests,
+                                                           keypoints, offsets)
+        geo.add_points(kind, keypoints, offsets, seen, known=known)
     checked = self_check(data, geo, seed=seed)
     report.update(geometry_report(geo, n))
     if checked is None:
@@ -265,6 +270,23 @@ class _Field(Sequence):
 
     def __getitem__(self, i: int):
         return getattr(self._items[i], self._name)
+
+
+class _Seen(Sequence):
+    """Each image's reconstructed tie points, (pixels, 3-D points), read when indexed: an
+    update reads only the images whose points it works out again."""
+
+    def __init__(self, keypoints: Sequence, structure) -> None:
+        self._keypoints, self._structure = keypoints, structure
+
+    def __len__(self) -> int:
+        return len(self._keypoints)
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        s = self._structure
+        if not s.placed[i]:
+            return np.zeros((0, 2)), np.zeros((0, 3))
+        return np.asarray(self._keypoints[i])[s.observations[i], :2], s.points[i]
 
 
 def typical_focal_px(files, width: int = WORK_SIZE[0], *, sample: int = 25) -> float | None:

@@ -16,12 +16,18 @@ points[kind] : (K, 3) float32
     NaN where unknown.
 self_check : dict
     What the map measured of itself at build time (:mod:`workers.core.selfcheck`).
+digests : (N, 16) uint8
+    What each image's keypoints' 3-D points were worked out from, hashed
+    (:func:`structure_digests`): an update takes up the points of an image whose digest
+    and keypoints are the revision before's (:func:`workers.core.carryover.known_points`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,6 +76,7 @@ class MapGeometry:
     models: int = 1
     points: dict[str, np.ndarray] = field(default_factory=dict)
     self_check: dict = field(default_factory=dict)
+    digests: np.ndarray | None = None
     # what every frame's registration asks of the map's cameras, worked out once
     _memo: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
@@ -146,7 +153,8 @@ class MapGeometry:
         return mean, max(5.0, float(np.sqrt(np.mean(angles ** 2))))
 
     def add_points(self, kind: str, keypoints: np.ndarray, offsets: np.ndarray,
-                   seen: list[tuple[np.ndarray, np.ndarray]]) -> None:
+                   seen: Sequence[tuple[np.ndarray, np.ndarray]], *,
+                   known: dict[int, np.ndarray] | None = None) -> None:
         """Give the keypoints of local-feature set ``kind`` their 3-D points.
 
         A stored keypoint on a reconstructed tie point of its image (:data:`EXACT_PX`) takes
@@ -161,13 +169,21 @@ class MapGeometry:
             Pixels in the first two columns; image ``i`` owns rows
             ``offsets[i]:offsets[i + 1]``.
         offsets : (N + 1,) int ndarray
-        seen : list of ((k_i, 2) pixels, (k_i, 3) points), one per map image
-            The reconstructed tie points of each image and their 3-D points.
+        seen : sequence of ((k_i, 2) pixels, (k_i, 3) points), one per map image
+            The reconstructed tie points of each image and their 3-D points, read only for
+            the images ``known`` does not give.
+        known : dict, optional
+            Image -> its keypoints' 3-D points ((k_i, 3) float32), worked out before from
+            the same inputs (:func:`workers.core.carryover.known_points`): taken as they are.
         """
         out = np.full((len(keypoints), 3), np.nan, dtype=np.float32)
         centres, rotations = np.asarray(self.centres), np.asarray(self.rotations)
+        known = {} if known is None else known
         for i in np.flatnonzero(self.reconstructed):
             a, b = int(offsets[i]), int(offsets[i + 1])
+            if i in known:
+                out[a:b] = known[i]
+                continue
             px, xyz = seen[i]
             if b <= a or len(px) < 3:
                 continue
@@ -206,6 +222,8 @@ class MapGeometry:
         (:func:`workers.core.rowchunks.save_chunked`)."""
         np.save(folder / "geometry_rotations.npy", np.asarray(self.rotations, np.float64))
         np.save(folder / "geometry_centres.npy", np.asarray(self.centres, np.float64))
+        if self.digests is not None:
+            np.save(folder / "geometry_digests.npy", np.asarray(self.digests, np.uint8))
         chunks = {}
         for kind, arr in self.points.items():
             stem = f"geometry_points_{kind}"
@@ -239,10 +257,12 @@ class MapGeometry:
         points = {kind: load_chunked(folder, chunks[kind], mmap=mmap) if kind in chunks
                   else np.load(folder / f"geometry_points_{kind}.npy", mmap_mode=mode)
                   for kind in meta["points"]}
+        digests = folder / "geometry_digests.npy"  # packed before they were kept: none
         return cls(rotations, centres, K, float(meta.get("k1", 0.0)),
                    _float(meta["residual_px"]), _float(meta["gps_rms"]),
                    _float(meta.get("gps_rms_v")), int(meta.get("models", 1)), points,
-                   dict(meta.get("self_check") or {}))
+                   dict(meta.get("self_check") or {}),
+                   np.load(digests) if digests.is_file() else None)
 
     @classmethod
     def _from_plane(cls, folder: Path, meta: dict, rotations: np.ndarray,
@@ -260,6 +280,25 @@ class MapGeometry:
         centres[:, 2] += ground_alt
         return cls(np.asarray(rotations), centres, K, 0.0, _float(meta.get("residual_px")),
                    _float(meta.get("gps_rms")), points=points)
+
+
+def structure_digests(structure) -> np.ndarray:
+    """(N, 16) uint8: what :meth:`MapGeometry.add_points` works each image's keypoints'
+    3-D points out from, hashed: its pose, its reconstructed tie points (by index: an
+    image's tie points never change, its file does not) and their 3-D points, the map's
+    intrinsics and distortion, and the depth rules' settings; zeros for an image without a
+    pose. A :class:`~.models.Structure` is given."""
+    k = structure.intrinsics
+    common = np.array([k.f, k.cx, k.cy, structure.k1, DEPTH_RADIUS_PX, DEPTH_NEIGHBOURS,
+                       FLAT_VIEW, EXACT_PX], np.float64).tobytes()
+    out = np.zeros((len(structure.centres), 16), np.uint8)
+    for i in np.flatnonzero(np.isfinite(np.asarray(structure.centres)[:, 0])):
+        h = hashlib.blake2b(common, digest_size=16)
+        for part in (structure.rotations[i], structure.centres[i], structure.observations[i],
+                     structure.points[i]):
+            h.update(np.ascontiguousarray(part).tobytes())
+        out[i] = np.frombuffer(h.digest(), np.uint8)
+    return out
 
 
 def _plane_depths(xyz: np.ndarray, R: np.ndarray, C: np.ndarray, rays: np.ndarray,
