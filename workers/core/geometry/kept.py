@@ -97,8 +97,9 @@ class KeptModels:
                 shutil.rmtree(path, ignore_errors=True)
 
     def reach(self) -> float | None:
-        """The reach (m) of the map's tie pairs as its first build decided it
-        (:func:`~workers.core.geometry.tie_pairs`); None where none was kept."""
+        """The reach (m) of the map's tie pairs as its builds decided it (the first, or one
+        whose images called for a longer one: :func:`~workers.core.geometry.tie_pairs`);
+        None where none was kept."""
         path = self.folder / REACH_FILE
         return float(json.loads(path.read_text())["reach_m"]) if path.is_file() else None
 

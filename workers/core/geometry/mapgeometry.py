@@ -61,7 +61,9 @@ that tie point, and takes its 3-D point."""
 
 FORMAT = 2
 """Version of the saved geometry: 2 is the structure-from-motion geometry with 3-D points;
-1 (no version) was a ground plane, read as points on it."""
+1 (no version) was a ground plane, read as points on it. A change to how
+:meth:`MapGeometry.add_points` works the points out bumps it too: it is part of every
+image's digest (:func:`structure_digests`), which an update's points are taken up by."""
 
 
 @dataclass
@@ -289,8 +291,8 @@ def structure_digests(structure) -> np.ndarray:
     intrinsics and distortion, and the depth rules' settings; zeros for an image without a
     pose. A :class:`~.models.Structure` is given."""
     k = structure.intrinsics
-    common = np.array([k.f, k.cx, k.cy, structure.k1, DEPTH_RADIUS_PX, DEPTH_NEIGHBOURS,
-                       FLAT_VIEW, EXACT_PX], np.float64).tobytes()
+    common = np.array([FORMAT, k.f, k.cx, k.cy, structure.k1, DEPTH_RADIUS_PX,
+                       DEPTH_NEIGHBOURS, FLAT_VIEW, EXACT_PX], np.float64).tobytes()
     out = np.zeros((len(structure.centres), 16), np.uint8)
     for i in np.flatnonzero(np.isfinite(np.asarray(structure.centres)[:, 0])):
         h = hashlib.blake2b(common, digest_size=16)
