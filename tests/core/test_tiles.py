@@ -271,12 +271,13 @@ def test_a_map_built_again_is_cut_where_it_was():
     assert [t.members.tolist() for t in fresh] != [t.members.tolist() for t in grown]
 
 
-def test_a_core_grown_past_the_limit_is_halved_and_the_others_stay():
+def test_images_grown_past_the_limit_make_tiles_of_their_own_and_the_others_stay():
     xy = _grid(16, 16)
     first = tiling.plan_tiles(xy, 32)
-    # forty images inside the first tile's core, whose 32 make it full: past the slack, it
-    # is cut again, the others stay
+    # forty images inside the first tile's core, whose 32 make it full: past the slack,
+    # they make tiles of their own beside it (its kept model still fits it), the others stay
     assert 32 + 40 > tiling.GROWTH_SLACK * 32 >= 32 + 6
+    assert tiling.NEW_TILE_SHARE * 32 <= 40
     lo, hi = xy[first[0].core].min(axis=0), xy[first[0].core].max(axis=0)
     rng = np.random.default_rng(0)
     added = lo + rng.random((40, 2)) * (hi - lo)
@@ -288,6 +289,31 @@ def test_a_core_grown_past_the_limit_is_halved_and_the_others_stay():
     kept = {tuple(t.members.tolist()) for t in grown}
     assert untouched and all(tuple(t.members.tolist()) in kept for t in untouched)
     assert all(len(t.core) <= 32 for t in grown)
+    # the first tile stays as it was: its kept model is taken up
+    (same,) = [t for t in grown if t.core.tolist() == first[0].core.tolist()]
+    assert same.members.tolist() == first[0].members.tolist()
+    new = set(range(len(xy), len(xy) + 40))
+    assert {i for t in grown for i in t.core.tolist()} >= new
+    assert all(set(t.core.tolist()) <= new for t in grown
+               if not set(t.core.tolist()) & set(range(len(xy))))
+
+
+def test_a_core_grown_past_the_limit_by_a_few_images_is_halved():
+    xy = _grid(16, 16)
+    first = tiling.plan_tiles(xy, 32)
+    lo, hi = xy[first[0].core].min(axis=0), xy[first[0].core].max(axis=0)
+    rng = np.random.default_rng(1)
+    # six images join the full first tile (38, within the slack), then three more: past
+    # it, but too few to reconstruct apart, so the grown core is halved
+    some = lo + rng.random((6, 2)) * (hi - lo)
+    grown = tiling.plan_tiles(np.vstack([xy, some]), 32, previous=first)
+    assert len(grown[0].core) == 38
+    few = lo + rng.random((3, 2)) * (hi - lo)
+    assert tiling.NEW_TILE_SHARE * 32 > 3 and tiling.GROWTH_SLACK * 32 < 41
+    again = tiling.plan_tiles(np.vstack([xy, some, few]), 32, previous=grown)
+    assert len(again) == len(grown) + 1
+    assert all(len(t.core) <= 32 for t in again)
+    assert not any(t.core.tolist() == grown[0].core.tolist() for t in again)
 
 
 def test_kept_tiles_go_by_name_and_leave_deleted_images_out(tmp_path):
