@@ -96,6 +96,13 @@ def test_orb_features_round_trip(tmp_path):
         np.testing.assert_array_equal(back.orb(i).keypoints, orb[i].keypoints)
     # a map packed without ORB loads without it
     assert not MapData.load(base.save(tmp_path / "plain")).has_orb
+    # each set's keypoints and offsets, by the name its geometry's points go by
+    kps, offsets = back.keypoint_set("orb")
+    np.testing.assert_array_equal(offsets, [0, 4, 4, 10])
+    np.testing.assert_array_equal(kps[4:10], orb[2].keypoints)
+    np.testing.assert_array_equal(back.keypoint_set("sift")[1], back.sift_offsets)
+    with pytest.raises(KeyError, match="orb"):
+        base.keypoint_set("orb")
 
 
 def test_reduced_sift_of_one_image_copies_only_that_image(tmp_path):

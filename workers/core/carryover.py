@@ -117,8 +117,7 @@ def known_points(previous: Previous, kind: str, digests: np.ndarray, keypoints: 
     geo = before.geometry
     if geo is None or geo.digests is None or kind not in geo.points:
         return {}
-    old_kp, old_off = ((before.sift_keypoints, before.sift_offsets) if kind == "sift"
-                       else (before.orb_keypoints, before.orb_offsets))
+    old_kp, old_off = before.keypoint_set(kind)
     old_off, old_digests = np.asarray(old_off), np.asarray(geo.digests)
     out = {}
     for i in previous.kept:

@@ -229,9 +229,7 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     geo.digests = structure_digests(structure)
     seen = _Seen(kps, structure)
     for kind in ("sift", "orb") if data.has_orb else ("sift",):
-        keypoints, offsets = (
-            (np.asarray(data.sift_keypoints), np.asarray(data.sift_offsets)) if kind == "sift"
-            else (np.asarray(data.orb_keypoints), np.asarray(data.orb_offsets)))
+        keypoints, offsets = map(np.asarray, data.keypoint_set(kind))
         known = None if previous is None else known_points(previous, kind, geo.digests,
                                                            keypoints, offsets)
         geo.add_points(kind, keypoints, offsets, seen, known=known)

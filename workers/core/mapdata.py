@@ -173,6 +173,15 @@ class MapData:
     def has_orb(self) -> bool:
         return self.orb_offsets is not None
 
+    def keypoint_set(self, kind: str) -> tuple[np.ndarray, np.ndarray]:
+        """The keypoints of local-feature set ``kind`` (``"sift"``, ``"orb"``: the rows the
+        geometry's ``points[kind]`` follow) and their offsets per image."""
+        if kind == "sift":
+            return self.sift_keypoints, self.sift_offsets
+        if kind == "orb" and self.has_orb:
+            return self.orb_keypoints, self.orb_offsets
+        raise KeyError(f"the map holds no {kind!r} keypoints")
+
     def orb(self, i: int) -> OrbFeatures:
         """ORB features of map image ``i`` (the map must have them: :attr:`has_orb`)."""
         a, b = int(self.orb_offsets[i]), int(self.orb_offsets[i + 1])

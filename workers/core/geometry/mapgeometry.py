@@ -294,7 +294,7 @@ def structure_digests(structure) -> np.ndarray:
     common = np.array([FORMAT, k.f, k.cx, k.cy, structure.k1, DEPTH_RADIUS_PX,
                        DEPTH_NEIGHBOURS, FLAT_VIEW, EXACT_PX], np.float64).tobytes()
     out = np.zeros((len(structure.centres), 16), np.uint8)
-    for i in np.flatnonzero(np.isfinite(np.asarray(structure.centres)[:, 0])):
+    for i in np.flatnonzero(structure.placed):
         h = hashlib.blake2b(common, digest_size=16)
         for part in (structure.rotations[i], structure.centres[i], structure.observations[i],
                      structure.points[i]):

@@ -238,10 +238,10 @@ def plan_tiles(positions: np.ndarray, max_size: int, *,
     ``previous`` are the tiles of the map's last build, in today's map indices (images
     since deleted left out): each keeps its core and members, an added image joins the core
     of its nearest kept image (and the members of every tile whose widened core holds it),
-    and only a core grown past :data:`GROWTH_SLACK` times ``max_size`` is cut again: the
-    added images that joined it make tiles of their own (of at most ``max_size``) beside it,
-    which then stays as it was, where they are at least :data:`NEW_TILE_SHARE` of ``max_size``, and otherwise it is
-    halved (to at most ``max_size``). So a tile that no added image
+    and only a core grown past :data:`GROWTH_SLACK` times ``max_size`` is cut again: where
+    the added images that joined it are at least :data:`NEW_TILE_SHARE` of ``max_size``,
+    they make tiles of their own (of at most ``max_size``) beside it, which then stays as it
+    was; otherwise it is halved (to at most ``max_size``). So a tile that no added image
     reached keeps its inputs, and one that some reached keeps every image it had: its kept
     COLMAP model can take them in (:mod:`.kept`)."""
     positions = np.asarray(positions, np.float64)
