@@ -259,12 +259,14 @@ class MapGeometry:
         points = {kind: load_chunked(folder, chunks[kind], mmap=mmap) if kind in chunks
                   else np.load(folder / f"geometry_points_{kind}.npy", mmap_mode=mode)
                   for kind in meta["points"]}
-        digests = folder / "geometry_digests.npy"  # packed before they were kept: none
+        # read by the next build only: mapped, a session's load never touches them (none
+        # for a map packed before they were kept)
+        digests = folder / "geometry_digests.npy"
         return cls(rotations, centres, K, float(meta.get("k1", 0.0)),
                    _float(meta["residual_px"]), _float(meta["gps_rms"]),
                    _float(meta.get("gps_rms_v")), int(meta.get("models", 1)), points,
                    dict(meta.get("self_check") or {}),
-                   np.load(digests) if digests.is_file() else None)
+                   np.load(digests, mmap_mode=mode) if digests.is_file() else None)
 
     @classmethod
     def _from_plane(cls, folder: Path, meta: dict, rotations: np.ndarray,
