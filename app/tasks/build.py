@@ -278,7 +278,8 @@ def _read_features(database_url: str, map_id: str, images: list[dict], ties: lis
 
     Rows are read a batch at a time and their blobs dropped once decoded, so a large map's
     stored features are never held twice."""
-    from vloc.workers.core.mapbuild import ImageFeatures, stage
+    from vloc.workers.core.mapbuild import ImageFeatures
+    from vloc.workers.core.timings import stage
 
     mid = uuid.UUID(map_id)
     with stage(timings, "reading features"), sessions(database_url)() as db:
@@ -354,8 +355,9 @@ def pack_map(database_url: str, map_id: str, revision: int, folder: str, *,
         geometry (:func:`vloc.workers.core.mapbuild.geometry_report`).
     """
     from vloc.workers.core import tiepairs, tiles
-    from vloc.workers.core.mapbuild import assemble_map, stage, typical_focal_px
+    from vloc.workers.core.mapbuild import assemble_map, typical_focal_px
     from vloc.workers.core.tiepoints import TiePointFiles
+    from vloc.workers.core.timings import stage
 
     timings: dict[str, tuple[float, float]] = {}
     report: dict = {}

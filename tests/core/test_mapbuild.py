@@ -27,6 +27,7 @@ from vloc.workers.core.tiepoints import (
     load_tie_points,
     save_tie_points,
 )
+from vloc.workers.core.timings import top_level
 
 ORIGIN = GeoOrigin(41.03, -83.30, 260.0)
 
@@ -94,9 +95,16 @@ def test_assemble_map_reports_the_seconds_of_each_stage():
     timings: dict = {}
     assemble_map(names=data.names, lats=lat, lons=lon, alts=list(s.altitudes), features=feats,
                  origin=ORIGIN, focal_px=F_TRUE, timings=timings)
-    assert set(timings) == {"sift reduction", "vocabularies", "packing", "geometry"}
+    parts = {"geometry: cameras", "geometry: cameras: left-out models",
+             "geometry: 3-D points", "geometry: self-check"}
+    assert set(timings) == {"sift reduction", "vocabularies", "packing", "geometry"} | parts
+    assert set(top_level(timings)) == {"sift reduction", "vocabularies", "packing", "geometry"}
     for wall, cpu in timings.values():
         assert wall >= 0.0 and cpu >= 0.0
+    # the parts are timed inside their stage: they add up to no more than it
+    whole = timings["geometry"][0]
+    assert timings["geometry: cameras: left-out models"][0] <= timings["geometry: cameras"][0]
+    assert sum(timings[p][0] for p in parts - {"geometry: cameras: left-out models"}) <= whole
     timings.clear()
     assemble_map(names=data.names, lats=lat, lons=lon, alts=list(s.altitudes), features=feats,
                  origin=ORIGIN, focal_px=F_TRUE, geometry=False, timings=timings)

@@ -10,9 +10,7 @@ map's images (:mod:`workers.core.carryover`).
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +28,7 @@ from .mapdata import MapData
 from .mapdescriptors import place_codes, train_descriptors
 from .sift import RATIO, SiftFeatures, extract_sift, reduction_masks
 from .tiepoints import TiePointFiles
+from .timings import Timings, stage
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,7 +68,7 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
                  descriptors: tuple[str, ...] = DESCRIPTOR_NAMES, seed: int = 0,
                  known_pairs: dict | None = None, known_tiles: dict | None = None,
                  kept=None, previous: Previous | None = None,
-                 timings: dict[str, tuple[float, float]] | None = None,
+                 timings: Timings | None = None,
                  report: dict | None = None,
                  on_stage: Callable[[str], None] | None = None) -> MapData:
     """Pack per-image features into a :class:`MapData`.
@@ -116,7 +115,8 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
     timings : dict, optional
         Filled with (wall, CPU) seconds of each stage: ``"sift reduction"``,
         ``"vocabularies"`` (training and describing every image), ``"packing"``,
-        ``"shortlist codes"`` (maps of more than ``CODES_FROM`` images) and ``"geometry"``.
+        ``"shortlist codes"`` (maps of more than ``CODES_FROM`` images) and ``"geometry"``,
+        with its parts (:func:`map_geometry`).
     report : dict, optional
         Filled with what became of the geometry (:func:`geometry_report`).
     on_stage : callable, optional
@@ -173,26 +173,16 @@ def assemble_map(*, names, lats, lons, alts, features: list[ImageFeatures],
         with stage(timings, "geometry"):
             data.geometry = map_geometry(data, focal_px=focal_px, seed=seed, tie_points=ties,
                                          known_pairs=known_pairs, known_tiles=known_tiles,
-                                         kept=kept, previous=previous, report=report)
+                                         kept=kept, previous=previous, report=report,
+                                         timings=timings)
     return data
-
-
-@contextmanager
-def stage(timings: dict[str, tuple[float, float]], name: str) -> Iterator[None]:
-    """Add the block's (wall, CPU) seconds to ``timings[name]``; CPU is this process's."""
-    wall, cpu = time.perf_counter(), time.process_time()
-    try:
-        yield
-    finally:
-        before = timings.get(name, (0.0, 0.0))
-        timings[name] = (before[0] + time.perf_counter() - wall,
-                         before[1] + time.process_time() - cpu)
 
 
 def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
                  tie_points: list[SiftFeatures | TiePointFiles | None] | None = None,
                  known_pairs: dict | None = None, known_tiles: dict | None = None,
-                 kept=None, previous: Previous | None = None, report: dict | None = None):
+                 kept=None, previous: Previous | None = None, report: dict | None = None,
+                 timings: Timings | None = None):
     """The map's camera geometry with every stored SIFT (and ORB) keypoint's 3-D point,
     checked by localising the map's own images (:func:`workers.core.selfcheck.self_check`),
     or None.
@@ -204,7 +194,10 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     update packs from), an image whose structure is that revision's keeps its keypoints'
     3-D points (:func:`~workers.core.carryover.known_points`): a large map's tiles that no
     added image reached are not worked through again. ``report`` is filled with what became
-    of the geometry (:func:`geometry_report`).
+    of the geometry (:func:`geometry_report`). ``timings`` receives the parts' (wall, CPU)
+    seconds (:mod:`.timings`): ``"geometry: cameras"`` (the pairs and tiles taken up, what
+    is left reconstructed, the models merged), of which ``"geometry: cameras: left-out
+    models"``, then ``"geometry: 3-D points"`` and ``"geometry: self-check"``.
     """
     from .selfcheck import self_check
 
@@ -216,24 +209,28 @@ def map_geometry(data: MapData, *, focal_px: float | None = None, seed: int = 0,
     # read image by image as pairs are matched: tie points on disk stay closed until then
     kps, desc = _Field(ties, "keypoints"), _Field(ties, "descriptors")
     report = {} if report is None else report
-    built = build_geometry(kps, desc, np.asarray(data.positions), np.asarray(data.altitudes),
-                           focal_px, seed=seed, known_pairs=known_pairs,
-                           known_tiles=known_tiles, times=data.captured_at,
-                           flights=data.flights, kept=kept)
+    with stage(timings, "geometry: cameras"):
+        built = build_geometry(kps, desc, np.asarray(data.positions),
+                               np.asarray(data.altitudes), focal_px, seed=seed,
+                               known_pairs=known_pairs, known_tiles=known_tiles,
+                               times=data.captured_at, flights=data.flights, kept=kept,
+                               timings=timings)
     if built is None:
         report.update(status="none", images=n,
                       reason="structure from motion placed too few cameras consistently "
                              "with their GPS")
         return None
     geo, structure = built
-    geo.digests = structure_digests(structure)
-    seen = _Seen(kps, structure)
-    for kind in ("sift", "orb") if data.has_orb else ("sift",):
-        keypoints, offsets = map(np.asarray, data.keypoint_set(kind))
-        known = None if previous is None else known_points(previous, kind, geo.digests,
-                                                           keypoints, offsets)
-        geo.add_points(kind, keypoints, offsets, seen, known=known)
-    checked = self_check(data, geo, seed=seed)
+    with stage(timings, "geometry: 3-D points"):
+        geo.digests = structure_digests(structure)
+        seen = _Seen(kps, structure)
+        for kind in ("sift", "orb") if data.has_orb else ("sift",):
+            keypoints, offsets = map(np.asarray, data.keypoint_set(kind))
+            known = None if previous is None else known_points(previous, kind, geo.digests,
+                                                               keypoints, offsets)
+            geo.add_points(kind, keypoints, offsets, seen, known=known)
+    with stage(timings, "geometry: self-check"):
+        checked = self_check(data, geo, seed=seed)
     report.update(geometry_report(geo, n))
     if checked is None:
         report["reason"] = ("the map localises its own images no better than their nearest "

@@ -16,10 +16,16 @@ from tests.core.geometry.scene import (
     street,
     survey,
 )
-from vloc.workers.core.geometry import sfm
+from vloc.workers.core.geometry import sfm, tiling
 from vloc.workers.core.geometry.models import COLMAP_SCALE, tags
+from vloc.workers.core.geometry.pairs import PairMatches
 from vloc.workers.core.geometry.sfm import to_colmap_pixels
-from vloc.workers.core.geometry.tiling import left_out_models, reconstruct, tile_models
+from vloc.workers.core.geometry.tiling import (
+    left_out_models,
+    reconstruct,
+    tied_groups,
+    tile_models,
+)
 
 
 def _point_errors(s: Survey, st) -> np.ndarray:
@@ -222,6 +228,57 @@ def test_reconstruct_places_images_the_alignment_left_out_as_a_model_of_their_ow
     np.testing.assert_allclose(st.centres[away, :2], gps[away], atol=0.05)
     shifted = [st.points[i] - s.truth(i, st.observations[i]) for i in np.flatnonzero(away)]
     assert np.abs(np.concatenate(shifted) - [200.0, 0.0, 0.0]).max() < 0.1
+
+
+def _pairs(*edges):
+    return [PairMatches(a, b, np.zeros((15, 2), np.int64), 3) for a, b in edges]
+
+
+def test_tied_groups_are_the_pair_graphs_components_among_the_images_asked():
+    pairs = _pairs((0, 1), (1, 2), (2, 9), (3, 4), (5, 6), (6, 7), (7, 5), (8, 9), (4, 10))
+    among = np.ones(11, bool)
+    among[9] = False  # placed: its pairs tie nothing here, so 8 stands alone
+    groups = tied_groups(pairs, among)
+    assert [g.tolist() for g in groups] == [[0, 1, 2], [3, 4, 10], [5, 6, 7]]
+    assert [g.tolist() for g in tied_groups(pairs, among, least=2)] == [
+        [0, 1, 2], [3, 4, 10], [5, 6, 7]]
+    assert [g.tolist() for g in tied_groups(pairs, np.ones(11, bool))] == [
+        [0, 1, 2, 8, 9], [3, 4, 10], [5, 6, 7]]
+    assert tied_groups(pairs, np.zeros(11, bool)) == []
+
+
+def test_left_out_images_are_reconstructed_group_by_group_and_a_known_group_is_taken_up(
+        monkeypatch):
+    """Two groups of images that no tile placed, far apart: each is a reconstruction of its
+    own with its own key, so that a build that finds one of them reconstructed already (an
+    update that changed only the other) reconstructs only the other."""
+    s = survey(np.random.default_rng(11), rows=2, cols=6)
+    gps = tags(s.positions, s.altitudes)
+    west, east = [0, 1, 10, 11], [4, 5, 6, 7]
+    pairs = [p for p in exact_pairs(s)
+             if {p.a, p.b} <= set(west) or {p.a, p.b} <= set(east)]
+    assert [g.tolist() for g in tied_groups(pairs, np.ones(12, bool))] == [west, east]
+    ran = []
+    real = tiling.tile_models
+
+    def spy(keypoints, pairs, gps, focal_px, inside, **kw):
+        ran.append(sorted(np.asarray(inside).tolist()))
+        return real(keypoints, pairs, gps, focal_px, inside, **kw)
+
+    monkeypatch.setattr(tiling, "tile_models", spy)
+    keys: list[str] = []
+    models = left_out_models(s.keypoints, pairs, gps, F_TRUE, [], keys=keys)
+    assert ran == [west, east] and len(keys) == 2 and keys[0] != keys[1]
+    by_group = {tuple(sorted(m.images.tolist())): m for m in models}
+    assert set(by_group) == {tuple(west), tuple(east)}
+    for m in by_group.values():
+        np.testing.assert_allclose(m.centres, s.centres[m.images], atol=0.05)
+    # the west group known (reconstructed before, its inputs the same): only the east runs
+    ran.clear()
+    again = left_out_models(s.keypoints, pairs, gps, F_TRUE, [],
+                            known_tiles={keys[0]: [by_group[tuple(west)]]})
+    assert ran == [east]
+    assert sorted(tuple(sorted(m.images.tolist())) for m in again) == [tuple(west), tuple(east)]
 
 
 def test_left_out_models_need_three_tied_images_none_of_the_models_place():

@@ -20,6 +20,7 @@ from threadpoolctl import threadpool_limits
 
 from ..flights import flight_spacing
 from ..image import WORK_SIZE
+from ..timings import Timings
 from .camera import Intrinsics, focal_from_exif, focal_from_fov
 from .kept import KeptModels
 from .mapgeometry import MapGeometry
@@ -86,8 +87,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
                    seed: int = 0,
                    known_pairs: dict[tuple[int, int], PairMatches | None] | None = None,
                    known_tiles: dict | None = None, times: np.ndarray | None = None,
-                   flights=None,
-                   kept: KeptModels | None = None) -> tuple[MapGeometry, Structure] | None:
+                   flights=None, kept: KeptModels | None = None,
+                   timings: Timings | None = None) -> tuple[MapGeometry, Structure] | None:
     """Reconstruct the map's cameras and 3-D points, or None where that fails.
 
     Parameters
@@ -117,6 +118,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
         COLMAP's models kept from the map's last build (:mod:`.kept`): images added since
         are registered into them; this build's are kept there in their place. The tie
         pairs are planned at the reach kept there (:func:`tie_pairs`).
+    timings : dict, optional
+        Receives the left-out models' seconds (:func:`.tiling.reconstruct`).
 
     Returns
     -------
@@ -133,7 +136,8 @@ def build_geometry(keypoints: Sequence[np.ndarray], descriptors: Sequence[np.nda
                             tie_pairs(positions, times, flights, kept=kept), seed=seed,
                             known=known_pairs)
         structure = reconstruct(keypoints, pairs, positions, altitudes, focal_px, seed=seed,
-                                times=times, known_tiles=known_tiles, kept=kept)
+                                times=times, known_tiles=known_tiles, kept=kept,
+                                timings=timings)
     if structure is None:
         return None
     if (structure.placed.mean() < MIN_PLACED or structure.residual_px > MAX_RESIDUAL_PX

@@ -18,8 +18,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from ..timings import Timings, stage
 from .kept import KeptModels
 from .models import Structure, TileModel, structure_of, tags
 from .pairs import PairMatches
@@ -38,7 +41,6 @@ GROWTH_SLACK: float = 1.25
 core more than this many times :data:`MAX_TILE` (:func:`plan_tiles`): a map cut into full
 tiles can grow without moving their edges."""
 
-
 NEW_TILE_SHARE: float = 0.125
 """Images added to a kept tile whose core they grow past :data:`GROWTH_SLACK` times the
 limit make a tile of their own where they are at least this share of the limit
@@ -46,12 +48,18 @@ limit make a tile of their own where they are at least this share of the limit
 reconstructed in two halves of the grown core from scratch, 262 s of the update's tiles;
 fewer are too few to reconstruct apart."""
 
+MIN_GROUP: int = 3
+"""Fewest images left out of every tile's models that are reconstructed on their own
+(:func:`left_out_models`): the mapper's smallest model (:mod:`.sfm`), and the fewest a
+model can be aligned to its GPS with."""
+
 
 def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
                 positions: np.ndarray, altitudes: np.ndarray, focal_px: float | None, *,
                 seed: int = 0, times: np.ndarray | None = None,
                 known_tiles: dict[str, list[TileModel] | None] | None = None,
-                kept: KeptModels | None = None) -> Structure | None:
+                kept: KeptModels | None = None,
+                timings: Timings | None = None) -> Structure | None:
     """The map's cameras and 3-D points from its tie points and verified pairs.
 
     A map of more than :data:`MAX_TILE` images is reconstructed tile by tile
@@ -82,6 +90,9 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
         The models and tiles kept from the map's last build (:mod:`.kept`): the map is cut
         where it was (:func:`plan_tiles`), and a tile whose inputs changed grows from a kept
         model where it can; afterwards the store holds this build's.
+    timings : dict, optional
+        Receives the seconds of the left-out images' models (:func:`left_out_models`) as
+        ``"geometry: cameras: left-out models"`` (:mod:`..timings`).
 
     Returns
     -------
@@ -113,8 +124,9 @@ def reconstruct(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
             kept.keep_only(keys)
         return None
     placed = _by_centrality(found, positions) if len(tiles) > 1 else [m for _, m in found]
-    placed += left_out_models(keypoints, pairs, gps, focal_px, placed, seed=seed,
-                              known_tiles=known_tiles, kept=kept, keys=keys)
+    with stage(timings, "geometry: cameras: left-out models"):
+        placed += left_out_models(keypoints, pairs, gps, focal_px, placed, seed=seed,
+                                  known_tiles=known_tiles, kept=kept, keys=keys)
     if kept is not None:
         kept.keep_only(keys)
     return structure_of(placed, len(positions), gps)
@@ -135,26 +147,51 @@ def left_out_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     them far from where they are (seneca-uav's IMG_0451-0456, 30 to 200 m off, dropped by
     the alignment). Reconstructed apart from the rest, the five that tie to one another make
     a model of their own that lies within 2.5 m of their GPS, and the frames over that turn
-    register instead of falling back on a position between map images. ``keypoints``,
-    ``pairs`` and ``gps`` (:func:`tags`) are the whole map's; ``known_tiles`` and ``kept``
-    as in :func:`reconstruct`; the key of the models' inputs is added to ``keys``.
+    register instead of falling back on a position between map images.
+
+    The images left out are reconstructed group by group (:func:`tied_groups`): each group
+    of at least three that their pairs tie together is a reconstruction of its own, as
+    COLMAP would model it, its inputs keyed apart (:func:`tile_key`). A large map leaves
+    images out here and there across its tiles; an update that adds images in one corner
+    then reconstructs the groups there and takes up the others' kept models, where one
+    run over all of them would have to start again whenever any of them changed.
+    ``keypoints``, ``pairs`` and ``gps`` (:func:`tags`) are the whole map's; ``known_tiles``
+    and ``kept`` as in :func:`reconstruct`; the keys of the groups' inputs are added to
+    ``keys``.
     """
     placed = np.zeros(len(gps), bool)
-    tied = np.zeros(len(gps), bool)
     for m in models:
         placed[m.images] = True
-    for p in pairs:
-        tied[[p.a, p.b]] = True
-    left = np.flatnonzero(tied & ~placed)
-    if len(left) < 3:
+    found: list[TileModel] = []
+    for group in tied_groups(pairs, ~placed):
+        key = tile_key(group, pairs, gps, focal_px, seed)
+        if keys is not None:
+            keys.append(key)
+        if known_tiles is not None and key in known_tiles:
+            found += list(known_tiles[key] or [])
+        else:
+            found += tile_models(keypoints, pairs, gps, focal_px, group, seed=seed, key=key,
+                                 kept=kept) or []
+    return found
+
+
+def tied_groups(pairs: list[PairMatches], among: np.ndarray, *,
+                least: int = MIN_GROUP) -> list[np.ndarray]:
+    """The groups of images ``among`` (a boolean mask over the map) that their pairs with
+    one another tie together (connected components of the pair graph), of at least
+    ``least`` images each (map indices, ascending), ordered by their first image."""
+    among = np.asarray(among, bool)
+    inner = [(p.a, p.b) for p in pairs if among[p.a] and among[p.b]]
+    if not inner:
         return []
-    key = tile_key(left, pairs, gps, focal_px, seed)
-    if keys is not None:
-        keys.append(key)
-    if known_tiles is not None and key in known_tiles:
-        return list(known_tiles[key] or [])
-    return tile_models(keypoints, pairs, gps, focal_px, left, seed=seed, key=key,
-                       kept=kept) or []
+    ends = np.array(inner, np.int64)
+    n = len(among)
+    graph = coo_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    tied = np.zeros(n, bool)
+    tied[ends.ravel()] = True
+    groups = [np.flatnonzero(tied & (label == k)) for k in np.unique(label[tied])]
+    return sorted((g for g in groups if len(g) >= least), key=lambda g: int(g[0]))
 
 
 def tile_pairs(pairs: list[PairMatches], inside: np.ndarray) -> list[PairMatches]:
