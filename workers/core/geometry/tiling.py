@@ -162,15 +162,18 @@ def left_out_models(keypoints: Sequence[np.ndarray], pairs: list[PairMatches],
     placed = np.zeros(len(gps), bool)
     for m in models:
         placed[m.images] = True
+    # a group's pairs are among these: each group's key and reconstruction look through
+    # them, not through every pair of the map
+    inner = [p for p in pairs if not (placed[p.a] or placed[p.b])]
     found: list[TileModel] = []
-    for group in tied_groups(pairs, ~placed):
-        key = tile_key(group, pairs, gps, focal_px, seed)
+    for group in tied_groups(inner, ~placed):
+        key = tile_key(group, inner, gps, focal_px, seed)
         if keys is not None:
             keys.append(key)
         if known_tiles is not None and key in known_tiles:
             found += list(known_tiles[key] or [])
         else:
-            found += tile_models(keypoints, pairs, gps, focal_px, group, seed=seed, key=key,
+            found += tile_models(keypoints, inner, gps, focal_px, group, seed=seed, key=key,
                                  kept=kept) or []
     return found
 
