@@ -14,7 +14,11 @@ The maps: seneca-uav pass 1 and lewis-uav's alternate split, as ``vloc eval`` bu
     OMP_NUM_THREADS=1 .venv/bin/python bench/bench_tie_ransac.py [--variants 2000,2000c,500]
                                                                  [--out bench/results/tie_ransac.md]
 
-A variant is a budget, capped where it ends in ``c``; the first is the reference.
+A variant is a budget, capped where it ends in ``c``; the first is the reference. The
+variant ``usac`` is not COLMAP's: OpenCV's USAC (MAGSAC++) estimates the fundamental
+matrix and the homography (2,000 iterations at most, 4 px, 0.999), and COLMAP's rule for an
+uncalibrated pair reads them (:func:`usac_verify`), to see what a faster verification would
+cost and change.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 from _common import DATASETS, RESULTS, machine_and_python, repo_on_path, write_result
 from threadpoolctl import threadpool_limits
@@ -33,6 +38,7 @@ repo_on_path()
 from vloc.workers.core import tiepairs  # noqa: E402
 from vloc.workers.core.evaluation.datasets import load_dataset, split  # noqa: E402
 from vloc.workers.core.geometry import pairs  # noqa: E402
+from vloc.workers.core.geometry.sfm import to_colmap_pixels  # noqa: E402
 from vloc.workers.core.sift import ratio_matches  # noqa: E402
 from vloc.workers.core.tiepoints import extract_tie_points  # noqa: E402
 
@@ -52,6 +58,29 @@ def verify(m: np.ndarray, ka, kb, a: int, b: int, variant: str,
     return time.thread_time() - t0, None if found is None else found.matches
 
 
+def usac_verify(m: np.ndarray, ka, kb, *, min_inliers: int = 15,
+                max_h_ratio: float = 0.8) -> tuple[float, np.ndarray | None]:
+    """CPU seconds and inlier matches (None where the pair does not verify) of OpenCV's
+    USAC (MAGSAC++) fundamental matrix and homography, read by COLMAP's rule for an
+    uncalibrated pair: no pair where neither holds ``min_inliers``; the homography's
+    inliers where it holds more than ``max_h_ratio`` of the fundamental matrix's and at
+    least as many (planar or panoramic), else the fundamental matrix's. No watermark
+    test."""
+    t0 = time.thread_time()
+    p1 = to_colmap_pixels(np.asarray(ka))[m[:, 0]].astype(np.float64)
+    p2 = to_colmap_pixels(np.asarray(kb))[m[:, 1]].astype(np.float64)
+    _, f_mask = cv2.findFundamentalMat(p1, p2, cv2.USAC_MAGSAC, 4.0, 0.999, 2000)
+    _, h_mask = cv2.findHomography(p1, p2, cv2.USAC_MAGSAC, 4.0, maxIters=2000,
+                                   confidence=0.999)
+    nf = 0 if f_mask is None else int(f_mask.sum())
+    nh = 0 if h_mask is None else int(h_mask.sum())
+    seconds = time.thread_time() - t0
+    if max(nf, nh) < min_inliers:
+        return seconds, None
+    mask = h_mask if nh > max_h_ratio * nf and nh >= nf else f_mask
+    return seconds, m[np.flatnonzero(mask.ravel())]
+
+
 def measure(name: str, folder: Path, rule: dict, variants: list[str]) -> dict:
     ds = load_dataset(folder)
     images, _ = split(ds, **rule)
@@ -62,6 +91,7 @@ def measure(name: str, folder: Path, rule: dict, variants: list[str]) -> dict:
     seconds = {v: 0.0 for v in variants}
     inliers = {v: np.zeros(len(planned), np.int64) for v in variants}
     same = {v: 0 for v in variants}
+    overlap: dict[str, list[float]] = {v: [] for v in variants}
     ratio_s, tried = 0.0, 0
     for k, (a, b) in enumerate(planned):
         t0 = time.thread_time()
@@ -72,26 +102,37 @@ def measure(name: str, folder: Path, rule: dict, variants: list[str]) -> dict:
         tried += 1
         found = {}
         for v in variants:
-            s, found[v] = verify(m, ties[a].keypoints, ties[b].keypoints, a, b, v)
+            if v == "usac":
+                s, found[v] = usac_verify(m, ties[a].keypoints, ties[b].keypoints)
+            else:
+                s, found[v] = verify(m, ties[a].keypoints, ties[b].keypoints, a, b, v)
             seconds[v] += s
             inliers[v][k] = 0 if found[v] is None else len(found[v])
         ref = found[variants[0]]
         for v in variants:
             same[v] += (ref is None and found[v] is None) or (
                 ref is not None and found[v] is not None and np.array_equal(ref, found[v]))
+            if ref is not None and found[v] is not None:
+                a_set, b_set = (set(map(tuple, x.tolist())) for x in (ref, found[v]))
+                overlap[v].append(len(a_set & b_set) / len(a_set | b_set))
     return {"name": name, "images": len(images), "pairs": len(planned), "tried": tried,
-            "ratio_s": ratio_s, "seconds": seconds, "inliers": inliers, "same": same}
+            "ratio_s": ratio_s, "seconds": seconds, "inliers": inliers, "same": same,
+            "overlap": {v: float(np.median(o)) if o else float("nan")
+                        for v, o in overlap.items()}}
 
 
 def label(variant: str) -> str:
+    if variant == "usac":
+        return "OpenCV USAC (MAGSAC++)"
     return f"{variant.rstrip('c')}, capped" if variant.endswith("c") else variant
 
 
 def table(rows: list[dict], variants: list[str]) -> str:
     ref = variants[0]
     out = ["| map | pairs (RANSAC run) | trials | RANSAC CPU s | against the first | verified "
-           "pairs | lost / gained | pairs as the first's | tie points | ratio test CPU s |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+           "pairs | lost / gained | pairs as the first's | inlier overlap with the first's | tie "
+           "points | ratio test CPU s |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         base = r["inliers"][ref] > 0
         for v in variants:
@@ -100,7 +141,8 @@ def table(rows: list[dict], variants: list[str]) -> str:
                 f"| {r['name']} ({r['images']} images) | {r['pairs']} ({r['tried']}) "
                 f"| {label(v)} | {r['seconds'][v]:.1f} | {r['seconds'][v] / r['seconds'][ref]:.2f} "
                 f"| {int(ok.sum())} | {int((base & ~ok).sum())} / {int((~base & ok).sum())} "
-                f"| {r['same'][v]} of {r['tried']} | {int(r['inliers'][v].sum()):,} "
+                f"| {r['same'][v]} of {r['tried']} | {r['overlap'][v]:.2f} "
+                f"| {int(r['inliers'][v].sum()):,} "
                 f"| {r['ratio_s']:.1f} |")
     return "\n".join(out)
 
@@ -129,7 +171,9 @@ def main() -> None:
             f"{pairs.TIE_RANSAC_TRIALS} trials, capped by the inlier ratio a pair could verify "
             f"with (`pairs.ransac_floor`). Lost / gained: pairs that verify with "
             f"{label(variants[0])} trials and not with these, and the reverse; as the first's: "
-            f"pairs whose result (not verified, or every inlier match) is the first's.\n\n"
+            f"pairs whose result (not verified, or every inlier match) is the first's; "
+            f"inlier overlap: the median over the pairs both verify of the inlier matches "
+            f"they share, of those either keeps.\n\n"
             + table(rows, variants) + "\n")
     write_result(args.out, text, echo=False, announce=True)
 
