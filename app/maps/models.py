@@ -95,8 +95,9 @@ class MapImage(Base):
     map_id: Mapped[uuid.UUID] = mapped_column(
         ForeignKey("maps.id", ondelete="CASCADE"), index=True)
     filename: Mapped[str] = mapped_column(String(255))
-    file_hash: Mapped[str] = mapped_column(String(64))
-    """SHA-256 of the file, hex; also the file's name on disk."""
+    file_hash: Mapped[str] = mapped_column(String(64), index=True)
+    """SHA-256 of the file, hex; also the file's name on disk. Indexed on its own: a build
+    finds other maps' images of the same file by it (``BuildRunner._tie_donors``)."""
     content_type: Mapped[str] = mapped_column(String(32))
     byte_size: Mapped[int] = mapped_column(BigInteger)
     width: Mapped[int] = mapped_column(Integer)

@@ -29,6 +29,7 @@ TABLES_AT["0010"] = TABLES_AT["0009"] | {"map_revisions"}
 TABLES_AT["0011"] = TABLES_AT["0010"]
 TABLES_AT["0012"] = TABLES_AT["0011"]
 TABLES_AT["0013"] = TABLES_AT["0012"]
+TABLES_AT["0014"] = TABLES_AT["0013"]
 
 
 def _tables(engine) -> set[str]:
@@ -39,8 +40,8 @@ def test_upgrade_to_head_matches_the_models(database_url):
     engine = make_engine(database_url)
     try:
         migrate.upgrade(engine)
-        assert migrate.current_revision(engine) == migrate.head_revision() == "0013"
-        assert _tables(engine) == TABLES_AT["0013"]
+        assert migrate.current_revision(engine) == migrate.head_revision() == "0014"
+        assert _tables(engine) == TABLES_AT["0014"]
         with engine.connect() as conn:
             diff = compare_metadata(MigrationContext.configure(
                 conn, opts={"compare_type": True}), Base.metadata)
@@ -295,5 +296,48 @@ def test_0013_says_earlier_build_jobs_were_not_full_and_keeps_them(database_url)
         assert "full" not in {c["name"] for c in inspect(engine).get_columns("build_jobs")}
         with engine.connect() as conn:
             assert conn.execute(text("SELECT revision FROM build_jobs")).all() == [(1,)]
+    finally:
+        engine.dispose()
+
+
+def test_0014_indexes_the_file_hash_that_finds_other_maps_images_of_a_file(database_url):
+    """The index a build's search for other maps' images of its files runs on
+    (``same_files_elsewhere``): SQLite looks each image up by it rather than scanning every
+    image of the database for each; it goes with a downgrade, the images staying."""
+    import uuid
+    from datetime import UTC, datetime
+
+    from sqlalchemy import text
+
+    from vloc.app.jobs.service import same_files_elsewhere
+
+    engine = make_engine(database_url)
+    mid = uuid.uuid4()
+    sqlite = engine.dialect.name == "sqlite"
+    keys = {"id": mid.hex if sqlite else mid, "now": datetime.now(UTC)}
+    try:
+        migrate.upgrade(engine, "0013")
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                              "VALUES (:id, 'm', 'ready', 1, :now)"), keys)
+            conn.execute(text(
+                "INSERT INTO map_images (map_id, filename, file_hash, content_type, byte_size, "
+                "width, height, lat, lon, position_source, created_at) VALUES (:id, 'a.jpg', "
+                "'ab', 'image/jpeg', 10, 4, 3, 41.0, -83.0, 'exif', :now)"), keys)
+        migrate.upgrade(engine)
+        assert "ix_map_images_file_hash" in {
+            i["name"] for i in inspect(engine).get_indexes("map_images")}
+        if sqlite:
+            query = same_files_elsewhere(mid).compile(
+                engine, compile_kwargs={"literal_binds": True})
+            with engine.connect() as conn:
+                plan = " ".join(str(row[-1]) for row in conn.execute(
+                    text(f"EXPLAIN QUERY PLAN {query}")))
+            assert "USING INDEX ix_map_images_file_hash" in plan, plan
+        migrate.downgrade(engine, "0013")
+        assert "ix_map_images_file_hash" not in {
+            i["name"] for i in inspect(engine).get_indexes("map_images")}
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT filename FROM map_images")).all() == [("a.jpg",)]
     finally:
         engine.dispose()
