@@ -234,6 +234,21 @@ def test_0011_keeps_earlier_sessions_on_their_revision_and_their_poses(database_
         engine.dispose()
 
 
+def _a_map_with_one_image(engine, map_key, now) -> None:
+    """Store an unbuilt map with one image, 'a.jpg', as the tables have had them since 0001
+    (``map_key``: the map's id as the dialect stores it)."""
+    from sqlalchemy import text
+
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
+                          "VALUES (:id, 'm', 'unbuilt', 0, :now)"), {"id": map_key, "now": now})
+        conn.execute(text(
+            "INSERT INTO map_images (map_id, filename, file_hash, content_type, byte_size, "
+            "width, height, lat, lon, position_source, created_at) VALUES (:id, 'a.jpg', "
+            "'ab', 'image/jpeg', 10, 4, 3, 41.0, -83.0, 'exif', :now)"),
+            {"id": map_key, "now": now})
+
+
 def test_0012_gives_map_images_a_flight_and_keeps_every_image(database_url):
     """Images stored at 0011 survive 0012 both ways (no table rebuilt, so no cascade to
     their features), with no flight named: grouped by capture time, as before."""
@@ -248,14 +263,7 @@ def test_0012_gives_map_images_a_flight_and_keeps_every_image(database_url):
     key = mid.hex if engine.dialect.name == "sqlite" else mid
     try:
         migrate.upgrade(engine, "0011")
-        with engine.begin() as conn:
-            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
-                              "VALUES (:id, 'm', 'unbuilt', 0, :now)"), {"id": key, "now": now})
-            conn.execute(text(
-                "INSERT INTO map_images (map_id, filename, file_hash, content_type, byte_size, "
-                "width, height, lat, lon, position_source, created_at) VALUES (:id, 'a.jpg', "
-                "'ab', 'image/jpeg', 10, 4, 3, 41.0, -83.0, 'exif', :now)"),
-                {"id": key, "now": now})
+        _a_map_with_one_image(engine, key, now)
         migrate.upgrade(engine)
         with engine.connect() as conn:
             assert conn.execute(text("SELECT filename, flight FROM map_images")).all() == \
@@ -314,16 +322,9 @@ def test_0014_indexes_the_file_hash_that_finds_other_maps_images_of_a_file(datab
     engine = make_engine(database_url)
     mid = uuid.uuid4()
     sqlite = engine.dialect.name == "sqlite"
-    keys = {"id": mid.hex if sqlite else mid, "now": datetime.now(UTC)}
     try:
         migrate.upgrade(engine, "0013")
-        with engine.begin() as conn:
-            conn.execute(text("INSERT INTO maps (id, name, status, revision, created_at) "
-                              "VALUES (:id, 'm', 'ready', 1, :now)"), keys)
-            conn.execute(text(
-                "INSERT INTO map_images (map_id, filename, file_hash, content_type, byte_size, "
-                "width, height, lat, lon, position_source, created_at) VALUES (:id, 'a.jpg', "
-                "'ab', 'image/jpeg', 10, 4, 3, 41.0, -83.0, 'exif', :now)"), keys)
+        _a_map_with_one_image(engine, mid.hex if sqlite else mid, datetime.now(UTC))
         migrate.upgrade(engine)
         assert "ix_map_images_file_hash" in {
             i["name"] for i in inspect(engine).get_indexes("map_images")}
